@@ -1,0 +1,78 @@
+"""Attitude estimators: every estimator of the source papers behind one API.
+
+>>> from ahrs_service import estimators
+>>> estimators.names()                                   # doctest: +SKIP
+>>> q = estimators.run("madgwick", gyr, acc, mag, rate_hz=285.7, beta=0.1)  # doctest: +SKIP
+
+``run`` returns an (N, 4) array of q_earth←body [w, x, y, z] (earth NED, body FRD), one row
+per sample. Inputs are (N, 3) arrays in the sensor's own axes: gyroscope rad/s, specific
+force m/s², magnetic field µT. For one sample at a time use ``create(name, **params)`` and
+its ``update`` method: the same compiled step serves both paths.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+import numpy as np
+
+from ahrs_service.estimators.base import Estimator, stack_rows, time_steps
+
+# name -> (module, class). Order: first paper, second paper, third paper, then the project's own.
+_REGISTRY: dict[str, tuple[str, str]] = {
+    "complementary_reduced": ("complementary", "ComplementaryReduced"),
+    "complementary_full": ("complementary", "ComplementaryFull"),
+    "triad": ("triad", "Triad"),
+    "quest": ("quest", "Quest"),
+    "kalman_roll_pitch": ("kalman_roll_pitch", "KalmanRollPitch"),
+    "quaternion_kf": ("quaternion_kf", "QuaternionKF"),
+    "mahony_direct": ("mahony", "MahonyDirect"),
+    "mahony_passive": ("mahony", "MahonyPassive"),
+    "immersion_invariance": ("immersion_invariance", "ImmersionInvariance"),
+    "ekf": ("ekf", "QuaternionEKF"),
+    "madgwick": ("madgwick", "Madgwick"),
+    "valenti": ("valenti", "Valenti"),
+}
+
+
+def names() -> list[str]:
+    """Names of all estimators available, in the order of the source papers."""
+    return list(_REGISTRY)
+
+
+def get(name: str) -> type[Estimator]:
+    """The estimator class registered under ``name``."""
+    try:
+        module, cls = _REGISTRY[name]
+    except KeyError:
+        raise ValueError(f"unknown estimator {name!r}; available: {', '.join(names())}") from None
+    return getattr(importlib.import_module(f"{__name__}.{module}"), cls)
+
+
+def create(name: str, **params: float) -> Estimator:
+    """A fresh estimator instance; unknown parameter names raise ValueError."""
+    return get(name)(**params)
+
+
+def run(
+    name: str,
+    gyr: Any,
+    acc: Any,
+    mag: Any = None,
+    *,
+    rate_hz: float | None = None,
+    timestamps: Any = None,
+    **params: float,
+) -> np.ndarray:
+    """Runs estimator ``name`` over a recording and returns (N, 4) q_earth←body (NED).
+
+    gyr rad/s, acc m/s² (specific force), mag µT or None, each (N, 3) in the sensor's axes.
+    Time steps come from ``timestamps`` (s) when given, else from ``rate_hz``.
+    """
+    est = create(name, **params)
+    n = np.shape(gyr)[0]
+    return est.run(gyr, acc, mag, dt=time_steps(n, rate_hz, timestamps))
+
+
+__all__ = ["Estimator", "create", "get", "names", "run", "stack_rows", "time_steps"]

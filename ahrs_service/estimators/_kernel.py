@@ -1,0 +1,78 @@
+"""Pieces every compiled estimator step shares: the sample row, the state header, validity
+checks and start-up from the first usable samples.
+
+A *sample row* is a float64 array ``[gx, gy, gz, ax, ay, az, mx, my, mz, dt]``: gyroscope
+rad/s, specific force m/s², magnetic field µT (NaN when there is no magnetometer), and the
+time step in seconds since the previous sample. The per-sample service path fills one such
+row; batch runs stack them into an (N, 10) array — both go through the same step function.
+
+Every estimator state is a float64 array whose first ``HEADER`` entries mean the same
+everywhere, so the service, logs and diagnostics read them without knowing the estimator.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+from ahrs_service.quaternion import quat_from_gravity_and_field, vec_is_usable
+
+# sample row columns
+GYR, ACC, MAG, DT = 0, 3, 6, 9
+ROW = 10
+
+# state header
+Q = 0  # 0..3: q_earth←body [w, x, y, z]
+INITIALISED = 4  # 1.0 once the attitude was set from gravity (and field)
+ACC_SKIPPED = 5  # count of samples whose accelerometer correction was skipped
+MAG_SKIPPED = 6  # count of samples whose magnetometer correction was skipped (includes "no magnetometer")
+GYR_SKIPPED = 7  # count of samples whose gyro/dt could not be integrated
+BIAS = 8  # 8..10: gyro-bias estimate, rad/s, body frame (zero where not estimated)
+HEADER = 11
+
+_jit = njit(cache=True, inline="always")
+
+
+@_jit
+def check_sample(s, x, uses_mag):
+    """Validity of the three inputs of one row; counts each skipped correction in the header.
+
+    Returns (gyro_ok, acc_ok, mag_ok). gyro_ok also requires a finite dt > 0.
+    """
+    dt = x[DT]
+    gyro_ok = math.isfinite(x[0] + x[1] + x[2]) and dt > 0.0 and dt < 1e3
+    acc_ok = vec_is_usable(x[3], x[4], x[5])
+    mag_ok = uses_mag and vec_is_usable(x[6], x[7], x[8])
+    if not gyro_ok:
+        s[GYR_SKIPPED] += 1.0
+    if not acc_ok:
+        s[ACC_SKIPPED] += 1.0
+    if uses_mag and not mag_ok:
+        s[MAG_SKIPPED] += 1.0
+    return gyro_ok, acc_ok, mag_ok
+
+
+@_jit
+def initialise_from_sample(s, x, acc_ok, mag_ok):
+    """Sets the attitude from the first usable accelerometer (and magnetometer) sample.
+
+    Returns True when the state was initialised by this call. Until then the estimate stays
+    at identity: no estimator converges from identity when it can start from the sensors.
+    """
+    if s[INITIALISED] != 0.0 or not acc_ok:
+        return False
+    q = quat_from_gravity_and_field(x[3], x[4], x[5], x[6], x[7], x[8], mag_ok)
+    s[0], s[1], s[2], s[3] = q
+    s[INITIALISED] = 1.0
+    return True
+
+
+@_jit
+def store_quat(s, q):
+    s[0], s[1], s[2], s[3] = q
+
+
+@_jit
+def load_quat(s):
+    return (s[0], s[1], s[2], s[3])

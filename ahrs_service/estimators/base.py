@@ -1,0 +1,192 @@
+"""The estimator base class: parameters, explicit state and one compiled step function.
+
+Each estimator is one small class (``madgwick.Madgwick`` …) with
+
+* ``Params`` — a dataclass: every tuning parameter, its unit and default, documented;
+* ``step`` — a numba-compiled function ``step(state, params, row)`` that advances the state
+  by one sample row (see ``_kernel``) and reads like the paper's equations;
+* ``batch`` — the same step looped over an (N, 10) array, compiled, for ``run`` and replay.
+
+The per-sample path (``update``) and the batch path (``run``) call the same ``step``, so a
+replay reproduces what the service published.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar
+
+import numpy as np
+
+from ahrs_service.estimators import _kernel as K
+
+
+class Estimator:
+    """Base of all attitude estimators.
+
+    Subclasses set ``name``, ``Params``, ``uses_mag``, ``observes_heading``, ``state_size``,
+    ``step`` and ``batch``, and may override ``initial_state`` (covariances and the like).
+    The estimate is q_earth←body, [w, x, y, z], earth NED, body FRD.
+    """
+
+    name: ClassVar[str]
+    Params: ClassVar[type]
+    uses_mag: ClassVar[bool] = False
+    observes_heading: ClassVar[bool] = False
+    state_size: ClassVar[int] = K.HEADER
+    step: ClassVar[Any]
+    batch: ClassVar[Any]
+
+    def __init__(self, **params: float) -> None:
+        self.params = _make_params(self.Params, params, self.name)
+        self._p = self._pack(self.params)
+        self._row = np.full(K.ROW, np.nan)
+        self.state = self.initial_state()
+
+    # ---------------------------------------------------------------- parameters
+    def _pack(self, params: Any) -> np.ndarray:
+        return np.array([float(v) for v in dataclasses.astuple(params)], dtype=np.float64)
+
+    @classmethod
+    def param_names(cls) -> list[str]:
+        return [f.name for f in dataclasses.fields(cls.Params)]
+
+    def get_params(self) -> dict[str, float]:
+        return dataclasses.asdict(self.params)
+
+    def set_params(self, **changes: float) -> None:
+        """Changes tuning parameters live; the state is kept. Unknown names raise ValueError."""
+        new = _make_params(self.Params, {**self.get_params(), **changes}, self.name)
+        self.params = new
+        self._p[:] = self._pack(new)
+
+    # ---------------------------------------------------------------- state
+    def initial_state(self) -> np.ndarray:
+        """State before the first sample: identity attitude, not initialised, zero counters."""
+        s = np.zeros(self.state_size)
+        s[K.Q] = 1.0
+        return s
+
+    def reset(self) -> None:
+        self.state = self.initial_state()
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """Current q_earth←body [w, x, y, z] (a copy)."""
+        return self.state[:4].copy()
+
+    @property
+    def gyro_bias(self) -> np.ndarray:
+        """Current gyro-bias estimate, rad/s, body frame (zeros where not estimated)."""
+        return self.state[K.BIAS : K.BIAS + 3].copy()
+
+    @property
+    def diagnostics(self) -> dict[str, float]:
+        s = self.state
+        return {
+            "initialised": bool(s[K.INITIALISED]),
+            "acc_skipped": int(s[K.ACC_SKIPPED]),
+            "mag_skipped": int(s[K.MAG_SKIPPED]),
+            "gyr_skipped": int(s[K.GYR_SKIPPED]),
+        }
+
+    # ---------------------------------------------------------------- stepping
+    def update(self, gyr: Any, acc: Any, mag: Any = None, *, dt: float) -> np.ndarray:
+        """Advances by one sample taken ``dt`` seconds after the previous one.
+
+        gyr rad/s, acc m/s² (specific force), mag µT or None, all in the sensor's axes.
+        Returns the new q_earth←body (a view into the state; copy it to keep it).
+        """
+        row = self._row
+        row[0:3] = gyr
+        row[3:6] = acc
+        if mag is None:
+            row[6:9] = np.nan
+        else:
+            row[6:9] = mag
+        row[K.DT] = dt
+        self.step(self.state, self._p, row)
+        return self.state[:4]
+
+    def update_row(self, row: np.ndarray) -> np.ndarray:
+        """Fast path for the service: ``row`` is a filled float64 sample row (see ``_kernel``)."""
+        self.step(self.state, self._p, row)
+        return self.state[:4]
+
+    def run(self, gyr: Any, acc: Any, mag: Any = None, *, dt: Any) -> np.ndarray:
+        """Runs over N samples from the current state; returns (N, 4) quaternions.
+
+        ``dt`` is a scalar or an (N,) array of time steps in seconds.
+        """
+        rows = stack_rows(gyr, acc, mag, dt)
+        out = np.empty((rows.shape[0], 4))
+        self.batch(self.state, self._p, rows, out)
+        return out
+
+
+def stack_rows(gyr: Any, acc: Any, mag: Any, dt: Any) -> np.ndarray:
+    """(N, 10) sample rows from (N, 3) gyr/acc/mag arrays (mag may be None) and dt."""
+    gyr = np.asarray(gyr, dtype=np.float64)
+    acc = np.asarray(acc, dtype=np.float64)
+    if gyr.ndim != 2 or gyr.shape[1] != 3:
+        raise ValueError(f"gyr must have shape (N, 3), got {gyr.shape}")
+    if acc.shape != gyr.shape:
+        raise ValueError(f"acc must have the shape of gyr {gyr.shape}, got {acc.shape}")
+    n = gyr.shape[0]
+    rows = np.empty((n, K.ROW))
+    rows[:, 0:3] = gyr
+    rows[:, 3:6] = acc
+    if mag is None:
+        rows[:, 6:9] = np.nan
+    else:
+        mag = np.asarray(mag, dtype=np.float64)
+        if mag.shape != gyr.shape:
+            raise ValueError(f"mag must have the shape of gyr {gyr.shape}, got {mag.shape}")
+        rows[:, 6:9] = mag
+    rows[:, K.DT] = dt
+    return rows
+
+
+def time_steps(n: int, rate_hz: float | None = None, timestamps: Any = None) -> np.ndarray:
+    """Per-sample time steps (s) from timestamps (s, monotonic) or a nominal rate.
+
+    The first sample's dt is the nominal period (the median step when only timestamps are
+    given). Timestamps win over the rate when both are given.
+    """
+    if timestamps is not None:
+        t = np.asarray(timestamps, dtype=np.float64)
+        if t.shape != (n,):
+            raise ValueError(f"timestamps must have shape ({n},), got {t.shape}")
+        dt = np.empty(n)
+        if n == 0:
+            return dt
+        dt[1:] = np.diff(t)
+        if rate_hz is not None:
+            dt[0] = 1.0 / float(rate_hz)
+        else:
+            dt[0] = float(np.median(dt[1:])) if n > 1 else 0.0
+        return dt
+    if rate_hz is None:
+        raise ValueError("give rate_hz or timestamps: estimators need each sample's time step")
+    if not rate_hz > 0:
+        raise ValueError(f"rate_hz must be positive, got {rate_hz}")
+    return np.full(n, 1.0 / float(rate_hz))
+
+
+def _make_params(params_cls: type, values: dict[str, Any], name: str) -> Any:
+    known = {f.name for f in dataclasses.fields(params_cls)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ValueError(
+            f"unknown parameter(s) {', '.join(unknown)} for estimator {name!r}; "
+            f"accepted: {', '.join(sorted(known)) or '(none)'}"
+        )
+    clean = {}
+    for key, value in values.items():
+        try:
+            clean[key] = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"parameter {key!r} of estimator {name!r} must be a number, got {value!r}") from None
+        if not np.isfinite(clean[key]):
+            raise ValueError(f"parameter {key!r} of estimator {name!r} must be finite, got {value!r}")
+    return params_cls(**clean)
