@@ -16,7 +16,7 @@ _COMMAND_MODULES = [
     "ahrs_service.service_cli",
     "ahrs_service.evaluation.command",
     "ahrs_service.logs.command",
-    "ahrs_service.calibration_cli",
+    "ahrs_service.calibration.command",
 ]
 
 
