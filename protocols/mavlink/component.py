@@ -1,0 +1,468 @@
+"""The service's MAVLink component: publishes attitude at configured rates and answers the
+parameter and command protocols, over one or more links at once.
+
+Threading: a component is used from **one thread** (the service's loop). ``publish`` and
+``poll`` never block; neither raises on network trouble — errors are counted in ``stats``.
+
+Typical drive (one loop iteration of the service)::
+
+    comp = MavlinkComponent(["udpout:127.0.0.1:14550"], Identity(), params=table,
+                            gyro_calibration=service.start_gyro_calibration)
+    while running:
+        ...                                     # read IMU, step the estimator
+        comp.publish(time.monotonic_ns(), telemetry)   # sends what is due
+        comp.poll()                             # handles pending requests and commands
+    comp.close()
+
+Signing (MAVLink 2, 32-byte key): every outgoing message is signed; incoming writes
+(``signing.SIGNED_ONLY``: PARAM_SET, COMMAND_LONG, …) need a valid signature, and unsigned or
+wrongly signed ones are dropped and counted in ``stats.unsigned_rejected``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Mapping
+
+from ahrs_service.protocols.mavlink.attitude import encode_attitude, encode_attitude_quaternion
+from ahrs_service.protocols.mavlink.commands import (
+    CalibrationCallback,
+    Command,
+    CommandResult,
+    CommandTable,
+    encode_command_ack,
+    preflight_calibration_handler,
+)
+from ahrs_service.protocols.mavlink.dialect import mavlink, message_id
+from ahrs_service.protocols.mavlink.endpoints import Endpoint
+from ahrs_service.protocols.mavlink.health import encode_statustext, encode_sys_status, system_state
+from ahrs_service.protocols.mavlink.identity import Identity, encode_heartbeat
+from ahrs_service.protocols.mavlink.imu import encode_highres_imu
+from ahrs_service.protocols.mavlink.params import BYTEWISE, ParameterTable
+from ahrs_service.protocols.mavlink.signing import SIGNED_ONLY, check_key
+from ahrs_service.protocols.mavlink.telemetry import Telemetry
+
+#: default publishing rates, Hz (0 = off)
+DEFAULT_RATES: dict[str, float] = {
+    "HEARTBEAT": 1.0,
+    "ATTITUDE": 50.0,
+    "ATTITUDE_QUATERNION": 50.0,
+    "HIGHRES_IMU": 0.0,
+    "SYS_STATUS": 1.0,
+}
+
+_ENCODERS: dict[str, Callable[[Telemetry], Any]] = {
+    "ATTITUDE": encode_attitude,
+    "ATTITUDE_QUATERNION": encode_attitude_quaternion,
+    "HIGHRES_IMU": encode_highres_imu,
+    "SYS_STATUS": encode_sys_status,
+}
+STREAMABLE = ("HEARTBEAT", *_ENCODERS)
+
+
+@dataclass
+class MavlinkStats:
+    """Counters of one component. Every dict is keyed by message name or endpoint string."""
+
+    sent: dict[str, int] = field(default_factory=dict)
+    received: dict[str, int] = field(default_factory=dict)
+    received_total: int = 0
+    malformed: int = 0  # bad CRC, bad prefix or length, truncated datagram tails
+    bad_crc: int = 0  # the CRC failures among ``malformed``
+    unknown_ids: int = 0  # well-framed messages of ids outside the common dialect
+    unsigned_rejected: int = 0  # writes without a valid signature while signing is on
+    not_for_us: int = 0  # requests addressed to another system/component
+    handler_errors: int = 0  # exceptions raised by service callbacks (answered FAILED)
+    send_errors: dict[str, int] = field(default_factory=dict)
+    receive_errors: dict[str, int] = field(default_factory=dict)
+    last_error: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.__dict__.items()}
+
+
+@dataclass
+class _Stream:
+    name: str
+    msg_id: int
+    hz: float
+    anchor_ns: int | None = None  # the schedule is anchor + k / hz: no drift accumulates
+    k: int = 0
+
+    def due_ns(self, k: int) -> int:
+        return self.anchor_ns + int(round(k * 1e9 / self.hz))  # type: ignore[operator]
+
+
+class MavlinkComponent:
+    """A MAVLink component on one or more links (see the module docstring for how to drive it).
+
+    endpoints: pymavlink connection strings, e.g. ``["udpout:127.0.0.1:14550",
+        "/dev/ttyAMA0,921600"]``. Every message goes out on every endpoint.
+    identity: system/component id and heartbeat type (``Identity()`` = standalone, sys 1 comp 1).
+    rates: message name → Hz over ``DEFAULT_RATES`` (HEARTBEAT, ATTITUDE, ATTITUDE_QUATERNION,
+        HIGHRES_IMU, SYS_STATUS); 0 switches a message off. These are also the "default rates"
+        MAV_CMD_SET_MESSAGE_INTERVAL with interval 0 returns to.
+    signing_key: 32-byte MAVLink 2 signing key, or None for no signing.
+    params: the parameter table the ground station sees (empty if None).
+    gyro_calibration, mag_calibration, accel_calibration: MAV_CMD_PREFLIGHT_CALIBRATION
+        callbacks ``(action: int) -> (MAV_RESULT, text)``; None answers UNSUPPORTED.
+    max_rate_hz: fastest rate a ground station may request for a stream.
+    """
+
+    def __init__(self, endpoints: Iterable[str], identity: Identity | None = None, *,
+                 rates: Mapping[str, float] | None = None, signing_key: bytes | None = None,
+                 params: ParameterTable | None = None,
+                 gyro_calibration: CalibrationCallback | None = None,
+                 mag_calibration: CalibrationCallback | None = None,
+                 accel_calibration: CalibrationCallback | None = None,
+                 max_rate_hz: float = 250.0) -> None:
+        self.identity = identity or Identity()
+        self.params = params if params is not None else ParameterTable()
+        self.max_rate_hz = float(max_rate_hz)
+        self.stats = MavlinkStats()
+        self._default_rates = dict(DEFAULT_RATES)
+        for name, hz in (rates or {}).items():
+            self._default_rates[self._check_rate(name, hz)[0]] = float(hz)
+        self._streams = {n: _Stream(n, int(message_id(n)), hz)  # type: ignore[arg-type]
+                         for n, hz in self._default_rates.items()}
+        self._last: Telemetry | None = None
+        self._statustext_id = 0
+        self._rejected = False
+        self._reply_after_ack: Any = None  # a message a command handler wants sent after its ACK
+        if signing_key is not None:
+            signing_key = check_key(signing_key)
+        self.signing = signing_key is not None
+
+        self.commands = CommandTable()
+        self.commands.register(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, self._cmd_set_message_interval)
+        self.commands.register(mavlink.MAV_CMD_GET_MESSAGE_INTERVAL, self._cmd_get_message_interval)
+        self.commands.register(mavlink.MAV_CMD_REQUEST_MESSAGE, self._cmd_request_message)
+        self.commands.register(mavlink.MAV_CMD_PREFLIGHT_CALIBRATION,
+                               preflight_calibration_handler(gyro_calibration, mag_calibration, accel_calibration))
+
+        endpoints = list(endpoints)
+        if len(set(endpoints)) != len(endpoints):
+            raise ValueError(f"MAVLink endpoints listed twice: {endpoints}")
+        self._endpoints: list[Endpoint] = []
+        try:
+            for link_id, url in enumerate(endpoints):
+                ep = Endpoint(url, self.identity.system_id, self.identity.component_id)  # type: ignore[arg-type]
+                if signing_key is not None:
+                    ep.conn.setup_signing(signing_key, sign_outgoing=True,
+                                          allow_unsigned_callback=self._allow_unsigned, link_id=link_id % 256)
+                self._endpoints.append(ep)
+                self.stats.send_errors[url] = 0
+                self.stats.receive_errors[url] = 0
+        except Exception:
+            self.close()
+            raise
+        if not self._endpoints:
+            raise ValueError("MavlinkComponent needs at least one endpoint")
+
+    # ================================================================== rates
+    @staticmethod
+    def _check_rate(name: str, hz: float) -> tuple[str, float]:
+        if name not in STREAMABLE:
+            raise ValueError(f"cannot stream {name!r}; streamable messages: {', '.join(STREAMABLE)}")
+        hz = float(hz)
+        if not math.isfinite(hz) or hz < 0:
+            raise ValueError(f"rate of {name} must be a finite number ≥ 0 Hz, got {hz}")
+        return name, hz
+
+    @property
+    def rates(self) -> dict[str, float]:
+        """Current publishing rate of each streamable message, Hz (0 = off)."""
+        return {n: s.hz for n, s in self._streams.items()}
+
+    def set_rate(self, name: str, hz: float) -> None:
+        """Sets the publishing rate of message ``name`` in Hz (0 = off); the new schedule
+        starts at the next ``publish``."""
+        name, hz = self._check_rate(name, hz)
+        s = self._streams[name]
+        s.hz = hz
+        s.anchor_ns = None
+
+    # ================================================================== sending
+    def _send_all(self, msg: Any, only: Endpoint | None = None) -> None:
+        name = msg.get_type()
+        for ep in (only,) if only is not None else self._endpoints:
+            ok = ep.send(msg)
+            if ok:
+                self.stats.sent[name] = self.stats.sent.get(name, 0) + 1
+            else:
+                self.stats.send_errors[ep.url] = ep.send_errors
+                self.stats.last_error = f"{ep.url}: {ep.last_send_error}"
+
+    def _encode(self, name: str, telemetry: Telemetry | None) -> Any:
+        if name == "HEARTBEAT":
+            return encode_heartbeat(self.identity, system_state(telemetry))
+        if telemetry is None:
+            return None
+        return _ENCODERS[name](telemetry)
+
+    def publish(self, now_ns: int, telemetry: Telemetry | None) -> int:
+        """Sends every stream that is due at ``now_ns`` (monotonic clock, ns); returns how
+        many messages were built.
+
+        Each stream follows an absolute schedule (anchor + k/rate), so late calls do not push
+        later messages back; a stream is sent at most once per call (a loop slower than the
+        stream's rate caps it). ``telemetry`` None (no estimate yet) sends only HEARTBEAT
+        (state BOOT).
+        """
+        if telemetry is not None:
+            self._last = telemetry
+        built = 0
+        for s in self._streams.values():
+            if s.hz <= 0.0:
+                continue
+            if s.anchor_ns is None or now_ns < s.anchor_ns:
+                s.anchor_ns, s.k = now_ns, 0
+            if now_ns < s.due_ns(s.k):
+                continue
+            msg = self._encode(s.name, telemetry)
+            if msg is not None:
+                self._send_all(msg)
+                built += 1
+            # next slot strictly after now; slots missed while the loop was late are skipped
+            k = max(s.k + 1, int((now_ns - s.anchor_ns) * s.hz / 1e9))
+            while s.due_ns(k) <= now_ns:
+                k += 1
+            s.k = k
+        return built
+
+    def send_now(self, name: str, telemetry: Telemetry | None = None) -> bool:
+        """Sends message ``name`` once now on every endpoint (``telemetry`` None uses the last
+        published one); False if it cannot be built (unknown name or no telemetry yet)."""
+        msg = self._build_once(name, telemetry if telemetry is not None else self._last)
+        if msg is None:
+            return False
+        self._send_all(msg)
+        return True
+
+    def _build_once(self, name: str, telemetry: Telemetry | None) -> Any:
+        if name in STREAMABLE:
+            return self._encode(name, telemetry)
+        if name == "AUTOPILOT_VERSION":
+            return self._autopilot_version()
+        return None
+
+    def _autopilot_version(self) -> Any:
+        caps = mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+        caps |= (mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE if self.params.encoding == BYTEWISE
+                 else mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST)
+        zeros8 = [0] * 8
+        return mavlink.MAVLink_autopilot_version_message(caps, 0, 0, 0, 0, zeros8, zeros8, zeros8, 0, 0, 0, [0] * 18)
+
+    def statustext(self, severity: int, text: str) -> None:
+        """Sends ``text`` on every link as STATUSTEXT at MAV_SEVERITY ``severity`` (0..7),
+        chunked when longer than 50 bytes."""
+        self._statustext_id = self._statustext_id % 0xFFFF + 1  # 1..65535; 0 means "single chunk"
+        for msg in encode_statustext(severity, text, self._statustext_id):
+            self._send_all(msg)
+
+    # ================================================================== receiving
+    def _allow_unsigned(self, mav: Any, msg_id: int) -> bool:
+        # pymavlink asks this for every message without a valid signature
+        if msg_id in SIGNED_ONLY:
+            self.stats.unsigned_rejected += 1
+            self._rejected = True
+            return False
+        return True
+
+    def _next_message(self, ep: Endpoint) -> Any:
+        """The next parsed message (or BAD_DATA) of ``ep``; None when nothing is pending."""
+        for _ in range(64):  # bounded: at most this many reads per call
+            self._rejected = False
+            msg = self._parse(ep, b"")
+            if msg is not None:
+                return msg
+            if ep.datagram and ep.end_of_datagram():
+                self.stats.malformed += 1
+            before = ep.receive_errors
+            data = ep.read()
+            if ep.receive_errors != before:
+                self.stats.receive_errors[ep.url] = ep.receive_errors
+            if not data:
+                return None
+            self._rejected = False
+            msg = self._parse(ep, data)
+            if msg is not None:
+                return msg
+            if not ep.datagram:
+                return None  # a stream link waits for the rest of the message
+        return None
+
+    def _parse(self, ep: Endpoint, data: bytes) -> Any:
+        try:
+            return ep.parse(data)
+        except Exception as exc:  # pymavlink turns bad input into BAD_DATA; this is the safety net
+            self.stats.malformed += 1
+            self.stats.last_error = f"{ep.url}: parser: {type(exc).__name__}: {exc}"
+            ep.reset_parser()
+            return None
+
+    def poll(self, max_messages: int = 100) -> int:
+        """Handles up to ``max_messages`` pending incoming messages (all endpoints, round
+        robin) without blocking; returns how many were handled, malformed ones included."""
+        handled = 0
+        idle: set[int] = set()
+        while handled < max_messages and len(idle) < len(self._endpoints):
+            for i, ep in enumerate(self._endpoints):
+                if i in idle or handled >= max_messages:
+                    continue
+                msg = self._next_message(ep)
+                if msg is None:
+                    idle.add(i)
+                    continue
+                handled += 1
+                self._handle(ep, msg)
+        return handled
+
+    def _handle(self, ep: Endpoint, msg: Any) -> None:
+        name = msg.get_type()
+        if name == "BAD_DATA":
+            if self._rejected:  # a write without valid signature: already counted as rejected
+                return
+            self.stats.malformed += 1
+            if "CRC" in str(getattr(msg, "reason", "")):
+                self.stats.bad_crc += 1
+            return
+        if name.startswith("UNKNOWN_"):
+            self.stats.unknown_ids += 1
+            return
+        self.stats.received_total += 1
+        self.stats.received[name] = self.stats.received.get(name, 0) + 1
+        handler = self._HANDLERS.get(name)
+        if handler is None:
+            return
+        try:
+            handler(self, ep, msg)
+        except Exception as exc:  # a service callback failed: count it, keep serving
+            self.stats.handler_errors += 1
+            self.stats.last_error = f"{name}: {type(exc).__name__}: {exc}"
+
+    def _for_us(self, msg: Any, broadcast_system: bool = True) -> bool:
+        ts, tc = int(msg.target_system), int(msg.target_component)
+        ok = (ts == self.identity.system_id or (broadcast_system and ts == 0)) and \
+             tc in (self.identity.component_id, mavlink.MAV_COMP_ID_ALL)
+        if not ok:
+            self.stats.not_for_us += 1
+        return ok
+
+    # ------------------------------------------------------------------ parameter protocol
+    def _on_param_request_list(self, ep: Endpoint, msg: Any) -> None:
+        if self._for_us(msg):
+            for answer in self.params.handle_request_list():
+                self._send_all(answer, ep)
+
+    def _on_param_request_read(self, ep: Endpoint, msg: Any) -> None:
+        if self._for_us(msg):
+            for answer in self.params.handle_request_read(msg):
+                self._send_all(answer, ep)
+
+    def _on_param_set(self, ep: Endpoint, msg: Any) -> None:
+        # a set must name our system: a broadcast write to every system is not honoured
+        if not self._for_us(msg, broadcast_system=False):
+            return
+        answers, reason = self.params.handle_set(msg)
+        for answer in answers:
+            self._send_all(answer)  # every link, so every ground station sees the new value
+        if reason:
+            self.statustext(mavlink.MAV_SEVERITY_WARNING, reason)
+
+    # ------------------------------------------------------------------ command protocol
+    def _on_command_long(self, ep: Endpoint, msg: Any) -> None:
+        if not self._for_us(msg):
+            return
+        cmd = Command.from_command_long(msg)
+        self._reply_after_ack = None
+        try:
+            result = self.commands.dispatch(cmd)
+        except Exception as exc:
+            self.stats.handler_errors += 1
+            self.stats.last_error = f"command {cmd.command}: {type(exc).__name__}: {exc}"
+            result = CommandResult(mavlink.MAV_RESULT_FAILED, f"command {cmd.command} failed: {exc}")
+        self._send_all(encode_command_ack(cmd, result), ep)
+        if result.text:
+            ok = result.result in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
+            self.statustext(mavlink.MAV_SEVERITY_INFO if ok else mavlink.MAV_SEVERITY_WARNING, result.text)
+        if self._reply_after_ack is not None:
+            reply, self._reply_after_ack = self._reply_after_ack, None
+            self._send_all(reply, ep)
+
+    def _on_command_int(self, ep: Endpoint, msg: Any) -> None:
+        # none of the supported commands has a position, so MAVLink wants them as COMMAND_LONG
+        if not self._for_us(msg):
+            return
+        cmd = Command(int(msg.command), (0.0,) * 7, msg.get_srcSystem(), msg.get_srcComponent())
+        self._send_all(encode_command_ack(cmd, CommandResult(mavlink.MAV_RESULT_COMMAND_LONG_ONLY)), ep)
+
+    _HANDLERS: dict[str, Callable[["MavlinkComponent", Endpoint, Any], None]] = {
+        "PARAM_REQUEST_LIST": _on_param_request_list,
+        "PARAM_REQUEST_READ": _on_param_request_read,
+        "PARAM_SET": _on_param_set,
+        "COMMAND_LONG": _on_command_long,
+        "COMMAND_INT": _on_command_int,
+    }
+
+    def _stream_of(self, param: float) -> _Stream | None:
+        if not math.isfinite(param):
+            return None
+        mid = int(param)
+        return next((s for s in self._streams.values() if s.msg_id == mid), None)
+
+    def _cmd_set_message_interval(self, cmd: Command) -> CommandResult:
+        s = self._stream_of(cmd.params[0])
+        interval_us = cmd.params[1]
+        if s is None:
+            return CommandResult(mavlink.MAV_RESULT_DENIED)  # the command is known, that message is not ours
+        if not math.isfinite(interval_us) or (interval_us < 0 and interval_us != -1):
+            return CommandResult(mavlink.MAV_RESULT_DENIED)
+        if interval_us == -1:
+            hz = 0.0
+        elif interval_us == 0:
+            hz = self._default_rates[s.name]
+        else:
+            hz = 1e6 / interval_us
+            if hz > self.max_rate_hz:
+                return CommandResult(mavlink.MAV_RESULT_DENIED, f"{s.name}: at most {self.max_rate_hz:g} Hz")
+        self.set_rate(s.name, hz)
+        return CommandResult(mavlink.MAV_RESULT_ACCEPTED)
+
+    def _cmd_get_message_interval(self, cmd: Command) -> CommandResult:
+        s = self._stream_of(cmd.params[0])
+        if s is None:
+            return CommandResult(mavlink.MAV_RESULT_DENIED)
+        interval = -1 if s.hz <= 0 else int(round(1e6 / s.hz))
+        self._reply_after_ack = mavlink.MAVLink_message_interval_message(s.msg_id, interval)
+        return CommandResult(mavlink.MAV_RESULT_ACCEPTED)
+
+    def _cmd_request_message(self, cmd: Command) -> CommandResult:
+        p1 = cmd.params[0]
+        mid = int(p1) if math.isfinite(p1) else -1
+        name = next((n for n in (*STREAMABLE, "AUTOPILOT_VERSION") if message_id(n) == mid), None)
+        if name is None:
+            return CommandResult(mavlink.MAV_RESULT_DENIED)
+        msg = self._build_once(name, self._last)
+        if msg is None:  # supported, but nothing to report before the first estimate
+            return CommandResult(mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
+        self._reply_after_ack = msg  # MAVLink: ACK first, then the message
+        return CommandResult(mavlink.MAV_RESULT_ACCEPTED)
+
+    # ================================================================== lifetime
+    @property
+    def endpoints(self) -> list[str]:
+        return [ep.url for ep in self._endpoints]
+
+    def close(self) -> None:
+        """Closes every link. The component cannot be used afterwards."""
+        for ep in self._endpoints:
+            ep.close()
+        self._endpoints = []
+
+    def __enter__(self) -> "MavlinkComponent":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

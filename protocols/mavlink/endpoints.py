@@ -1,0 +1,166 @@
+"""One MAVLink link (UDP, TCP, serial) opened from a pymavlink connection string.
+
+pymavlink's ``mavutil`` opens the link; this module adds what a long-running service needs:
+
+* the link's parser is always a MAVLink 2 ``common`` parser (see ``dialect``), whatever
+  dialect ``mavutil`` was set to globally;
+* send errors are seen and counted — ``mavutil`` swallows socket errors on UDP and TCP, so the
+  port object is wrapped in a tap that notes them before ``mavutil`` drops them;
+* each UDP datagram is parsed on its own: bytes of a truncated message left at the end of a
+  datagram are discarded (and reported), instead of being glued to the next datagram and
+  spoiling the good message in it.
+
+Connection strings (mavutil's): ``udpout:HOST:PORT`` (send to a listener such as
+QGroundControl on 14550), ``udpin:HOST:PORT`` (listen; replies go to whoever sent last —
+nothing is sent before a peer has spoken), ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``,
+``/dev/ttyUSB0,921600`` (serial device, baud).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any
+
+from pymavlink import mavutil
+
+from ahrs_service.protocols.mavlink.dialect import mavlink
+
+_STREAM_READ = 4096  # bytes per read on TCP/serial
+
+
+class _Parser(mavlink.MAVLink):
+    """pymavlink's MAVLink 2 parser with one fix for signed links.
+
+    pymavlink records a stream's replay timestamp before it compares the signature, so a single
+    forged packet with a far-future timestamp would lock the real sender of that
+    (link, system, component) stream out. Here the signature is checked first.
+    """
+
+    def check_signature(self, msgbuf: bytearray, srcSystem: int, srcComponent: int) -> bool:
+        key = self.signing.secret_key
+        if key is None or hashlib.sha256(bytes(key) + bytes(msgbuf[:-6])).digest()[:6] != bytes(msgbuf[-6:]):
+            return False
+        return super().check_signature(msgbuf, srcSystem, srcComponent)
+
+
+class _SendErrorTap:
+    """Stands in for a connection's socket or serial port and counts write errors, which
+    mavutil catches and discards. Everything else passes straight through."""
+
+    _WRITES = ("send", "sendto", "sendall", "write")
+
+    def __init__(self, inner: Any, endpoint: "Endpoint") -> None:
+        object.__setattr__(self, "_inner", inner)
+        object.__setattr__(self, "_endpoint", endpoint)
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self._inner, name)
+        if name not in self._WRITES:
+            return attr
+
+        def counted(*args: Any, **kwargs: Any) -> Any:
+            try:
+                return attr(*args, **kwargs)
+            except Exception as exc:
+                self._endpoint.note_send_error(exc)
+                raise
+
+        return counted
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        setattr(self._inner, name, value)
+
+
+class Endpoint:
+    """A pymavlink connection with a MAVLink 2 common parser/packer and error counters."""
+
+    def __init__(self, url: str, system_id: int, component_id: int) -> None:
+        self.url = url
+        try:
+            # one connection attempt, no sleeping between retries: the service loop must not stall
+            conn = mavutil.mavlink_connection(url, source_system=system_id, source_component=component_id,
+                                              autoreconnect=True, retries=0, reconnect_delay=0)
+        except Exception as exc:
+            raise OSError(f"cannot open MAVLink endpoint {url!r}: {exc}") from exc
+        self.conn = conn
+        # a parser/packer of our own dialect and version, independent of mavutil's global one
+        conn.mav = _Parser(conn, srcSystem=system_id, srcComponent=component_id)
+        conn.mav.robust_parsing = True  # bad bytes become BAD_DATA messages instead of exceptions
+        conn.WIRE_PROTOCOL_VERSION = "2.0"
+        conn.first_byte = False  # no auto-switching of the protocol version on the first byte
+        self.datagram = isinstance(conn, (mavutil.mavudp, mavutil.mavmcast))
+        self.send_errors = 0
+        self.receive_errors = 0
+        self.truncated = 0
+        self.last_send_error = ""
+        self._errors_before = 0
+
+    @property
+    def mav(self) -> "mavlink.MAVLink":
+        return self.conn.mav
+
+    # ------------------------------------------------------------------ sending
+    def note_send_error(self, exc: BaseException) -> None:
+        self.send_errors += 1
+        self.last_send_error = f"{type(exc).__name__}: {exc}"
+
+    def _tap_port(self) -> None:
+        # TCP reconnects replace the port object, so check before every write
+        port = getattr(self.conn, "port", None)
+        if port is not None and not isinstance(port, _SendErrorTap):
+            self.conn.port = _SendErrorTap(port, self)
+
+    def send(self, msg: Any) -> bool:
+        """Packs and writes ``msg``; False (and counted) on any error — never raises."""
+        before = self.send_errors
+        try:
+            self._tap_port()
+            buf = msg.pack(self.conn.mav)
+            self.conn.mav.seq = (self.conn.mav.seq + 1) % 256
+            result = self.conn.write(buf)
+        except Exception as exc:
+            if self.send_errors == before:
+                self.note_send_error(exc)
+            return False
+        if result == -1 and self.send_errors == before:  # mavserial's way of saying "failed"
+            self.note_send_error(OSError("write failed"))
+        return self.send_errors == before
+
+    # ------------------------------------------------------------------ receiving
+    def read(self) -> bytes:
+        """Bytes available now (one datagram on UDP); b"" when none. Never raises."""
+        try:
+            self._tap_port()
+            data = self.conn.recv() if self.datagram else self.conn.recv(_STREAM_READ)
+        except Exception:
+            self.receive_errors += 1
+            return b""
+        if not data:
+            return b""
+        return bytes(data) if not isinstance(data, str) else data.encode("latin-1")
+
+    def parse(self, data: bytes) -> Any:
+        """Feeds ``data`` to the parser and returns the first complete message (or None);
+        call again with b"" for the rest."""
+        return self.conn.mav.parse_char(data)
+
+    def reset_parser(self) -> None:
+        """Forgets any partly received message."""
+        mav = self.conn.mav
+        mav.buf = bytearray()
+        mav.buf_index = 0
+        mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+
+    def end_of_datagram(self) -> int:
+        """Drops the unparsed tail of a datagram; returns how many bytes were dropped."""
+        left = self.conn.mav.buf_len()
+        if left:
+            self.reset_parser()
+            self.truncated += 1
+        return left
+
+    def close(self) -> None:
+        try:
+            self.conn.close()
+        except Exception:
+            pass
