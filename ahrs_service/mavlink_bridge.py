@@ -1,0 +1,151 @@
+"""Connects the running service to its MAVLink component: telemetry, parameters, commands.
+
+Parameters the ground station sees (PARAM_REQUEST_LIST):
+
+* ``EST_<NAME>`` — every tuning parameter of the running estimator (e.g. ``EST_BETA``),
+  applied live between two samples and recorded in the flight log;
+* ``MAG_DECL_DEG`` — magnetic declination added to the published heading (true north);
+* ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ`` — publishing rates;
+* ``LOOP_RATE_HZ`` — the estimation rate (read-only: change it in the configuration).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from ahrs_service.drivers.base import MAG_NEW
+from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, ParameterTable, SensorStatus, Telemetry
+from ahrs_service.protocols.mavlink.dialect import mavlink
+
+if TYPE_CHECKING:
+    from ahrs_service.config import Config
+    from ahrs_service.service import Service
+
+RATE_PARAMS = {
+    "RATE_ATT_HZ": "ATTITUDE",
+    "RATE_ATTQ_HZ": "ATTITUDE_QUATERNION",
+    "RATE_HRIMU_HZ": "HIGHRES_IMU",
+    "RATE_SYSST_HZ": "SYS_STATUS",
+}
+RATE_CONFIG_KEYS = {
+    "HEARTBEAT": "heartbeat_hz",
+    "ATTITUDE": "attitude_hz",
+    "ATTITUDE_QUATERNION": "attitude_quaternion_hz",
+    "HIGHRES_IMU": "highres_imu_hz",
+    "SYS_STATUS": "sys_status_hz",
+}
+
+
+def estimator_param_name(name: str) -> str:
+    """MAVLink name of an estimator parameter: ``EST_`` + upper case, at most 16 characters."""
+    return ("EST_" + name.upper())[:16]
+
+
+class MavlinkBridge:
+    """The service's MAVLink side; :meth:`tick` is called from the estimation loop."""
+
+    def __init__(self, service: "Service", cfg: "Config") -> None:
+        from ahrs_service.service import IO_PERIOD_NS
+
+        self.svc = service
+        mcfg = cfg.mavlink
+        identity = (
+            Identity.standalone(mcfg["system_id"])
+            if mcfg["identity"] == "standalone"
+            else Identity.companion(mcfg["system_id"])
+        )
+        key = bytes.fromhex(mcfg["signing_key"]) if mcfg["signing_key"] else None
+        self.component = MavlinkComponent(
+            mcfg["endpoints"],
+            identity,
+            rates={msg: cfg.rates[key_] for msg, key_ in RATE_CONFIG_KEYS.items()},
+            signing_key=key,
+            params=self._parameter_table(),
+            gyro_calibration=self._calibrate_gyro,
+            max_rate_hz=1e9 / IO_PERIOD_NS,
+        )
+
+    # ------------------------------------------------------------------ parameters
+    def _parameter_table(self) -> ParameterTable:
+        svc = self.svc
+        table = ParameterTable()
+        for name in svc.estimator.param_names():
+            table.add(
+                estimator_param_name(name),
+                getter=lambda n=name: svc.estimator.get_params()[n],
+                setter=lambda v, n=name: svc.set_estimator_param(n, float(v)),
+                description=f"{svc.estimator.name} parameter {name}",
+            )
+        table.add(
+            "MAG_DECL_DEG",
+            getter=lambda: svc.pipeline.declination_deg,
+            setter=lambda v: svc.pipeline.set_declination(float(v)),
+            minimum=-180.0,
+            maximum=180.0,
+            description="magnetic declination, degrees east, added to the published heading",
+        )
+        for pname, msg in RATE_PARAMS.items():
+            table.add(
+                pname,
+                getter=lambda m=msg: self.component.rates[m],
+                setter=lambda v, m=msg: self.component.set_rate(m, float(v)),
+                minimum=0.0,
+                maximum=200.0,
+                description=f"{msg} rate, Hz (0 = off)",
+            )
+        table.add("LOOP_RATE_HZ", getter=lambda: svc.scheduler.rate_hz, description="estimation rate, Hz (read-only)")
+        return table
+
+    # ------------------------------------------------------------------ commands
+    def _calibrate_gyro(self, action: int) -> tuple[int, str]:
+        check = self.svc.pipeline.calibrate_gyro_bias()
+        if not check.at_rest:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, f"gyro calibration refused: {check.reason}"
+        bias = self.svc.pipeline.calibration.gyro_bias
+        self.svc.record_calibration("gyro")
+        return mavlink.MAV_RESULT_ACCEPTED, "gyro bias set to [{:.4f}, {:.4f}, {:.4f}] rad/s".format(*bias)
+
+    # ------------------------------------------------------------------ per tick
+    def telemetry(self, now_ns: int) -> Telemetry:
+        svc = self.svc
+        pipeline = svc.pipeline
+        sample = pipeline.last_sample
+        health = svc.health()
+        st = svc.scheduler
+        diag = svc.source.diagnostics
+        mag_used = pipeline.use_mag and not pipeline.reduced
+        return Telemetry.from_quaternion(
+            (now_ns - svc.boot_ns) // 1_000_000,
+            pipeline.published_quaternion(),
+            pipeline.body_rates(),
+            gyr=None if sample is None else sample.gyr,
+            acc=None if sample is None else sample.acc,
+            mag=None if sample is None else sample.mag,
+            mag_new=bool(sample is not None and sample.flags & MAG_NEW),
+            temperature_c=None if sample is None else sample.temperature_c,
+            time_usec=None if sample is None else (sample.t_ns - svc.boot_ns) // 1000,
+            gyro=SensorStatus(True, True, health["gyro_healthy"]),
+            accel=SensorStatus(True, True, health["accel_healthy"]),
+            mag_status=SensorStatus(health["mag_present"], mag_used, health["mag_healthy"]),
+            estimator=svc.estimator.name,
+            ahrs_healthy=bool(svc.estimator.state[4]),
+            reduced_mode=pipeline.reduced or not pipeline.use_mag,
+            overruns=st.overruns,
+            load_percent=svc.last_load_percent,
+            comm_errors=diag.bus_errors,
+            sensor_faults=diag.saturated + diag.non_finite,
+        )
+
+    def tick(self, now_ns: int) -> None:
+        """Publishes what is due and handles what came in."""
+        self.component.publish(now_ns, self.telemetry(now_ns))
+        self.component.poll(50)
+
+    def statustext(self, severity: int, text: str) -> None:
+        self.component.statustext(severity, text)
+
+    def stats(self) -> dict[str, Any]:
+        return self.component.stats.as_dict()
+
+    def close(self) -> None:
+        self.component.close()

@@ -1,0 +1,158 @@
+"""One sample in, one attitude out: calibration, validity, magnetometer hold, estimator step.
+
+This is the per-sample work of the service, kept apart from timing and I/O so that tests and
+replays drive it directly. The row handed to the estimator is exactly what the log records,
+so replaying the log reproduces the published attitude.
+
+Magnetometers run slower than gyroscopes: the last valid field reading is held for
+``mag_timeout_s`` (zero-order hold, as the sample rows record it). When no valid reading
+arrived for longer than that, the estimator is fed no field (NaN): every estimator then runs
+its reduced (gyro + accelerometer) form, and :attr:`EstimationPipeline.reduced` reports it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample
+from ahrs_service.drivers.calibration import SensorCalibration, apply_calibration
+from ahrs_service.estimators.base import Estimator
+from ahrs_service.quaternion import quat_from_euler, quat_mul, quat_to_euler
+
+G = 9.80665
+_NO_FIELD = np.full(3, np.nan)
+
+
+@dataclass
+class RestCheck:
+    """Whether the IMU was at rest over the recent window: the precondition for gyro calibration."""
+
+    at_rest: bool
+    samples: int
+    gyro_std: float  # rad/s, largest axis
+    acc_norm_error: float  # m/s², |mean |f|| − g|
+    reason: str
+
+
+class EstimationPipeline:
+    """Turns source samples into estimator steps.
+
+    ``declination_deg`` rotates the published heading from magnetic to true north (first
+    paper eq. 44) for every estimator alike; the estimator itself stays on magnetic north so
+    the recorded estimate replays unchanged.
+    """
+
+    REST_WINDOW = 200  # samples kept for the rest check and gyro calibration
+
+    def __init__(
+        self,
+        estimator: Estimator,
+        calibration: SensorCalibration | None = None,
+        *,
+        mag_timeout_s: float = 0.5,
+        use_mag: bool = True,
+        declination_deg: float = 0.0,
+        nominal_dt: float = 0.005,
+    ) -> None:
+        self.estimator = estimator
+        self.calibration = calibration or SensorCalibration()
+        self.mag_timeout_ns = int(mag_timeout_s * 1e9)
+        self.use_mag = use_mag and estimator.uses_mag
+        self.nominal_dt = nominal_dt
+        self.set_declination(declination_deg)
+        self.row = np.full(10, np.nan)
+        self.samples = 0
+        self.last_sample: ImuSample | None = None
+        self.reduced = False
+        self.reduced_switches = 0
+        self._last_t_ns: int | None = None
+        self._mag = np.full(3, np.nan)
+        self._mag_t_ns: int | None = None
+        self._recent_gyr: deque[np.ndarray] = deque(maxlen=self.REST_WINDOW)
+        self._recent_acc: deque[np.ndarray] = deque(maxlen=self.REST_WINDOW)
+
+    def set_declination(self, degrees: float) -> None:
+        self.declination_deg = float(degrees)
+        self._q_decl = quat_from_euler(0.0, 0.0, math.radians(degrees))
+
+    def process(self, raw_sample: ImuSample) -> ImuSample:
+        """Calibrates one sample, fills the estimator row and steps the estimator.
+
+        Returns the calibrated body-frame sample (what the log records beside the row).
+        """
+        sample = apply_calibration(raw_sample, self.calibration)
+        t_ns = sample.t_ns
+        row = self.row
+        dt = self.nominal_dt if self._last_t_ns is None else (t_ns - self._last_t_ns) * 1e-9
+        self._last_t_ns = t_ns
+        flags = sample.flags
+        row[0:3] = sample.gyr if flags & GYR_VALID else np.nan
+        row[3:6] = sample.acc if flags & ACC_VALID else np.nan
+        row[6:9] = self._field_for(sample, t_ns)
+        row[9] = dt
+        self.estimator.update_row(row)
+        self.samples += 1
+        self.last_sample = sample
+        if flags & GYR_VALID and flags & ACC_VALID:
+            self._recent_gyr.append(sample.gyr)
+            self._recent_acc.append(sample.acc)
+        return sample
+
+    def _field_for(self, sample: ImuSample, t_ns: int) -> np.ndarray:
+        if not self.use_mag:
+            return _NO_FIELD
+        if sample.mag is not None and sample.flags & MAG_VALID and (sample.flags & MAG_NEW or self._mag_t_ns is None):
+            self._mag = np.asarray(sample.mag, dtype=float)
+            self._mag_t_ns = t_ns
+        fresh = self._mag_t_ns is not None and t_ns - self._mag_t_ns <= self.mag_timeout_ns
+        if fresh == self.reduced:
+            self.reduced = not fresh
+            self.reduced_switches += 1
+        return self._mag if fresh else _NO_FIELD
+
+    # ------------------------------------------------------------------ outputs
+    def published_quaternion(self) -> tuple[float, float, float, float]:
+        """q_earth←body against true north: the estimate rotated by the declination."""
+        q = tuple(self.estimator.state[:4])
+        if self.declination_deg == 0.0:
+            return q  # type: ignore[return-value]
+        return quat_mul(self._q_decl, q)
+
+    def published_euler(self) -> tuple[float, float, float]:
+        return quat_to_euler(self.published_quaternion())
+
+    def body_rates(self) -> np.ndarray:
+        """Latest bias-corrected body angular rate, rad/s."""
+        if self.last_sample is None:
+            return np.zeros(3)
+        return np.asarray(self.last_sample.gyr) - self.estimator.state[8:11]
+
+    # ------------------------------------------------------------------ gyro calibration
+    def rest_check(self, gyro_std_max: float = 0.01, acc_error_max: float = 0.3) -> RestCheck:
+        """At rest: gyro std below ``gyro_std_max`` rad/s and |f| within ``acc_error_max`` of g."""
+        n = len(self._recent_gyr)
+        if n < self.REST_WINDOW // 2:
+            return RestCheck(False, n, math.nan, math.nan, f"only {n} recent samples")
+        gyr = np.array(self._recent_gyr)
+        acc = np.array(self._recent_acc)
+        gstd = float(gyr.std(axis=0).max())
+        aerr = float(abs(np.linalg.norm(acc, axis=1).mean() - G))
+        if gstd > gyro_std_max:
+            return RestCheck(False, n, gstd, aerr, f"moving: gyro std {gstd:.4f} rad/s")
+        if aerr > acc_error_max:
+            return RestCheck(False, n, gstd, aerr, f"accelerating: |f| off g by {aerr:.2f} m/s²")
+        return RestCheck(True, n, gstd, aerr, "at rest")
+
+    def calibrate_gyro_bias(self) -> RestCheck:
+        """Adds the mean residual rate of the rest window to the calibration's gyro bias."""
+        check = self.rest_check()
+        if check.at_rest:
+            residual_body = np.array(self._recent_gyr).mean(axis=0)
+            self.calibration = self.calibration.with_gyro_bias_shift(residual_body)
+            self._recent_gyr.clear()
+            self._recent_acc.clear()
+        return check

@@ -1,0 +1,287 @@
+"""The AHRS service: source → estimator at a fixed rate → MAVLink out, MCAP log, systemd.
+
+One thread runs everything, in this order each tick: read the source, step the estimator,
+hand the sample to the log writer's queue (the writer encodes on its own thread), and every
+``IO_PERIOD_NS`` publish what MAVLink has due and handle what came in. Parameter changes and
+commands are therefore applied between two samples, at a sample index the log records, so a
+replay reproduces every published attitude.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import time
+from typing import Any
+
+from ahrs_service import config as config_mod
+from ahrs_service import estimators
+from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID, ImuSource
+from ahrs_service.drivers.calibration import SensorCalibration
+from ahrs_service.pipeline import EstimationPipeline
+from ahrs_service.scheduler import FixedRateScheduler
+from ahrs_service.sources import make_source
+from ahrs_service.systemd import Notifier
+
+log = logging.getLogger("ahrs_service")
+
+IO_PERIOD_NS = 5_000_000  # MAVLink publish/poll granularity: 200 Hz
+HOUSEKEEPING_NS = 1_000_000_000  # loop statistics, STATUS=, health reports
+
+
+def calibration_from_config(cfg: config_mod.Config) -> SensorCalibration:
+    """Calibration plus the mounting rotation of the configuration."""
+    data = dict(cfg.calibration)
+    data.setdefault("mounting_rpy_deg", [cfg.mounting["roll_deg"], cfg.mounting["pitch_deg"], cfg.mounting["yaw_deg"]])
+    return SensorCalibration.from_dict(data)
+
+
+class Service:
+    """The running service. ``start`` → ``run`` (until stopped) → ``close``."""
+
+    def __init__(self, cfg: config_mod.Config, *, duration_s: float | None = None, notifier: Notifier | None = None):
+        self.cfg = cfg
+        self.duration_s = duration_s
+        self.notifier = notifier or Notifier()
+        self.boot_ns = time.monotonic_ns()
+        self._stop = False
+        self._reload = False
+        self.source: ImuSource | None = None
+        self.mavlink = None
+        self.log_writer = None
+        self.status_messages: list[str] = []
+
+    # ------------------------------------------------------------------ set-up
+    def start(self) -> None:
+        cfg = self.cfg
+        self._build_estimation(cfg)
+        self.scheduler = FixedRateScheduler(cfg.rates["estimation_hz"])
+        self.source = make_source(cfg.source, cfg.rates["estimation_hz"])
+        self.source.open()
+        self._open_log(cfg)
+        self._open_mavlink(cfg)
+
+    def _build_estimation(self, cfg: config_mod.Config) -> None:
+        est_cfg = cfg.estimator
+        estimator = estimators.create(est_cfg["name"], **est_cfg["params"])
+        self.pipeline = EstimationPipeline(
+            estimator,
+            calibration_from_config(cfg),
+            mag_timeout_s=est_cfg["mag_timeout_s"],
+            declination_deg=est_cfg["declination_deg"],
+            nominal_dt=1.0 / cfg.rates["estimation_hz"],
+        )
+
+    @property
+    def estimator(self):
+        return self.pipeline.estimator
+
+    def _open_log(self, cfg: config_mod.Config) -> None:
+        if not cfg.log["enabled"]:
+            self.log_writer = None
+            return
+        from ahrs_service.logs.writer import FlightLogWriter
+
+        mb, minutes = cfg.log["rotate_mb"], cfg.log["rotate_minutes"]
+        self.log_writer = FlightLogWriter(
+            cfg.log["directory"],
+            rotate_bytes=int(mb * 1e6) if mb else None,
+            rotate_seconds=minutes * 60 if minutes else None,
+        )
+        self.log_writer.write_config(time.monotonic_ns(), self.effective_config())
+
+    def effective_config(self) -> dict[str, Any]:
+        """The configuration in force, with the estimator's full parameter set."""
+        raw = {k: dict(v) for k, v in self.cfg.raw.items()}
+        raw["estimator"] = dict(raw["estimator"], params=self.estimator.get_params())
+        return raw
+
+    def _open_mavlink(self, cfg: config_mod.Config) -> None:
+        from ahrs_service.mavlink_bridge import MavlinkBridge
+
+        self.mavlink = MavlinkBridge(self, cfg)
+
+    # ------------------------------------------------------------------ control
+    def request_stop(self, *_: Any) -> None:
+        self._stop = True
+
+    def request_reload(self, *_: Any) -> None:
+        self._reload = True
+
+    def install_signal_handlers(self) -> None:
+        signal.signal(signal.SIGTERM, self.request_stop)
+        signal.signal(signal.SIGINT, self.request_stop)
+        signal.signal(signal.SIGHUP, self.request_reload)
+
+    def report(self, text: str, severity: int = 6) -> None:
+        """A health message: STATUSTEXT on MAVLink, the service log, and the status list."""
+        log.log(logging.WARNING if severity <= 4 else logging.INFO, text)
+        self.status_messages.append(text)
+        if self.mavlink is not None:
+            self.mavlink.statustext(severity, text)
+
+    # ------------------------------------------------------------------ the loop
+    def run(self) -> int:
+        """Runs until stopped, the duration ends, or a recorded source finishes. Returns 0."""
+        sched = self.scheduler
+        pipeline = self.pipeline
+        source = self.source
+        writer = self.log_writer
+        end_ns = None if self.duration_s is None else time.monotonic_ns() + int(self.duration_s * 1e9)
+        next_io = next_housekeeping = time.monotonic_ns()
+        next_watchdog = next_io
+        ready_sent = False
+        was_reduced = pipeline.reduced
+        while not self._stop:
+            now = sched.wait()
+            sample = source.read()
+            if sample is not None:
+                cal = pipeline.process(sample)
+                if writer is not None:
+                    est = pipeline.estimator
+                    writer.write_raw(cal.t_ns, pipeline.row, cal.flags, raw=sample.raw, temperature=cal.temperature_c)
+                    writer.write_attitude(cal.t_ns, est.state[:4], est.name, est.state[8:11], None)
+                    if cal.truth_q is not None:
+                        writer.write_truth(cal.t_ns, cal.truth_q)
+            if now >= next_io:
+                next_io += IO_PERIOD_NS
+                if now > next_io:
+                    next_io = now + IO_PERIOD_NS
+                self.mavlink.tick(now)
+                if not ready_sent and pipeline.samples > 0:
+                    self.notifier.ready(self.status_line())
+                    ready_sent = True
+            if self.notifier.watchdog_interval_ns and now >= next_watchdog:
+                self.notifier.watchdog()
+                next_watchdog = now + self.notifier.watchdog_interval_ns
+            if pipeline.reduced != was_reduced:
+                was_reduced = pipeline.reduced
+                self.report(
+                    "magnetometer lost: estimating in reduced form" if was_reduced else "magnetometer back: full form",
+                    4 if was_reduced else 6,
+                )
+            if now >= next_housekeeping:
+                next_housekeeping = now + HOUSEKEEPING_NS
+                self._housekeeping(now)
+            sched.done()
+            if self._reload:
+                self._reload = False
+                self.reload()
+                sched, pipeline, writer = self.scheduler, self.pipeline, self.log_writer
+            if end_ns is not None and now >= end_ns:
+                break
+            if getattr(source, "finished", False):
+                break
+        return 0
+
+    def status_line(self) -> str:
+        st = self.scheduler.stats()
+        mode = "reduced" if self.pipeline.reduced else "full"
+        return (
+            f"{self.estimator.name} ({mode}) at {st.rate_hz:.0f} Hz, load {st.load_percent:.1f}%, "
+            f"jitter p99 {st.period_jitter_p99_us:.0f} us, overruns {st.overruns}, samples {self.pipeline.samples}"
+        )
+
+    def _housekeeping(self, now: int) -> None:
+        st = self.scheduler.stats()
+        self.last_load_percent = st.load_percent
+        self.notifier.status(self.status_line())
+        diag = self.source.diagnostics.as_dict()
+        if self._last_overruns is not None and st.overruns > self._last_overruns:
+            self.report(f"loop overruns: {st.overruns - self._last_overruns} in the last second", 4)
+        self._last_overruns = st.overruns
+        lost = bool(diag.get("device_lost"))
+        if lost != self._last_lost:
+            self._last_lost = lost
+            self.report(f"sensor lost: {diag.get('last_error', '')}" if lost else "sensor back", 3 if lost else 6)
+        if self.log_writer is not None:
+            loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced)
+            self.log_writer.write_loop(now, loop)
+            if self.mavlink is not None:
+                self.log_writer.write_mavlink(now, self.mavlink.stats())
+            status = self.log_writer.status
+            if status != self._last_log_status and status != "starting":
+                self._last_log_status = status
+                if status == "error":
+                    self.report(f"flight log: {self.log_writer.last_error}", 3)
+                elif status == "ok" and self._log_failed_before:
+                    self.report("flight log: writing again", 6)
+                self._log_failed_before |= status == "error"
+
+    _last_overruns: int | None = None
+    _last_lost = False
+    _last_log_status = "ok"
+    _log_failed_before = False
+    last_load_percent = 0.0
+
+    def record_calibration(self, kind: str) -> None:
+        """Logs the calibration now in force (after a live calibration) as a configuration record."""
+        self.cfg.raw["calibration"] = self.pipeline.calibration.to_dict()
+        if self.log_writer is not None:
+            self.log_writer.write_config(time.monotonic_ns(), self.effective_config(), reason=f"calibration:{kind}")
+
+    def health(self) -> dict[str, bool]:
+        """Present/healthy bits for gyro, accelerometer and magnetometer (SYS_STATUS)."""
+        s = self.pipeline.last_sample
+        flags = s.flags if s is not None else 0
+        lost = bool(self.source.diagnostics.device_lost) if self.source else True
+        return {
+            "gyro_healthy": bool(flags & GYR_VALID) and not lost,
+            "accel_healthy": bool(flags & ACC_VALID) and not lost,
+            "mag_present": bool(getattr(self.source, "has_mag", False)),
+            "mag_healthy": bool(flags & MAG_VALID or s is not None and s.mag is None) and not self.pipeline.reduced,
+        }
+
+    # ------------------------------------------------------------------ live changes
+    def set_estimator_param(self, name: str, value: float, source: str = "mavlink") -> float:
+        """Applies one estimator parameter live; logs it at the sample index where it takes effect."""
+        old = self.estimator.get_params()[name]
+        self.estimator.set_params(**{name: value})
+        new = self.estimator.get_params()[name]
+        if self.log_writer is not None:
+            self.log_writer.write_param_change(time.monotonic_ns(), self.pipeline.samples, name, old, new, source)
+        return new
+
+    def reload(self) -> None:
+        """SIGHUP: re-reads the configuration file and applies it; a bad file changes nothing."""
+        self.notifier.reloading()
+        try:
+            new = config_mod.load(self.cfg.path) if self.cfg.path else config_mod.validate({})
+        except config_mod.ConfigError as exc:
+            self.report(f"reload refused: {exc}", 3)
+            self.notifier.ready(self.status_line())
+            return
+        if new.source != self.cfg.source:
+            self.report("reload: source changes need a restart; source kept", 4)
+            new.raw["source"] = self.cfg.source
+        old_cfg, self.cfg = self.cfg, new
+        if new.estimator != old_cfg.estimator or new.calibration != old_cfg.calibration or new.mounting != old_cfg.mounting:
+            q = self.estimator.state.copy()
+            self._build_estimation(new)
+            if self.estimator.state.shape == q.shape and new.estimator["name"] == old_cfg.estimator["name"]:
+                self.estimator.state[:] = q  # same filter, new gains: keep its attitude and bias
+        if new.rates["estimation_hz"] != old_cfg.rates["estimation_hz"]:
+            self.scheduler.set_rate(new.rates["estimation_hz"])
+        if new.log != old_cfg.log:
+            if self.log_writer is not None:
+                self.log_writer.close()
+            self._open_log(new)
+        elif self.log_writer is not None:
+            self.log_writer.write_config(time.monotonic_ns(), self.effective_config())
+        if new.mavlink != old_cfg.mavlink or new.rates != old_cfg.rates:
+            self.mavlink.close()
+            self._open_mavlink(new)
+        self.report("configuration reloaded", 6)
+        self.notifier.ready(self.status_line())
+
+    # ------------------------------------------------------------------ shutdown
+    def close(self) -> None:
+        self.notifier.stopping()
+        for part in (self.mavlink, self.log_writer, self.source):
+            if part is None:
+                continue
+            try:
+                part.close()
+            except Exception as exc:  # a failing part must not keep the others open
+                log.warning("closing %s: %s", type(part).__name__, exc)
+        self.notifier.close()

@@ -1,0 +1,72 @@
+"""``ahrs-service run`` and ``ahrs-service config``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from ahrs_service import config as config_mod
+
+
+def add_subcommands(sub: argparse._SubParsersAction) -> None:
+    run = sub.add_parser("run", help="run the service (embedded default: simulated GY-80, MAVLink UDP 127.0.0.1:14550)")
+    run.add_argument("-c", "--config", help="TOML configuration file (default: the embedded default)")
+    run.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run until SIGTERM/SIGINT)")
+    run.add_argument("--log-dir", help="override log.directory")
+    run.add_argument("--no-log", action="store_true", help="do not write an MCAP log")
+    run.add_argument("-v", "--verbose", action="store_true")
+    run.set_defaults(func=cmd_run)
+
+    cfg = sub.add_parser("config", help="check a configuration file or print the default one")
+    group = cfg.add_mutually_exclusive_group(required=True)
+    group.add_argument("--check", metavar="FILE", help="validate FILE and print the effective configuration")
+    group.add_argument("--print-default", action="store_true", help="print the embedded default configuration")
+    cfg.set_defaults(func=cmd_config)
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    try:
+        cfg = config_mod.load(args.check) if args.check else config_mod.load(None)
+    except config_mod.ConfigError as exc:
+        print(f"ahrs-service: configuration error: {exc}", file=sys.stderr)
+        return 2
+    print(config_mod.to_toml(cfg.raw))
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    try:
+        cfg = config_mod.load(args.config)
+        if args.log_dir:
+            cfg.raw["log"]["directory"] = args.log_dir
+        if args.no_log:
+            cfg.raw["log"]["enabled"] = False
+    except config_mod.ConfigError as exc:
+        print(f"ahrs-service: configuration error: {exc}", file=sys.stderr)
+        return 2
+    from ahrs_service.service import Service
+
+    service = Service(cfg, duration_s=args.duration)
+    service.install_signal_handlers()
+    try:
+        service.start()
+    except (OSError, ValueError, RuntimeError) as exc:
+        print(f"ahrs-service: cannot start: {exc}", file=sys.stderr)
+        service.close()
+        return 1
+    logger = logging.getLogger("ahrs_service")
+    logger.info("running: %s; MAVLink to %s", service.status_line(), ", ".join(cfg.mavlink["endpoints"]))
+    if service.log_writer is not None:
+        logger.info("logging to %s", getattr(service.log_writer, "path", cfg.log["directory"]))
+    try:
+        service.run()
+    finally:
+        service.close()
+    logger.info("stopped: %s", service.status_line())
+    return 0

@@ -1,0 +1,105 @@
+"""Builds the configured sensor source: simulated or real I2C board, DroneCAN, simulator, log.
+
+``source.type`` in the configuration picks one:
+
+* ``simulated_i2c`` (default) — a simulated board (``source.board``) on the simulated I2C
+  bus, fed by the motion simulator flying ``source.profile``; the very driver code that runs
+  on hardware reads it.
+* ``i2c`` — the real board on ``/dev/i2c-<source.i2c_bus>``.
+* ``simulated_can`` — a simulated DroneCAN IMU node on a python-can bus in this process.
+* ``can`` — a DroneCAN IMU on ``source.can_interface`` / ``source.can_channel``.
+* ``simulated`` — the motion simulator without any bus.
+* ``recorded`` — an MCAP log or a BROAD HDF5 recording (``source.recorded_path``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ahrs_service.drivers.base import ImuSource
+
+# the simulated parts of each board, for the sensor error models
+_BOARD_PARTS = {
+    "gy80": ("L3G4200D", "ADXL345", "HMC5883L"),
+    "minimu9v2": ("L3GD20", "LSM303DLHC_ACC", "LSM303DLHC_MAG"),
+    "mpu9250": ("MPU9250_GYRO", "MPU9250_ACC", "AK8963"),
+}
+
+
+def simulated_imu(source_cfg: dict[str, Any]):
+    """The motion simulator with the error models of the configured board's parts."""
+    from ahrs_service.drivers.sim.imu import MonotonicClock, SimulatedImu
+    from ahrs_service.drivers.sim.motion import profile
+    from ahrs_service.drivers.sim.sensor_model import PART_MODELS
+
+    trajectory = profile(source_cfg["profile"], looping=source_cfg["loop_profile"])
+    if source_cfg["sensor_errors"]:
+        # analog(): the register devices quantise and saturate at their configured range
+        gyr, acc, mag = (PART_MODELS[p].analog() for p in _BOARD_PARTS[source_cfg["board"]])
+    else:
+        gyr = acc = mag = PART_MODELS["ideal"]
+    models = {"gyr": gyr, "acc": acc, "mag": mag}
+    return SimulatedImu(trajectory, models, clock=MonotonicClock(), seed=source_cfg["seed"])
+
+
+def make_source(source_cfg: dict[str, Any], estimation_hz: float) -> ImuSource:
+    """An unopened source for the ``[source]`` section of the configuration."""
+    kind = source_cfg["type"]
+    if kind == "simulated_i2c":
+        from ahrs_service.drivers.i2c.boards import make_simulated_board
+
+        return make_simulated_board(source_cfg["board"], simulated_imu(source_cfg))
+    if kind == "i2c":
+        from ahrs_service.drivers.i2c.boards import make_board
+
+        return make_board(source_cfg["board"], source_cfg["i2c_bus"])
+    if kind == "simulated":
+        from ahrs_service.drivers.sim.source import SimulatedSource
+
+        return SimulatedSource(simulated_imu(source_cfg), rate_hz=estimation_hz)
+    if kind in ("can", "simulated_can"):
+        from ahrs_service.drivers.can.source import DroneCanConfig, DroneCanImuSource
+
+        can_cfg = DroneCanConfig(
+            interface=source_cfg["can_interface"],
+            channel=source_cfg["can_channel"],
+            bitrate=source_cfg["can_bitrate"],
+            node_id=source_cfg["can_node_id"] or None,
+        )
+        if kind == "can":
+            return DroneCanImuSource(can_cfg)
+        return SimulatedCanSource(can_cfg, simulated_imu(source_cfg), estimation_hz)
+    if kind == "recorded":
+        from ahrs_service.logs.source import RecordedSource
+
+        return RecordedSource(source_cfg["recorded_path"], realtime=source_cfg["recorded_realtime"])
+    raise ValueError(f"source.type: unknown source {kind!r}")
+
+
+class SimulatedCanSource(ImuSource):
+    """A DroneCAN source plus, in this process, a simulated IMU node publishing on the same bus."""
+
+    def __init__(self, can_cfg, imu, rate_hz: float) -> None:
+        from ahrs_service.drivers.can.source import DroneCanImuSource
+
+        super().__init__()
+        self.can_cfg, self.imu, self.rate_hz = can_cfg, imu, rate_hz
+        self.inner = DroneCanImuSource(can_cfg)
+        self.diagnostics = self.inner.diagnostics
+        self.node = None
+
+    def open(self) -> None:
+        from ahrs_service.drivers.can.sim_node import SimulatedDroneCanImuNode
+
+        self.inner.open()
+        self.node = SimulatedDroneCanImuNode(self.can_cfg.open_bus(), self.imu, rate_hz=self.rate_hz)
+        self.node.start()
+
+    def read(self):
+        return self.inner.read()
+
+    def close(self) -> None:
+        if self.node is not None:
+            self.node.stop()
+            self.node.bus.shutdown()
+        self.inner.close()
