@@ -1,0 +1,364 @@
+"""I2C IMU boards as :class:`~ahrs_service.drivers.base.ImuSource`: GY-80, MinIMU-9 v2, MPU-9250.
+
+A board is its parts (gyro, accelerometer, magnetometer drivers) on one :class:`I2CBus`.
+``read()`` returns one :class:`ImuSample` per new gyro sample (the gyro's data-ready bit
+drives the sample rate; the same reading is never returned twice), with:
+
+* ``gyr`` rad/s, ``acc`` m/s² (specific force), ``mag`` µT — in the board's axes (the
+  sensors' own axes; mounting rotation and calibration are applied elsewhere);
+* ``mag`` only when the magnetometer has a new reading (``MAG_NEW``), else None;
+* ``t_ns``: ``time.monotonic_ns()`` right after the gyro read, or the simulation clock in
+  ns on a :class:`SimulatedI2CBus`, where ``truth_q`` is the true attitude of the gyro sample;
+* ``raw``: the counts as read ({"gyr", "acc", "mag", "temp"});
+* flags: a saturated or non-finite reading gets ``*_SATURATED`` / loses ``*_VALID``.
+
+Faults: transient ``OSError`` is retried and counted (``diagnostics.bus_errors``,
+``retries``) and never raised from ``read()``. A part that keeps failing is marked lost
+(``diagnostics.device_lost``, ``last_error``); the board retries its configuration at most
+every ``reinit_period_s`` (bus clock) and counts ``reinitialisations`` when it is back. A lost
+magnetometer leaves gyro/accelerometer samples flowing; a lost gyro or accelerometer stops
+them until it returns.
+
+Factories: :func:`make_board` (hardware, ``/dev/i2c-N``) and :func:`make_simulated_board`
+(a simulator behind simulated register devices on a :class:`SimulatedI2CBus`).
+"""
+
+from __future__ import annotations
+
+import inspect
+from typing import Any
+
+import numpy as np
+
+from ahrs_service.drivers.base import (
+    ACC_SATURATED,
+    ACC_VALID,
+    GYR_SATURATED,
+    GYR_VALID,
+    MAG_NEW,
+    MAG_SATURATED,
+    MAG_VALID,
+    ImuSample,
+    ImuSource,
+)
+from ahrs_service.drivers.i2c.adxl345 import ADXL345, SimulatedADXL345
+from ahrs_service.drivers.i2c.ak8963 import AK8963, SimulatedAK8963
+from ahrs_service.drivers.i2c.bus import I2CBus, SimulatedI2CBus, SMBusI2C
+from ahrs_service.drivers.i2c.device import DeviceIdentityError, I2CDevice, I2CDeviceError
+from ahrs_service.drivers.i2c.hmc5883l import HMC5883L, SimulatedHMC5883L
+from ahrs_service.drivers.i2c.l3g4200d import L3G4200D, SimulatedL3G4200D
+from ahrs_service.drivers.i2c.l3gd20 import L3GD20, SimulatedL3GD20
+from ahrs_service.drivers.i2c.lsm303dlhc import (
+    LSM303DLHCAcc,
+    LSM303DLHCMag,
+    SimulatedLSM303DLHCAcc,
+    SimulatedLSM303DLHCMag,
+)
+from ahrs_service.drivers.i2c.mpu9250 import MPU9250, SimulatedMPU9250
+
+
+class I2CBoard(ImuSource):
+    """Base of the boards: parts ``gyro``, ``acc``, ``mag`` (drivers), configured in that order.
+
+    bus: the I2C bus. own_bus: close the bus with the board. retries: transfer retries per
+    part. reinit_period_s: minimum time between two attempts to bring a lost part back.
+    """
+
+    NAME = ""
+    #: part → part it needs (reconfigured first, lost with it)
+    DEPENDS: dict[str, str] = {}
+
+    def __init__(self, bus: I2CBus, *, retries: int = 2, reinit_period_s: float = 0.05,
+                 own_bus: bool = False) -> None:
+        super().__init__()
+        self.bus = bus
+        self.own_bus = own_bus
+        self.retries = retries
+        self.reinit_period_ns = int(reinit_period_s * 1e9)
+        self.parts: dict[str, I2CDevice] = {}
+        self.lost: set[str] = set()
+        self._last_attempt_ns = 0
+        self._opened = False
+
+    def _kw(self) -> dict[str, Any]:
+        return {"diagnostics": self.diagnostics, "retries": self.retries}
+
+    # ------------------------------------------------------------------ life cycle
+    def open(self) -> None:
+        """Identifies and configures every part; raises naming bus, address and register."""
+        for part in self.parts.values():
+            part.configure()
+        self.lost.clear()
+        self.diagnostics.device_lost = False
+        self._opened = True
+
+    def close(self) -> None:
+        """Releases the bus if the board owns it."""
+        self._opened = False
+        if self.own_bus:
+            self.bus.close()
+
+    # ------------------------------------------------------------------ faults
+    def _mark_lost(self, role: str, err: Exception) -> None:
+        roles = {role} | {r for r, dep in self.DEPENDS.items() if dep == role}
+        if not roles <= self.lost:
+            self.lost |= roles
+            self._last_attempt_ns = self.bus.now_ns()
+        self.diagnostics.device_lost = True
+        self.diagnostics.last_error = f"{role} lost: {err}"
+
+    def _recover(self) -> None:
+        now = self.bus.now_ns()
+        if now - self._last_attempt_ns < self.reinit_period_ns:
+            return
+        self._last_attempt_ns = now
+        for role, part in self.parts.items():  # dependency order = configuration order
+            if role not in self.lost or self.DEPENDS.get(role) in self.lost:
+                continue
+            try:
+                part.configure()
+            except (OSError, DeviceIdentityError) as exc:
+                self.diagnostics.last_error = f"{role} still lost: {exc}"
+                continue
+            self.lost.discard(role)
+            self.diagnostics.reinitialisations += 1
+        self.diagnostics.device_lost = bool(self.lost)
+
+    # ------------------------------------------------------------------ samples
+    def _truth_q(self, role: str = "gyro") -> np.ndarray | None:
+        try:
+            phys = self.bus.device(self.parts[role].address).latched  # type: ignore[attr-defined]
+        except KeyError:
+            return None
+        truth = phys.get("truth") if phys else None
+        if truth is None:
+            return None
+        q = truth["q"] if isinstance(truth, dict) else getattr(truth, "q", None)
+        return None if q is None else np.array(q, dtype=float)
+
+    def _check(self, values: np.ndarray, saturated: bool, valid: int, sat_flag: int) -> int:
+        d = self.diagnostics
+        if saturated:
+            d.saturated += 1
+            return sat_flag
+        if not np.isfinite(values).all():
+            d.non_finite += 1
+            return 0
+        return valid
+
+    def _read_mag(self, t_ns: int) -> tuple[Any, np.ndarray | None, int]:
+        mag = self.parts.get("mag")
+        if mag is None or "mag" in self.lost:
+            return None, None, 0
+        try:
+            m = mag.read_if_new(t_ns)  # type: ignore[attr-defined]
+        except I2CDeviceError as exc:
+            self._mark_lost("mag", exc)
+            return None, None, 0
+        if m is None:
+            return None, None, 0
+        si = mag.to_si(m)
+        return m, si, MAG_NEW | self._check(si, mag.is_saturated(m), MAG_VALID, MAG_SATURATED)
+
+    def read(self) -> ImuSample | None:
+        """The newest new sample, or None (nothing new, or a part lost: see diagnostics)."""
+        if not self._opened:
+            raise RuntimeError(f"{self.NAME} on {self.bus.name}: read() before open()")
+        if self.lost:
+            self._recover()
+            if "gyro" in self.lost or "acc" in self.lost:
+                return None
+        return self._read_sample()
+
+    def _read_sample(self) -> ImuSample | None:
+        gyro, acc = self.parts["gyro"], self.parts["acc"]
+        try:
+            g = gyro.read_if_new()  # type: ignore[attr-defined]
+        except I2CDeviceError as exc:
+            self._mark_lost("gyro", exc)
+            return None
+        if g is None:
+            return None
+        t_ns = self.bus.now_ns()
+        overruns = getattr(gyro, "overruns", 0)
+        if overruns:
+            self.diagnostics.extra["gyr_overruns"] = overruns
+        try:
+            a = acc.read_counts()  # type: ignore[attr-defined]
+        except I2CDeviceError as exc:
+            self._mark_lost("acc", exc)
+            return None
+        gyr, accel = gyro.to_si(g), acc.to_si(a)
+        flags = self._check(gyr, gyro.is_saturated(g), GYR_VALID, GYR_SATURATED) \
+            | self._check(accel, acc.is_saturated(a), ACC_VALID, ACC_SATURATED)
+        m, mag, mflags = self._read_mag(t_ns)
+        raw = {"gyr": g, "acc": a}
+        if m is not None:
+            raw["mag"] = m
+        self.diagnostics.samples += 1
+        return ImuSample(t_ns, gyr, accel, mag, flags | mflags, raw,
+                         self._truth_q() if self.bus.simulated else None)
+
+    # ------------------------------------------------------------------ simulation
+    @classmethod
+    def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, **options: Any) -> None:
+        """Attaches this board's simulated parts to ``bus`` at the addresses in ``options``."""
+        raise NotImplementedError
+
+
+class GY80(I2CBoard):
+    """GY-80: L3G4200D gyro (0x69), ADXL345 accelerometer (0x53), HMC5883L compass (0x1E).
+
+    (Its BMP085 barometer at 0x77 is not used.) Ranges/rates: see each driver.
+    """
+
+    NAME = "gy80"
+
+    def __init__(self, bus: I2CBus, *, gyro_address: int = 0x69, acc_address: int = 0x53,
+                 mag_address: int = 0x1E, gyro_range_dps: int = 2000, gyro_rate_hz: float = 800,
+                 acc_range_g: int = 8, acc_rate_hz: float = 800, mag_range_ga: float = 1.3,
+                 mag_rate_hz: float = 75, mag_averaging: int = 8, **kw: Any) -> None:
+        super().__init__(bus, **kw)
+        self.parts = {
+            "gyro": L3G4200D(bus, gyro_address, range_dps=gyro_range_dps, rate_hz=gyro_rate_hz,
+                             **self._kw()),
+            "acc": ADXL345(bus, acc_address, range_g=acc_range_g, rate_hz=acc_rate_hz, **self._kw()),
+            "mag": HMC5883L(bus, mag_address, range_ga=mag_range_ga, rate_hz=mag_rate_hz,
+                            averaging=mag_averaging, **self._kw()),
+        }
+
+    @classmethod
+    def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, *, gyro_address: int = 0x69,
+                         acc_address: int = 0x53, mag_address: int = 0x1E, **_: Any) -> None:
+        bus.attach(SimulatedL3G4200D(source, gyro_address))
+        bus.attach(SimulatedADXL345(source, acc_address))
+        bus.attach(SimulatedHMC5883L(source, mag_address))
+
+
+class MinIMU9v2(I2CBoard):
+    """Pololu MinIMU-9 v2: L3GD20 gyro (0x6B), LSM303DLHC accelerometer (0x19) and
+    magnetometer (0x1E)."""
+
+    NAME = "minimu9v2"
+
+    def __init__(self, bus: I2CBus, *, gyro_address: int = 0x6B, acc_address: int = 0x19,
+                 mag_address: int = 0x1E, gyro_range_dps: int = 2000, gyro_rate_hz: float = 760,
+                 acc_range_g: int = 8, acc_rate_hz: float = 1344, mag_range_ga: float = 1.3,
+                 mag_rate_hz: float = 220, **kw: Any) -> None:
+        super().__init__(bus, **kw)
+        self.parts = {
+            "gyro": L3GD20(bus, gyro_address, range_dps=gyro_range_dps, rate_hz=gyro_rate_hz,
+                           **self._kw()),
+            "acc": LSM303DLHCAcc(bus, acc_address, range_g=acc_range_g, rate_hz=acc_rate_hz,
+                                 **self._kw()),
+            "mag": LSM303DLHCMag(bus, mag_address, range_ga=mag_range_ga, rate_hz=mag_rate_hz,
+                                 **self._kw()),
+        }
+
+    @classmethod
+    def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, *, gyro_address: int = 0x6B,
+                         acc_address: int = 0x19, mag_address: int = 0x1E, **_: Any) -> None:
+        bus.attach(SimulatedL3GD20(source, gyro_address))
+        bus.attach(SimulatedLSM303DLHCAcc(source, acc_address))
+        bus.attach(SimulatedLSM303DLHCMag(source, mag_address))
+
+
+class MPU9250Board(I2CBoard):
+    """MPU-9250 (0x68) with its AK8963 magnetometer (0x0C, reached in I2C bypass mode).
+
+    The magnetometer is reported in the MPU-9250's accelerometer/gyro axes. ``temperature_c``
+    is the MPU-9250 die temperature. The AK8963 depends on the MPU-9250: it is lost with it
+    and reconfigured after it (the MPU's reset turns bypass off).
+    """
+
+    NAME = "mpu9250"
+    DEPENDS = {"mag": "gyro"}
+
+    def __init__(self, bus: I2CBus, *, address: int = 0x68, mag_address: int = 0x0C,
+                 gyro_range_dps: int = 2000, acc_range_g: int = 8, rate_hz: float = 1000,
+                 mag_rate_hz: float = 100, **kw: Any) -> None:
+        super().__init__(bus, **kw)
+        self.mpu = MPU9250(bus, address, gyro_range_dps=gyro_range_dps, acc_range_g=acc_range_g,
+                           rate_hz=rate_hz, **self._kw())
+        self.parts = {"gyro": self.mpu,
+                      "mag": AK8963(bus, mag_address, rate_hz=mag_rate_hz, **self._kw())}
+
+    def read(self) -> ImuSample | None:
+        if not self._opened:
+            raise RuntimeError(f"{self.NAME} on {self.bus.name}: read() before open()")
+        if self.lost:
+            self._recover()
+            if "gyro" in self.lost:
+                return None
+        mpu = self.mpu
+        try:
+            frame = mpu.read_if_new()
+        except I2CDeviceError as exc:
+            self._mark_lost("gyro", exc)
+            return None
+        if frame is None:
+            return None
+        t_ns = self.bus.now_ns()
+        a, temp, g = frame
+        gyr, acc = mpu.gyr_si(g), mpu.acc_si(a)
+        flags = self._check(gyr, mpu.gyr_saturated(g), GYR_VALID, GYR_SATURATED) \
+            | self._check(acc, mpu.acc_saturated(a), ACC_VALID, ACC_SATURATED)
+        m, mag, mflags = self._read_mag(t_ns)
+        raw = {"gyr": g, "acc": a, "temp": temp}
+        if m is not None:
+            raw["mag"] = m
+        self.diagnostics.samples += 1
+        return ImuSample(t_ns, gyr, acc, mag, flags | mflags, raw,
+                         self._truth_q() if self.bus.simulated else None,
+                         temperature_c=mpu.temperature_c(temp))
+
+    @classmethod
+    def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, *, address: int = 0x68,
+                         mag_address: int = 0x0C, **_: Any) -> None:
+        mpu = bus.attach(SimulatedMPU9250(source, address))
+        bus.attach(SimulatedAK8963(source, mag_address), visible_if=mpu.bypass_enabled)
+
+
+BOARDS: dict[str, type[I2CBoard]] = {"gy80": GY80, "minimu9v2": MinIMU9v2, "mpu9250": MPU9250Board}
+
+
+def board_names() -> list[str]:
+    """Names accepted by :func:`make_board` and :func:`make_simulated_board`."""
+    return list(BOARDS)
+
+
+def _board_class(name: str, options: dict[str, Any]) -> type[I2CBoard]:
+    try:
+        cls = BOARDS[name]
+    except KeyError:
+        raise ValueError(f"unknown I2C board {name!r}; available: {', '.join(BOARDS)}") from None
+    allowed = {p for c in (cls, I2CBoard) for p in inspect.signature(c.__init__).parameters
+               if p not in ("self", "bus", "kw", "own_bus")}
+    unknown = sorted(set(options) - allowed)
+    if unknown:
+        raise ValueError(f"board {name!r}: unknown option(s) {', '.join(unknown)}; "
+                         f"valid: {', '.join(sorted(allowed))}")
+    return cls
+
+
+def make_board(name: str, bus_number: int = 1, **options: Any) -> I2CBoard:
+    """A board on the hardware bus ``/dev/i2c-<bus_number>`` (not opened yet: call ``open()``).
+
+    options: the board's addresses, ranges and rates (e.g. ``gyro_rate_hz=400``); an unknown
+    option raises ValueError listing the valid ones.
+    """
+    cls = _board_class(name, options)
+    return cls(SMBusI2C(bus_number), own_bus=True, **options)
+
+
+def make_simulated_board(name: str, simulated_imu: Any, **options: Any) -> I2CBoard:
+    """A board whose parts are simulated register devices fed by ``simulated_imu``.
+
+    simulated_imu: an object with ``physics(t) -> dict`` and ``clock`` (``now()`` in s), such
+    as ``ahrs_service.drivers.sim.SimulatedImu``. The board (not opened yet) has its
+    :class:`SimulatedI2CBus` as ``board.bus``, for fault injection.
+    """
+    cls = _board_class(name, options)
+    bus = SimulatedI2CBus(simulated_imu.clock, name=f"sim-i2c[{name}]")
+    cls.attach_simulated(bus, simulated_imu, **options)
+    return cls(bus, **options)

@@ -1,0 +1,262 @@
+"""One I2C bus abstraction with two backends: real hardware (smbus2) and a simulation.
+
+Every driver in :mod:`ahrs_service.drivers.i2c` talks to an :class:`I2CBus` and nothing else,
+so the simulated devices sit behind exactly the code that runs on hardware:
+
+* :class:`SMBusI2C` — a Linux ``/dev/i2c-N`` adapter through smbus2 (Raspberry Pi & co.).
+* :class:`SimulatedI2CBus` — simulated register devices attached by address, driven by a
+  simulation clock, with fault injection for tests (transient errors, a device that
+  disappears and comes back).
+
+Errors follow Linux: a failed transfer raises :class:`OSError`; an address nobody answers
+raises ``OSError(ENXIO)`` (what most adapters return for an address NACK; some return
+``EREMOTEIO``). Bus timestamps are nanoseconds on the host monotonic clock
+(``time.monotonic_ns``), or the simulation clock mapped to nanoseconds.
+"""
+
+from __future__ import annotations
+
+import abc
+import errno
+import os
+import time
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice
+
+
+class I2CBus(abc.ABC):
+    """Register-level access to devices on one I2C bus (the SMBus subset the drivers use).
+
+    ``reg`` is the 8-bit register (sub-)address sent before the data; for ST parts the
+    driver sets its MSB itself to request auto-increment.
+    """
+
+    #: human-readable bus name used in every error message, e.g. "/dev/i2c-1"
+    name: str = "i2c"
+    #: True when the devices on this bus are simulated (samples then carry truth)
+    simulated: bool = False
+
+    @abc.abstractmethod
+    def read_byte_data(self, addr: int, reg: int) -> int:
+        """One byte read from register ``reg`` of the device at 7-bit address ``addr``."""
+
+    @abc.abstractmethod
+    def write_byte_data(self, addr: int, reg: int, value: int) -> None:
+        """Writes one byte ``value`` to register ``reg``."""
+
+    @abc.abstractmethod
+    def read_i2c_block_data(self, addr: int, reg: int, n: int) -> list[int]:
+        """Burst read of ``n`` bytes (1…32) starting at ``reg`` in one bus transaction."""
+
+    @abc.abstractmethod
+    def write_i2c_block_data(self, addr: int, reg: int, data: Sequence[int]) -> None:
+        """Burst write of ``data`` (≤ 32 bytes) starting at ``reg``."""
+
+    def now_ns(self) -> int:
+        """Timestamp (ns) for a reading taken now: host monotonic clock on hardware."""
+        return time.monotonic_ns()
+
+    def sleep(self, seconds: float) -> None:
+        """Waits for a device's settling time (a datasheet delay). No-op in simulation."""
+        time.sleep(seconds)
+
+    def close(self) -> None:
+        """Releases the adapter."""
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.name!r})"
+
+
+def _check_transfer(addr: int, reg: int, n: int | None = None) -> None:
+    # Bad arguments are programming errors, not bus faults: ValueError, never retried.
+    if not 0x03 <= addr <= 0x77:
+        raise ValueError(f"I2C address 0x{addr:02X} is outside the 7-bit range 0x03..0x77")
+    if not 0 <= reg <= 0xFF:
+        raise ValueError(f"register 0x{reg:X} is not an 8-bit sub-address (device 0x{addr:02X})")
+    if n is not None and not 1 <= n <= 32:
+        raise ValueError(f"block transfer of {n} bytes at device 0x{addr:02X} register "
+                         f"0x{reg:02X}: SMBus blocks are 1..32 bytes")
+
+
+class SMBusI2C(I2CBus):
+    """A Linux I2C adapter ``/dev/i2c-<bus_number>`` through smbus2.
+
+    Raises :class:`FileNotFoundError` when the device node does not exist (I2C not enabled,
+    wrong bus number) and :class:`PermissionError` when the user may not open it, each with
+    the fix in the message.
+    """
+
+    def __init__(self, bus_number: int) -> None:
+        import smbus2  # imported here so the simulated path never needs the hardware module
+
+        if not isinstance(bus_number, int) or bus_number < 0:
+            raise ValueError(f"I2C bus number must be an integer >= 0, got {bus_number!r}")
+        self.bus_number = bus_number
+        self.name = f"/dev/i2c-{bus_number}"
+        if not os.path.exists(self.name):
+            raise FileNotFoundError(
+                errno.ENOENT,
+                f"I2C bus {self.name} does not exist: enable I2C (Raspberry Pi: "
+                f"`sudo raspi-config nonint do_i2c 0` or dtparam=i2c_arm=on in "
+                f"/boot/firmware/config.txt, then reboot; elsewhere `modprobe i2c-dev`) "
+                f"and check the bus number (`ls /dev/i2c-*`, `i2cdetect -l`)",
+                self.name,
+            )
+        try:
+            self._smbus = smbus2.SMBus(bus_number)
+        except PermissionError as exc:
+            raise PermissionError(
+                errno.EACCES,
+                f"no permission to open I2C bus {self.name}: add the service user to the "
+                f"'i2c' group (`sudo usermod -aG i2c $USER`, then log in again) or install "
+                f"a udev rule giving it access",
+                self.name,
+            ) from exc
+
+    def read_byte_data(self, addr: int, reg: int) -> int:
+        return self._smbus.read_byte_data(addr, reg)
+
+    def write_byte_data(self, addr: int, reg: int, value: int) -> None:
+        self._smbus.write_byte_data(addr, reg, value)
+
+    def read_i2c_block_data(self, addr: int, reg: int, n: int) -> list[int]:
+        return self._smbus.read_i2c_block_data(addr, reg, n)
+
+    def write_i2c_block_data(self, addr: int, reg: int, data: Sequence[int]) -> None:
+        self._smbus.write_i2c_block_data(addr, reg, list(data))
+
+    def close(self) -> None:
+        self._smbus.close()
+
+
+class _Slot:
+    """A device attached to the simulated bus, with its fault-injection state."""
+
+    __slots__ = ("device", "present", "visible_if", "pending_errors", "error_errno")
+
+    def __init__(self, device: "SimulatedRegisterDevice", visible_if: Callable[[], bool] | None):
+        self.device = device
+        self.present = True
+        self.visible_if = visible_if
+        self.pending_errors = 0
+        self.error_errno = errno.EIO
+
+
+class SimulatedI2CBus(I2CBus):
+    """A bus of simulated register devices on a simulation clock.
+
+    clock: any object with ``now() -> float`` seconds (``ManualClock`` in tests, a
+    monotonic clock in real-time runs); ``to_ns(t)`` is used for timestamps when it exists.
+    Each transfer first lets the addressed device latch the samples due by ``clock.now()``.
+
+    Fault injection (tests): :meth:`inject_errors` makes the next transfers to an address
+    fail like a glitch on the wires; :meth:`set_present` removes a device (it NACKs) and puts
+    it back, power-cycled by default. ``transfers`` counts bus transactions.
+    """
+
+    simulated = True
+
+    def __init__(self, clock: Any, name: str = "sim-i2c", nack_errno: int = errno.ENXIO) -> None:
+        if not callable(getattr(clock, "now", None)):
+            raise TypeError(f"SimulatedI2CBus needs a clock with now() -> seconds, got {clock!r}")
+        self.clock = clock
+        self.name = name
+        self.nack_errno = nack_errno
+        self.transfers = 0
+        self._slots: dict[int, _Slot] = {}
+
+    # ----------------------------------------------------------------- devices
+    def attach(self, device: "SimulatedRegisterDevice",
+               visible_if: Callable[[], bool] | None = None) -> "SimulatedRegisterDevice":
+        """Puts ``device`` on the bus at ``device.address``.
+
+        visible_if: the device answers only while this returns True (e.g. an AK8963 behind
+        an MPU-9250 that is reachable only in I2C bypass mode).
+        """
+        if device.address in self._slots:
+            other = self._slots[device.address].device
+            raise ValueError(f"{self.name}: address 0x{device.address:02X} is already taken "
+                             f"by {type(other).__name__}")
+        self._slots[device.address] = _Slot(device, visible_if)
+        device.power_on_reset(self.clock.now())
+        return device
+
+    def detach(self, address: int) -> None:
+        """Removes the device at ``address`` for good."""
+        del self._slots[address]
+
+    def device(self, address: int) -> "SimulatedRegisterDevice":
+        """The simulated device attached at ``address`` (KeyError naming the bus if none)."""
+        try:
+            return self._slots[address].device
+        except KeyError:
+            raise KeyError(f"{self.name}: no simulated device attached at 0x{address:02X}") from None
+
+    def addresses(self) -> list[int]:
+        """Addresses that currently answer (like ``i2cdetect``)."""
+        return sorted(a for a, s in self._slots.items() if self._answers(s))
+
+    # ----------------------------------------------------------------- faults
+    def inject_errors(self, address: int, count: int = 1, err: int = errno.EIO) -> None:
+        """The next ``count`` transfers to ``address`` raise ``OSError(err)`` (a bus glitch)."""
+        slot = self._slots[address]
+        slot.pending_errors += int(count)
+        slot.error_errno = err
+
+    def set_present(self, address: int, present: bool, power_cycle: bool = True) -> None:
+        """Makes the device at ``address`` vanish (it NACKs) or come back.
+
+        Coming back with ``power_cycle=True`` resets its registers to power-on values, as a
+        device that lost power or was re-plugged: the driver has to configure it again.
+        """
+        slot = self._slots[address]
+        if present and not slot.present and power_cycle:
+            slot.device.power_on_reset(self.clock.now())
+        slot.present = bool(present)
+
+    # ----------------------------------------------------------------- transfers
+    @staticmethod
+    def _answers(slot: _Slot) -> bool:
+        return slot.present and (slot.visible_if is None or slot.visible_if())
+
+    def _target(self, addr: int) -> "SimulatedRegisterDevice":
+        self.transfers += 1
+        slot = self._slots.get(addr)
+        if slot is None or not self._answers(slot):
+            raise OSError(self.nack_errno, f"{self.name}: no ACK from address 0x{addr:02X}")
+        if slot.pending_errors > 0:
+            slot.pending_errors -= 1
+            raise OSError(slot.error_errno,
+                          f"{self.name}: injected transfer error at 0x{addr:02X}")
+        return slot.device
+
+    def read_byte_data(self, addr: int, reg: int) -> int:
+        _check_transfer(addr, reg)
+        return self._target(addr).bus_read(reg, 1, self.clock.now())[0]
+
+    def write_byte_data(self, addr: int, reg: int, value: int) -> None:
+        _check_transfer(addr, reg)
+        if not 0 <= value <= 0xFF:
+            raise ValueError(f"{self.name}: byte 0x{value:X} for 0x{addr:02X} reg 0x{reg:02X}")
+        self._target(addr).bus_write(reg, [value], self.clock.now())
+
+    def read_i2c_block_data(self, addr: int, reg: int, n: int) -> list[int]:
+        _check_transfer(addr, reg, n)
+        return self._target(addr).bus_read(reg, n, self.clock.now())
+
+    def write_i2c_block_data(self, addr: int, reg: int, data: Sequence[int]) -> None:
+        _check_transfer(addr, reg, len(data))
+        self._target(addr).bus_write(reg, list(data), self.clock.now())
+
+    def now_ns(self) -> int:
+        """The simulation clock's now, mapped to ns (``clock.to_ns`` when the clock has it)."""
+        t = self.clock.now()
+        to_ns = getattr(self.clock, "to_ns", None)
+        return to_ns(t) if to_ns is not None else int(round(t * 1e9))
+
+    def sleep(self, seconds: float) -> None:
+        # Simulated parts settle instantly; tests advance the clock themselves.
+        return None

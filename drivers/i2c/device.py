@@ -1,0 +1,329 @@
+"""What every I2C sensor driver shares, and the base of their simulated twins.
+
+:class:`I2CDevice` is the driver side: register access with a retry policy (transient
+``OSError`` retried, every failure and retry counted in a :class:`SourceDiagnostics`), the
+identity check, burst reads, counts → SI conversion and the saturation test.
+
+:class:`SimulatedRegisterDevice` is the part side: a 256-byte register file behind the
+part's sub-address rules (auto-increment, pointer wrap), whose data registers are latched
+from the simulator's physics at the configured output data rate on the bus clock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from ahrs_service.drivers.base import SourceDiagnostics
+from ahrs_service.drivers.i2c.bus import I2CBus
+
+#: standard gravity: accelerometer counts are in g
+STANDARD_GRAVITY = 9.80665
+DEG2RAD = math.pi / 180.0
+
+
+class I2CDeviceError(OSError):
+    """A device did not answer (or kept failing) after the retries: names bus, address, register."""
+
+    def __init__(self, bus: str, address: int, part: str, register: int, action: str,
+                 cause: OSError):
+        self.bus, self.address, self.part, self.register = bus, address, part, register
+        self.cause = cause
+        super().__init__(
+            cause.errno,
+            f"{part} at {bus} address 0x{address:02X}: {action} register 0x{register:02X} "
+            f"failed: {cause.strerror or cause}",
+        )
+
+
+class DeviceIdentityError(RuntimeError):
+    """The device at an address is not the expected part (identity register mismatch)."""
+
+    def __init__(self, bus: str, address: int, part: str, register: int, read: bytes,
+                 expected: Sequence[bytes], what: str):
+        self.bus, self.address, self.part, self.register = bus, address, part, register
+        self.read, self.expected = read, list(expected)
+        exp = " or ".join(_hex(e) for e in expected)
+        super().__init__(
+            f"{bus} address 0x{address:02X}: expected {part}, but {what} (register "
+            f"0x{register:02X}) reads {_hex(read)}, expected {exp} — another part at this "
+            f"address, or a wrong address/board setting?"
+        )
+
+
+def _hex(b: bytes) -> str:
+    return " ".join(f"0x{x:02X}" for x in b)
+
+
+class I2CDevice:
+    """Driver base: one part at one address on one bus.
+
+    retries: how many times a failed transfer is repeated before :class:`I2CDeviceError`.
+    diagnostics: counters shared with the board (``bus_errors``, ``retries``, ``last_error``).
+
+    Subclasses set ``PART`` (name for messages), ``DEFAULT_ADDRESS``, and after
+    :meth:`configure` the conversion ``scale`` ((3,) SI units per count, sensor axes) and
+    ``full_scale`` (counts at or beyond which an axis is saturated).
+    """
+
+    PART = "I2C device"
+    DEFAULT_ADDRESS = 0x00
+    #: sub-address bit that requests auto-increment (0x80 on ST parts, none elsewhere)
+    AUTO_INCREMENT_FLAG = 0x00
+
+    def __init__(self, bus: I2CBus, address: int | None = None, *,
+                 diagnostics: SourceDiagnostics | None = None, retries: int = 2) -> None:
+        self.bus = bus
+        self.address = self.DEFAULT_ADDRESS if address is None else int(address)
+        if not 0x03 <= self.address <= 0x77:
+            raise ValueError(f"{self.PART}: I2C address 0x{self.address:02X} is outside 0x03..0x77")
+        if retries < 0:
+            raise ValueError(f"{self.PART}: retries must be >= 0, got {retries}")
+        self.diagnostics = diagnostics if diagnostics is not None else SourceDiagnostics()
+        self.retries = int(retries)
+        self.scale = np.ones(3)
+        self.full_scale = 32767
+
+    # ---------------------------------------------------------------- transfers
+    def _transfer(self, fn: Callable[..., Any], reg: int, action: str, *args: Any) -> Any:
+        """Runs one bus call, retrying transient OSErrors; all failures are counted."""
+        diag = self.diagnostics
+        attempt = 0
+        while True:
+            try:
+                return fn(self.address, reg, *args)
+            except OSError as exc:
+                diag.bus_errors += 1
+                # messages name the register as in the datasheet, without ST's increment flag
+                err = I2CDeviceError(self.bus.name, self.address, self.PART,
+                                     reg & ~self.AUTO_INCREMENT_FLAG, action, exc)
+                diag.last_error = str(err)
+                if attempt >= self.retries:
+                    raise err from exc
+                attempt += 1
+                diag.retries += 1
+
+    def read_u8(self, reg: int) -> int:
+        """One register byte (retried)."""
+        return self._transfer(self.bus.read_byte_data, reg, "reading")
+
+    def write_u8(self, reg: int, value: int) -> None:
+        """Writes one register byte (retried)."""
+        self._transfer(self.bus.write_byte_data, reg, "writing", value)
+
+    def read_block(self, reg: int, n: int) -> list[int]:
+        """``n`` bytes from ``reg`` in one burst (retried); ``reg`` includes any auto-increment bit."""
+        return self._transfer(self.bus.read_i2c_block_data, reg, "reading", n)
+
+    def write_verified(self, reg: int, value: int, what: str) -> None:
+        """Writes a configuration byte and reads it back; a mismatch means a wrong part."""
+        self.write_u8(reg, value)
+        got = self.read_u8(reg)
+        if got != value:
+            raise DeviceIdentityError(self.bus.name, self.address, self.PART, reg, bytes([got]),
+                                      [bytes([value])], f"{what} read back after writing")
+
+    def check_identity(self, reg: int, expected: bytes | Sequence[bytes], what: str) -> bytes:
+        """Reads ``len(expected)`` identity bytes from ``reg`` and compares.
+
+        expected: one byte string, or a list of accepted alternatives of equal length.
+        Raises :class:`DeviceIdentityError` (wrong part) or :class:`I2CDeviceError` (nothing
+        answers), both naming bus, address and register.
+        """
+        options = [expected] if isinstance(expected, (bytes, bytearray)) else list(expected)
+        n = len(options[0])
+        got = bytes(self.read_block(reg, n) if n > 1 else [self.read_u8(reg)])
+        if got not in options:
+            raise DeviceIdentityError(self.bus.name, self.address, self.PART, reg, got, options, what)
+        return got
+
+    # ---------------------------------------------------------------- conversion
+    def configure(self) -> None:
+        """Checks the identity and writes the configuration (called again after a loss)."""
+        raise NotImplementedError
+
+    def to_si(self, counts: Sequence[int]) -> np.ndarray:
+        """(3,) float64 in SI units (sensor axes) from (3,) raw counts."""
+        return np.multiply(counts, self.scale)
+
+    @property
+    def resolution(self) -> float:
+        """Size of one output step in SI units (largest axis): the quantisation of a reading."""
+        return float(np.max(self.scale))
+
+    def is_saturated(self, counts: Sequence[int]) -> bool:
+        """True when any axis is at or beyond the rated full scale (reading not trustworthy)."""
+        fs = self.full_scale
+        return counts[0] >= fs or counts[0] <= -fs or counts[1] >= fs or counts[1] <= -fs \
+            or counts[2] >= fs or counts[2] <= -fs
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.bus.name}, 0x{self.address:02X})"
+
+
+# ============================================================================ simulation
+
+
+def to_counts(value: float, lsb: float, lo: int, hi: int) -> int:
+    """A physical value quantised to counts of size ``lsb`` and clipped to [lo, hi]."""
+    c = value / lsb
+    if not math.isfinite(c):
+        return hi if c > 0 else lo
+    c = int(round(c))
+    return lo if c < lo else hi if c > hi else c
+
+
+def i16_bytes(v: int, big_endian: bool) -> tuple[int, int]:
+    """Two's-complement 16-bit value as (first byte, second byte) in the given order."""
+    v &= 0xFFFF
+    return ((v >> 8, v & 0xFF) if big_endian else (v & 0xFF, v >> 8))
+
+
+class SimulatedRegisterDevice:
+    """Base of the simulated twins: a register file, the part's pointer rules, ODR latching.
+
+    source: the simulator (an object with ``physics(t) -> dict`` such as ``SimulatedImu``,
+    or a plain callable ``t -> dict``) giving "gyr" rad/s, "acc" m/s² specific force, "mag"
+    µT (all (3,) in the board's axes), optionally "temperature_c" and "truth".
+
+    Subclasses set ``POWER_ON`` (register → value), ``WRITABLE`` (registers the host may
+    write), override :meth:`rate_hz` (current output data rate or None when not measuring),
+    :meth:`latch` (physics → data registers) and the hooks :meth:`on_write` /
+    :meth:`on_read`. ``ST_SUBADDRESS`` selects ST's rule: auto-increment only when the MSB
+    of the sub-address is set.
+    """
+
+    PART = "simulated device"
+    DEFAULT_ADDRESS = 0x00
+    POWER_ON: dict[int, int] = {}
+    WRITABLE: frozenset[int] = frozenset()
+    ST_SUBADDRESS = False
+
+    def __init__(self, source: Any = None, address: int | None = None) -> None:
+        self.address = self.DEFAULT_ADDRESS if address is None else int(address)
+        if source is None:
+            self._physics: Callable[[float], dict] | None = None
+        else:
+            self._physics = getattr(source, "physics", source)
+            if not callable(self._physics):
+                raise TypeError(f"{self.PART}: source needs physics(t) -> dict, got {source!r}")
+        self.regs = bytearray(256)
+        self.latched: dict | None = None  # physics dict of the sample now in the data registers
+        self.latched_t: float | None = None
+        self.samples_latched = 0
+        self._t0: float | None = None  # start of the measurement schedule
+        self._k = 0  # index of the last latched (or skipped) sample
+        self.power_on_reset(0.0)
+
+    # ----------------------------------------------------------------- state
+    def power_on_reset(self, now: float) -> None:
+        """Registers to power-on values, measurement stopped (a power cycle)."""
+        self.regs[:] = bytes(256)
+        for r, v in self.POWER_ON.items():
+            self.regs[r] = v
+        self.latched = None
+        self.latched_t = None
+        self._t0 = None
+        self.reset_state(now)
+
+    def reset_state(self, now: float) -> None:
+        """Extra per-part state to clear on power-on (hook)."""
+
+    def restart_measurement(self, now: float) -> None:
+        """(Re)starts the output schedule: samples at now + k / rate, k = 1, 2, …"""
+        self._t0 = now
+        self._k = 0
+
+    def stop_measurement(self) -> None:
+        self._t0 = None
+
+    @property
+    def measuring(self) -> bool:
+        """True while the part produces samples (configured and powered up)."""
+        return self._t0 is not None and bool(self.rate_hz())
+
+    def rate_hz(self) -> float | None:
+        """Output data rate from the current configuration, or None when not measuring."""
+        return None
+
+    def locked(self) -> bool:
+        """True while the part holds its output registers (no new data placed)."""
+        return False
+
+    def update(self, now: float) -> None:
+        """Latches the newest sample due by ``now`` (older due samples are overrun/skipped)."""
+        if self._t0 is None:
+            return
+        rate = self.rate_hz()
+        if not rate:
+            return
+        # the tiny epsilon keeps a clock stepped exactly on the sample grid on the right side
+        k = math.floor((now - self._t0) * rate + 1e-7)
+        if k <= self._k or self.locked():
+            return
+        skipped = k - self._k - 1
+        self._k = k
+        t = self._t0 + k / rate
+        phys = self._physics(t) if self._physics is not None else _ZERO_PHYSICS
+        self.latched, self.latched_t = phys, t
+        self.samples_latched += 1
+        self.latch(phys, t, skipped)
+
+    def latch(self, phys: dict, t: float, skipped: int) -> None:
+        """Writes one sample into the data registers and sets the status bits (hook)."""
+
+    # ----------------------------------------------------------------- bus side
+    def decode_subaddress(self, sub: int) -> tuple[int, bool]:
+        """(register, auto-increment) from the sub-address byte sent by the host."""
+        if self.ST_SUBADDRESS:
+            return sub & 0x7F, bool(sub & 0x80)
+        return sub, True
+
+    def next_pointer(self, reg: int) -> int:
+        """Register after ``reg`` in a burst (parts with wrapping pointers override)."""
+        return (reg + 1) & 0xFF
+
+    def bus_read(self, sub: int, n: int, now: float) -> list[int]:
+        """A read transaction of ``n`` bytes from sub-address ``sub`` at time ``now``."""
+        self.update(now)
+        reg, inc = self.decode_subaddress(sub)
+        out = []
+        touched = []
+        for _ in range(n):
+            out.append(self.read_register(reg))
+            touched.append(reg)
+            if inc:
+                reg = self.next_pointer(reg)
+        self.on_read(touched, now)
+        return out
+
+    def read_register(self, reg: int) -> int:
+        return self.regs[reg]
+
+    def bus_write(self, sub: int, data: list[int], now: float) -> None:
+        """A write transaction of ``data`` starting at sub-address ``sub``."""
+        self.update(now)
+        reg, inc = self.decode_subaddress(sub)
+        for value in data:
+            if reg in self.WRITABLE:
+                old = self.regs[reg]
+                self.regs[reg] = value
+                self.on_write(reg, value, old, now)
+            if inc:
+                reg = self.next_pointer(reg)
+
+    def on_write(self, reg: int, value: int, old: int, now: float) -> None:
+        """Side effects of a host write (start/stop measuring, resets) (hook)."""
+
+    def on_read(self, regs: list[int], now: float) -> None:
+        """Side effects of reading ``regs`` in one transaction (clear flags) (hook)."""
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(0x{self.address:02X})"
+
+
+_ZERO_PHYSICS: dict = {"gyr": (0.0, 0.0, 0.0), "acc": (0.0, 0.0, 0.0),
+                       "mag": (0.0, 0.0, 0.0), "temperature_c": 25.0}

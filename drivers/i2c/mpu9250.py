@@ -1,0 +1,209 @@
+"""InvenSense MPU-9250 gyroscope + accelerometer, and its twin (its AK8963: ak8963.py).
+
+Register map used (RM-MPU-9250A-00 rev 1.6):
+
+=====  ==============  ======================================================
+0x19   SMPLRT_DIV      ODR = 1 kHz / (1 + div) with the DLPF on
+0x1A   CONFIG          DLPF_CFG 2:0 (1…6 → 1 kHz internal rate; 0, 7 → 8 kHz)
+0x1B   GYRO_CONFIG     GYRO_FS_SEL 4:3 ±250/500/1000/2000 °/s, FCHOICE_B 1:0 (00 = DLPF)
+0x1C   ACCEL_CONFIG    ACCEL_FS_SEL 4:3 ±2/4/8/16 g
+0x1D   ACCEL_CONFIG2   ACCEL_FCHOICE_B bit 3, A_DLPFCFG 2:0
+0x37   INT_PIN_CFG     bit 1 BYPASS_EN: the AK8963 (0x0C) appears on the host bus
+0x3A   INT_STATUS      bit 0 RAW_DATA_RDY_INT, cleared by reading INT_STATUS
+0x3B…  ACCEL, TEMP,    ACCEL X Y Z, TEMP, GYRO X Y Z — big-endian two's complement,
+0x48   GYRO            contiguous: one 15-byte burst from 0x3A reads status and all data
+0x6A   USER_CTRL       bit 5 I2C_MST_EN (must be 0 for bypass)
+0x6B   PWR_MGMT_1      bit 7 H_RESET, bit 6 SLEEP, CLKSEL 2:0
+0x75   WHO_AM_I        0x71 (MPU-9250), 0x73 (MPU-9255)
+=====  ==============  ======================================================
+
+Sensitivity: gyro 131 / 65.5 / 32.8 / 16.4 LSB/(°/s), accel 16384 / 8192 / 4096 / 2048
+LSB/g, temperature (TEMP_OUT − 0) / 333.87 + 21 °C. The part holds its user registers while
+a burst is in progress, so status + data in one burst is race-free. Address 0x68 (AD0 low)
+or 0x69. Registers auto-increment without a sub-address flag.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import struct
+
+import numpy as np
+
+from ahrs_service.drivers.i2c.bus import I2CBus
+from ahrs_service.drivers.i2c.device import (
+    DEG2RAD,
+    STANDARD_GRAVITY,
+    I2CDevice,
+    SimulatedRegisterDevice,
+    i16_bytes,
+    to_counts,
+)
+
+SMPLRT_DIV, CONFIG, GYRO_CONFIG, ACCEL_CONFIG, ACCEL_CONFIG2 = 0x19, 0x1A, 0x1B, 0x1C, 0x1D
+INT_PIN_CFG, INT_ENABLE, INT_STATUS, ACCEL_XOUT_H = 0x37, 0x38, 0x3A, 0x3B
+USER_CTRL, PWR_MGMT_1, PWR_MGMT_2, WHO_AM_I = 0x6A, 0x6B, 0x6C, 0x75
+WHO_AM_I_VALUES = (0x71, 0x73)
+BYPASS_EN, INT_ANYRD_2CLEAR = 0x02, 0x10
+I2C_MST_EN = 0x20
+H_RESET, SLEEP, CLKSEL_PLL = 0x80, 0x40, 0x01
+RAW_DATA_RDY = 0x01
+GYRO_LSB_PER_DPS = (131.0, 65.5, 32.8, 16.4)
+ACC_LSB_PER_G = (16384.0, 8192.0, 4096.0, 2048.0)
+GYRO_RANGES_DPS = {250: 0, 500: 1, 1000: 2, 2000: 3}
+ACC_RANGES_G = {2: 0, 4: 1, 8: 2, 16: 3}
+TEMP_LSB_PER_C, TEMP_OFFSET_C = 333.87, 21.0
+#: DLPF_CFG → gyro bandwidth (Hz) for codes 1…6 (1 kHz internal rate)
+DLPF_BANDWIDTH_HZ = {1: 184.0, 2: 92.0, 3: 41.0, 4: 20.0, 5: 10.0, 6: 5.0}
+_UNPACK = struct.Struct(">B3hh3h").unpack
+
+
+class MPU9250(I2CDevice):
+    """MPU-9250 accelerometer + gyroscope driver.
+
+    gyro_range_dps: 250/500/1000/2000; acc_range_g: 2/4/8/16; rate_hz: 1000 / (1 + n) for an
+    integer divider n (1000, 500, 333.3…, 250, 200, …, 4 Hz). The low-pass filter is the widest
+    one below half the rate (anti-aliasing), for gyro and accelerometer alike.
+    """
+
+    PART = "MPU-9250"
+    DEFAULT_ADDRESS = 0x68
+
+    def __init__(self, bus: I2CBus, address: int | None = None, *, gyro_range_dps: int = 2000,
+                 acc_range_g: int = 8, rate_hz: float = 1000, **kw: Any) -> None:
+        super().__init__(bus, address, **kw)
+        if gyro_range_dps not in GYRO_RANGES_DPS:
+            raise ValueError(f"MPU-9250 gyro_range_dps must be one of {sorted(GYRO_RANGES_DPS)}, "
+                             f"got {gyro_range_dps}")
+        if acc_range_g not in ACC_RANGES_G:
+            raise ValueError(f"MPU-9250 acc_range_g must be one of {sorted(ACC_RANGES_G)}, "
+                             f"got {acc_range_g}")
+        div = round(1000.0 / rate_hz) - 1 if rate_hz > 0 else -1
+        if not 0 <= div <= 255 or abs(1000.0 / (1 + div) - rate_hz) > 1e-6 * rate_hz + 0.01:
+            raise ValueError(f"MPU-9250 rate_hz must be 1000 / (1 + n), n = 0…255 "
+                             f"(1000, 500, 333.33, 250, 200, …), got {rate_hz}")
+        self.gyro_range_dps, self.acc_range_g = gyro_range_dps, acc_range_g
+        self.smplrt_div = div
+        self.rate_hz = 1000.0 / (1 + div)
+        self.dlpf_cfg = next((c for c, bw in sorted(DLPF_BANDWIDTH_HZ.items())
+                              if bw <= self.rate_hz / 2), 6)
+        g_lsb = GYRO_LSB_PER_DPS[GYRO_RANGES_DPS[gyro_range_dps]]
+        a_lsb = ACC_LSB_PER_G[ACC_RANGES_G[acc_range_g]]
+        self.gyro_scale = np.full(3, DEG2RAD / g_lsb)
+        self.acc_scale = np.full(3, STANDARD_GRAVITY / a_lsb)
+        self.scale = self.gyro_scale
+        self.gyro_full_scale = min(32767, int(gyro_range_dps * g_lsb))
+        self.acc_full_scale = min(32767, int(acc_range_g * a_lsb))
+        self.full_scale = self.gyro_full_scale
+
+    def configure(self) -> None:
+        """Checks WHO_AM_I, resets, wakes on the PLL, sets rate/filters/ranges, I2C bypass on."""
+        self.check_identity(WHO_AM_I, [bytes([v]) for v in WHO_AM_I_VALUES], "WHO_AM_I")
+        self.write_u8(PWR_MGMT_1, H_RESET)
+        self.bus.sleep(0.1)  # reset takes up to 100 ms
+        self.write_u8(PWR_MGMT_1, CLKSEL_PLL)
+        self.write_u8(PWR_MGMT_2, 0x00)
+        self.write_u8(CONFIG, self.dlpf_cfg)
+        self.write_u8(SMPLRT_DIV, self.smplrt_div)
+        self.write_u8(GYRO_CONFIG, GYRO_RANGES_DPS[self.gyro_range_dps] << 3)
+        self.write_u8(ACCEL_CONFIG, ACC_RANGES_G[self.acc_range_g] << 3)
+        self.write_u8(ACCEL_CONFIG2, self.dlpf_cfg)
+        # bypass: the AK8963 answers directly on the host bus instead of the MPU's aux master
+        self.write_u8(USER_CTRL, 0x00)
+        self.write_u8(INT_PIN_CFG, BYPASS_EN)
+        self.write_u8(INT_ENABLE, RAW_DATA_RDY)
+
+    @property
+    def resolution(self) -> float:
+        """Gyro step, rad/s (``acc_scale`` is the accelerometer's)."""
+        return float(self.gyro_scale[0])
+
+    def read_frame(self) -> tuple[int, tuple[int, int, int], int, tuple[int, int, int]]:
+        """One 15-byte burst: (INT_STATUS, accel counts, temperature counts, gyro counts)."""
+        s, ax, ay, az, t, gx, gy, gz = _UNPACK(bytes(self.read_block(INT_STATUS, 15)))
+        return s, (ax, ay, az), t, (gx, gy, gz)
+
+    def read_if_new(self) -> tuple[tuple[int, int, int], int, tuple[int, int, int]] | None:
+        """(accel counts, temperature counts, gyro counts) of a new sample, else None."""
+        s, acc, temp, gyr = self.read_frame()
+        return (acc, temp, gyr) if s & RAW_DATA_RDY else None
+
+    def gyr_si(self, counts) -> np.ndarray:
+        """Angular rate, rad/s."""
+        return np.multiply(counts, self.gyro_scale)
+
+    def acc_si(self, counts) -> np.ndarray:
+        """Specific force, m/s²."""
+        return np.multiply(counts, self.acc_scale)
+
+    @staticmethod
+    def temperature_c(counts: int) -> float:
+        """Die temperature, °C."""
+        return counts / TEMP_LSB_PER_C + TEMP_OFFSET_C
+
+    def gyr_saturated(self, counts) -> bool:
+        fs = self.gyro_full_scale
+        return any(c >= fs or c <= -fs for c in counts)
+
+    def acc_saturated(self, counts) -> bool:
+        fs = self.acc_full_scale
+        return any(c >= fs or c <= -fs for c in counts)
+
+
+class SimulatedMPU9250(SimulatedRegisterDevice):
+    """Simulated MPU-9250: latches physics "gyr", "acc" and "temperature_c" at the sample rate.
+
+    ``bypass_enabled()`` tells the bus whether the attached AK8963 is reachable.
+    """
+
+    PART = "MPU-9250"
+    DEFAULT_ADDRESS = 0x68
+    POWER_ON = {PWR_MGMT_1: CLKSEL_PLL, WHO_AM_I: 0x71}
+    WRITABLE = frozenset(set(range(0x00, 0x3A)) | {USER_CTRL, PWR_MGMT_1, PWR_MGMT_2}
+                         | set(range(0x63, 0x6A)) | {0x74} | set(range(0x77, 0x7F)))
+
+    def __init__(self, source: Any = None, address: int | None = None, who_am_i: int = 0x71) -> None:
+        self.who_am_i = who_am_i
+        super().__init__(source, address)
+
+    def reset_state(self, now: float) -> None:
+        self.regs[WHO_AM_I] = self.who_am_i
+        if not self.regs[PWR_MGMT_1] & SLEEP:
+            self.restart_measurement(now)  # the MPU-9250 samples from power-on
+
+    def bypass_enabled(self) -> bool:
+        return bool(self.regs[INT_PIN_CFG] & BYPASS_EN) and not self.regs[USER_CTRL] & I2C_MST_EN
+
+    def rate_hz(self) -> float | None:
+        if self.regs[PWR_MGMT_1] & SLEEP:
+            return None
+        dlpf = self.regs[CONFIG] & 0x07
+        internal = 1000.0 if 1 <= dlpf <= 6 and not self.regs[GYRO_CONFIG] & 0x03 else 8000.0
+        return internal / (1 + self.regs[SMPLRT_DIV])
+
+    def on_write(self, reg: int, value: int, old: int, now: float) -> None:
+        if reg == PWR_MGMT_1 and value & H_RESET:
+            self.power_on_reset(now)
+        elif reg in (PWR_MGMT_1, CONFIG, SMPLRT_DIV, GYRO_CONFIG) and value != old:
+            if self.rate_hz():
+                self.restart_measurement(now)
+            else:
+                self.stop_measurement()
+
+    def latch(self, phys: dict, t: float, skipped: int) -> None:
+        a_lsb = STANDARD_GRAVITY / ACC_LSB_PER_G[(self.regs[ACCEL_CONFIG] >> 3) & 3]
+        g_lsb = DEG2RAD / GYRO_LSB_PER_DPS[(self.regs[GYRO_CONFIG] >> 3) & 3]
+        out = []
+        for a in phys["acc"]:
+            out.extend(i16_bytes(to_counts(a, a_lsb, -32768, 32767), True))
+        temp = phys.get("temperature_c", TEMP_OFFSET_C)
+        out.extend(i16_bytes(to_counts(temp - TEMP_OFFSET_C, 1 / TEMP_LSB_PER_C, -32768, 32767), True))
+        for w in phys["gyr"]:
+            out.extend(i16_bytes(to_counts(w, g_lsb, -32768, 32767), True))
+        self.regs[ACCEL_XOUT_H:ACCEL_XOUT_H + 14] = bytes(out)
+        self.regs[INT_STATUS] |= RAW_DATA_RDY
+
+    def on_read(self, regs: list[int], now: float) -> None:
+        if INT_STATUS in regs or self.regs[INT_PIN_CFG] & INT_ANYRD_2CLEAR:
+            self.regs[INT_STATUS] = 0
