@@ -70,6 +70,7 @@ class EstimationPipeline:
         self.reduced = False
         self.reduced_switches = 0
         self._last_t_ns: int | None = None
+        self._first_t_ns: int | None = None
         self._mag = np.full(3, np.nan)
         self._mag_t_ns: int | None = None
         self._recent_gyr: deque[np.ndarray] = deque(maxlen=self.REST_WINDOW)
@@ -79,13 +80,21 @@ class EstimationPipeline:
         self.declination_deg = float(degrees)
         self._q_decl = quat_from_euler(0.0, 0.0, math.radians(degrees))
 
-    def process(self, raw_sample: ImuSample) -> ImuSample:
+    def process(self, raw_sample: ImuSample) -> ImuSample | None:
         """Calibrates one sample, fills the estimator row and steps the estimator.
 
-        Returns the calibrated body-frame sample (what the log records beside the row).
+        Returns the calibrated body-frame sample (what the log records beside the row), or
+        None while the start is held back: an estimator that uses the magnetometer starts
+        only with a field reading (so it starts with the right heading), waiting at most
+        ``mag_timeout_s`` after the first sample for it.
         """
         sample = apply_calibration(raw_sample, self.calibration)
         t_ns = sample.t_ns
+        if self.samples == 0 and self.use_mag and not (sample.mag is not None and sample.flags & MAG_VALID):
+            if self._first_t_ns is None:
+                self._first_t_ns = t_ns
+            if t_ns - self._first_t_ns < self.mag_timeout_ns:
+                return None
         row = self.row
         dt = self.nominal_dt if self._last_t_ns is None else (t_ns - self._last_t_ns) * 1e-9
         self._last_t_ns = t_ns
@@ -147,11 +156,17 @@ class EstimationPipeline:
             return RestCheck(False, n, gstd, aerr, f"accelerating: |f| off g by {aerr:.2f} m/s²")
         return RestCheck(True, n, gstd, aerr, "at rest")
 
+    def recent_gyro_mean(self) -> np.ndarray:
+        """Mean calibrated body rate over the rest window, rad/s (NaN when empty)."""
+        if not self._recent_gyr:
+            return np.full(3, np.nan)
+        return np.array(self._recent_gyr).mean(axis=0)
+
     def calibrate_gyro_bias(self) -> RestCheck:
         """Adds the mean residual rate of the rest window to the calibration's gyro bias."""
         check = self.rest_check()
         if check.at_rest:
-            residual_body = np.array(self._recent_gyr).mean(axis=0)
+            residual_body = self.recent_gyro_mean()
             self.calibration = self.calibration.with_gyro_bias_shift(residual_body)
             self._recent_gyr.clear()
             self._recent_acc.clear()

@@ -137,7 +137,7 @@ class Service:
             sample = source.read()
             if sample is not None:
                 cal = pipeline.process(sample)
-                if writer is not None:
+                if cal is not None and writer is not None:
                     est = pipeline.estimator
                     writer.write_raw(cal.t_ns, pipeline.row, cal.flags, raw=sample.raw, temperature=cal.temperature_c)
                     writer.write_attitude(cal.t_ns, est.state[:4], est.name, est.state[8:11], None)
@@ -255,11 +255,17 @@ class Service:
             self.report("reload: source changes need a restart; source kept", 4)
             new.raw["source"] = self.cfg.source
         old_cfg, self.cfg = self.cfg, new
-        if new.estimator != old_cfg.estimator or new.calibration != old_cfg.calibration or new.mounting != old_cfg.mounting:
-            q = self.estimator.state.copy()
+        same_filter = new.estimator["name"] == old_cfg.estimator["name"]
+        if same_filter and new.calibration == old_cfg.calibration and new.mounting == old_cfg.mounting:
+            # new gains for the running filter: applied like live changes, recorded per parameter
+            wanted = estimators.create(new.estimator["name"], **new.estimator["params"]).get_params()
+            for name, value in wanted.items():
+                if value != self.estimator.get_params()[name]:
+                    self.set_estimator_param(name, value, source="reload")
+            self.pipeline.set_declination(new.estimator["declination_deg"])
+            self.pipeline.mag_timeout_ns = int(new.estimator["mag_timeout_s"] * 1e9)
+        else:
             self._build_estimation(new)
-            if self.estimator.state.shape == q.shape and new.estimator["name"] == old_cfg.estimator["name"]:
-                self.estimator.state[:] = q  # same filter, new gains: keep its attitude and bias
         if new.rates["estimation_hz"] != old_cfg.rates["estimation_hz"]:
             self.scheduler.set_rate(new.rates["estimation_hz"])
         if new.log != old_cfg.log:

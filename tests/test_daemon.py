@@ -1,0 +1,167 @@
+"""The real ``ahrs-service run`` process under a fake systemd: READY, WATCHDOG, STATUS, signals."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def ahrs_service_command() -> list[str]:
+    exe = shutil.which("ahrs-service", path=str(Path(sys.executable).parent))
+    return [exe] if exe else [sys.executable, "-m", "ahrs_service.cli"]
+
+
+def write_config(path: Path, log_dir: Path, port: int, beta: float = 0.1) -> None:
+    path.write_text(
+        f"""
+[source]
+type = "simulated_i2c"
+profile = "static"
+
+[estimator]
+name = "madgwick"
+[estimator.params]
+beta = {beta}
+
+[rates]
+estimation_hz = 200
+
+[mavlink]
+endpoints = ["udpout:127.0.0.1:{port}"]
+
+[log]
+directory = "{log_dir}"
+"""
+    )
+
+
+class FakeSystemd:
+    """A NOTIFY_SOCKET listener collecting sd_notify datagrams."""
+
+    def __init__(self, tmp_path: Path) -> None:
+        self.path = str(tmp_path / "notify.sock")
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(self.path)
+        self.sock.settimeout(0.1)
+        self.messages: list[tuple[float, str]] = []
+
+    def wait_for(self, text: str, seconds: float) -> bool:
+        """Collects datagrams until one arriving from now on starts with ``text``."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            try:
+                data = self.sock.recv(4096).decode()
+            except socket.timeout:
+                continue
+            lines = data.splitlines()
+            self.messages.extend((time.monotonic(), line) for line in lines)
+            if any(line.startswith(text) for line in lines):
+                return True
+        return False
+
+    def count(self, prefix: str) -> int:
+        return sum(1 for _, m in self.messages if m.startswith(prefix))
+
+
+def start(cmd_args, tmp_path, notify: FakeSystemd, watchdog_usec: int = 400_000):
+    env = dict(os.environ, NOTIFY_SOCKET=notify.path, WATCHDOG_USEC=str(watchdog_usec))
+    env.pop("WATCHDOG_PID", None)
+    return subprocess.Popen(
+        ahrs_service_command() + cmd_args, env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+
+
+def test_ready_watchdog_status_and_clean_sigterm(tmp_path):
+    notify = FakeSystemd(tmp_path)
+    cfg = tmp_path / "config.toml"
+    write_config(cfg, tmp_path / "logs", 14999)
+    proc = start(["run", "--config", str(cfg)], tmp_path, notify)
+    try:
+        assert notify.wait_for("READY=1", 90), proc.stdout.read() if proc.poll() is not None else "no READY"
+        ready_at = notify.messages[-1][0]
+        notify.wait_for("never", 2.0)  # collect for two seconds
+        pings = [t for t, m in notify.messages if m == "WATCHDOG=1" and t >= ready_at]
+        # WATCHDOG_USEC = 0.4 s: the loop pings every 0.2 s
+        assert len(pings) >= 5
+        assert notify.count("STATUS=madgwick") >= 1
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=2.0)  # systemd's stop promise: within 2 s
+        assert code == 0
+        notify.wait_for("STOPPING=1", 1.0)
+        assert notify.count("STOPPING=1") == 1
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    logs = list((tmp_path / "logs").glob("flight-*.mcap"))
+    assert len(logs) == 1
+    from ahrs_service.logs.reader import read_log
+
+    log = read_log(logs[0])
+    assert log.damage is None  # finished cleanly: summary and index written
+    assert len(log.t_ns) > 200
+
+
+def test_sighup_reloads_configuration(tmp_path):
+    notify = FakeSystemd(tmp_path)
+    cfg = tmp_path / "config.toml"
+    write_config(cfg, tmp_path / "logs", 14998, beta=0.1)
+    proc = start(["run", "--config", str(cfg)], tmp_path, notify)
+    try:
+        assert notify.wait_for("READY=1", 90)
+        # a broken file is refused and the service keeps running on the old one
+        cfg.write_text("[estimator]\nname = 'nope'\n")
+        proc.send_signal(signal.SIGHUP)
+        assert notify.wait_for("READY=1", 5)
+        assert proc.poll() is None
+        write_config(cfg, tmp_path / "logs", 14998, beta=0.25)
+        proc.send_signal(signal.SIGHUP)
+        assert notify.wait_for("RELOADING=1", 5) and notify.wait_for("READY=1", 5)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=2.0) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    output = proc.stdout.read()
+    assert "reload refused: estimator.name: 'nope' is not one of" in output
+    assert "configuration reloaded" in output
+    from ahrs_service.logs.reader import read_log
+
+    log = read_log(sorted((tmp_path / "logs").glob("flight-*.mcap"))[0])
+    assert log.config["estimator"]["params"]["beta"] == pytest.approx(0.1)
+    changes = [c for c in log.param_changes if c["name"] == "beta"]
+    assert changes and changes[-1]["new"] == pytest.approx(0.25)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("[estimator]\nname = 'kalmann'\n", "estimator.name: 'kalmann' is not one of"),
+        ("[rates]\nestimation_hz = 'fast'\n", "rates.estimation_hz: expected a number"),
+        ("[source]\ntype = 'serial'\n", "source.type: 'serial' is not one of simulated_i2c"),
+        ("[mavlink]\nendpoint = ['udpout:127.0.0.1:1']\n", "mavlink.endpoint: unknown key; accepted keys: endpoints"),
+        ("[estimator]\nname = 'madgwick'\n[estimator.params]\ngain = 2\n", "estimator.params: unknown parameter(s) gain"),
+        ("[calibration]\ngyro_bias = [1, 2]\n", "calibration key 'gyro_bias' must be"),
+        ("this is not toml", "not valid TOML"),
+    ],
+)
+def test_config_errors_stop_the_start_naming_the_key(tmp_path, text, message):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(text)
+    proc = subprocess.run(
+        ahrs_service_command() + ["run", "--config", str(cfg)], cwd=tmp_path, capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 2
+    assert message in proc.stderr
+    assert not (tmp_path / "flight-logs").exists()

@@ -1,0 +1,232 @@
+"""The service end to end: simulated GY-80 → estimator → MAVLink over real UDP → pymavlink GCS.
+
+The service runs in a background thread of this process (its real scheduler, real sockets,
+real MCAP writer); the ground station is a pymavlink connection on 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("MAVLINK20", "1")
+
+from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
+
+from ahrs_service import config as config_mod  # noqa: E402
+from ahrs_service.logs.reader import read_log  # noqa: E402
+from ahrs_service.quaternion import quat_conj_array, quat_mul_array  # noqa: E402
+from ahrs_service.service import Service  # noqa: E402
+
+pytestmark = pytest.mark.timeout(120)
+KEY_HEX = "a5" * 32
+
+
+def make_gcs():
+    gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=255, source_component=190)
+    gcs.mav = mavlink2.MAVLink(gcs, srcSystem=255, srcComponent=190)
+    gcs.mav.robust_parsing = True
+    return gcs, gcs.port.getsockname()[1]
+
+
+def collect(gcs, seconds: float, until=None) -> list:
+    """Messages received for at most ``seconds`` (or until ``until(msg)`` is true)."""
+    out = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        m = gcs.recv_match(blocking=True, timeout=0.05)
+        if m is None or m.get_type() == "BAD_DATA":
+            continue
+        out.append(m)
+        if until is not None and until(m):
+            break
+    return out
+
+
+class RunningService:
+    """A Service on a background thread for the duration of a test."""
+
+    def __init__(self, cfg: config_mod.Config, duration_s: float = 30.0):
+        self.service = Service(cfg, duration_s=duration_s)
+        self.service.start()
+        self.thread = threading.Thread(target=self.service.run, daemon=True)
+        self.thread.start()
+
+    def stop(self) -> None:
+        self.service.request_stop()
+        self.thread.join(10)
+        self.service.close()
+
+
+def service_config(tmp_path, port: int, **sections) -> config_mod.Config:
+    data = {
+        # ideal sensor models: the register devices still quantise, nothing else
+        "source": {"type": "simulated_i2c", "board": "gy80", "profile": "validation", "sensor_errors": False},
+        "rates": {"estimation_hz": 200, "attitude_hz": 20, "attitude_quaternion_hz": 25, "heartbeat_hz": 1},
+        "mavlink": {"endpoints": [f"udpout:127.0.0.1:{port}"]},
+        "log": {"directory": str(tmp_path / "logs")},
+    }
+    for name, values in sections.items():
+        data.setdefault(name, {}).update(values)
+    return config_mod.validate(data)
+
+
+@pytest.fixture
+def gcs():
+    conn, port = make_gcs()
+    yield conn, port
+    conn.close()
+
+
+def test_streams_rates_and_attitude_matches_truth(tmp_path, gcs):
+    conn, port = gcs
+    run = RunningService(service_config(tmp_path, port))
+    try:
+        msgs = collect(conn, 6.0)
+    finally:
+        run.stop()
+    by_type: dict[str, list] = {}
+    for m in msgs:
+        by_type.setdefault(m.get_type(), []).append(m)
+    assert {"HEARTBEAT", "ATTITUDE", "ATTITUDE_QUATERNION", "SYS_STATUS"} <= set(by_type)
+    # rates from the message timestamps (time_boot_ms), not from the test's clock
+    for name, hz in (("ATTITUDE", 20), ("ATTITUDE_QUATERNION", 25)):
+        t = np.array([m.time_boot_ms for m in by_type[name]], dtype=float) / 1e3
+        rate = (len(t) - 1) / (t[-1] - t[0])
+        assert rate == pytest.approx(hz, rel=0.1)
+    hb = by_type["HEARTBEAT"][0]
+    assert (hb.get_srcSystem(), hb.get_srcComponent()) == (1, 1)
+
+    # the published attitude against the simulator's truth recorded in the log
+    log = read_log(run.service.log_writer.files[0])
+    assert log.truth is not None
+    boot_ns = run.service.boot_ns
+    errors = []
+    for m in by_type["ATTITUDE_QUATERNION"]:
+        t_ns = boot_ns + m.time_boot_ms * 1_000_000
+        i = np.searchsorted(log.t_ns, t_ns, side="right") - 1
+        if i < 0:
+            continue
+        q = np.array([[m.q1, m.q2, m.q3, m.q4]])
+        e = quat_mul_array(q, quat_conj_array(log.truth[i : i + 1]))
+        errors.append(math.degrees(2 * math.acos(min(1.0, abs(e[0, 0])))))
+    errors = np.array(errors)
+    assert len(errors) > 50
+    # complementary_full on the simulated GY-80 (with its datasheet bias and noise)
+    assert np.sqrt(np.mean(errors**2)) < 3.0
+    assert np.abs(np.linalg.norm([[m.q1, m.q2, m.q3, m.q4] for m in by_type["ATTITUDE_QUATERNION"]], axis=1) - 1).max() < 1e-6
+
+
+def _param_value(conn, name, seconds=3.0):
+    for m in collect(conn, seconds, until=lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == name):
+        if m.get_type() == "PARAM_VALUE" and m.param_id == name:
+            return m
+    return None
+
+
+def test_parameters_change_the_running_estimator(tmp_path, gcs):
+    conn, port = gcs
+    run = RunningService(service_config(tmp_path, port, estimator={"name": "madgwick"}))
+    try:
+        collect(conn, 1.0, until=lambda m: m.get_type() == "HEARTBEAT")
+        conn.mav.param_request_list_send(1, 1)
+        names = {m.param_id for m in collect(conn, 3.0) if m.get_type() == "PARAM_VALUE"}
+        assert {"EST_BETA", "MAG_DECL_DEG", "RATE_ATT_HZ", "LOOP_RATE_HZ"} <= names
+
+        conn.mav.param_request_read_send(1, 1, b"EST_BETA", -1)
+        assert _param_value(conn, "EST_BETA").param_value == pytest.approx(0.1)
+
+        conn.mav.param_set_send(1, 1, b"EST_BETA", 0.033, mavlink2.MAV_PARAM_TYPE_REAL32)
+        ack = _param_value(conn, "EST_BETA")
+        assert ack.param_value == pytest.approx(0.033)
+        time.sleep(0.2)
+        assert run.service.estimator.get_params()["beta"] == pytest.approx(0.033)
+
+        conn.mav.param_set_send(1, 1, b"RATE_ATT_HZ", 500.0, mavlink2.MAV_PARAM_TYPE_REAL32)  # above 200: refused
+        assert _param_value(conn, "RATE_ATT_HZ").param_value == pytest.approx(20.0)
+    finally:
+        run.stop()
+    # the live change is in the log at the sample index where it took effect
+    log = read_log(run.service.log_writer.files[0])
+    changes = [c for c in log.param_changes if c["name"] == "beta"]
+    assert len(changes) == 1 and changes[0]["new"] == pytest.approx(0.033)
+    assert 0 < changes[0]["sample_index"] < len(log.t_ns)
+
+
+def _ack(conn, command, seconds=3.0):
+    for m in collect(conn, seconds, until=lambda m: m.get_type() == "COMMAND_ACK" and m.command == command):
+        if m.get_type() == "COMMAND_ACK" and m.command == command:
+            return m
+    return None
+
+
+def test_message_interval_and_gyro_calibration_commands(tmp_path, gcs):
+    conn, port = gcs
+    # static: the IMU is at rest, so gyro calibration is accepted; the simulated L3G4200D has
+    # its datasheet-sized zero-rate offset
+    run = RunningService(service_config(tmp_path, port, source={"profile": "static", "sensor_errors": True}))
+    try:
+        collect(conn, 1.5)
+        conn.mav.command_long_send(1, 1, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 30, 100_000, 0, 0, 0, 0, 0)
+        assert _ack(conn, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL).result == mavlink2.MAV_RESULT_ACCEPTED
+        collect(conn, 0.3)
+        att = [m for m in collect(conn, 3.0) if m.get_type() == "ATTITUDE"]
+        t = np.array([m.time_boot_ms for m in att]) / 1e3
+        assert (len(t) - 1) / (t[-1] - t[0]) == pytest.approx(10.0, rel=0.15)
+
+        residual_before = np.linalg.norm(run.service.pipeline.recent_gyro_mean())
+        conn.mav.command_long_send(1, 1, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 1, 0, 0, 0, 0, 0, 0)
+        assert _ack(conn, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION).result == mavlink2.MAV_RESULT_ACCEPTED
+        collect(conn, 1.5)  # the rest window refills with calibrated rates
+        residual_after = np.linalg.norm(run.service.pipeline.recent_gyro_mean())
+        assert residual_before > 5e-3  # rad/s: the offset was there ...
+        assert residual_after < 0.1 * residual_before  # ... and calibration removed it
+    finally:
+        run.stop()
+
+
+def test_gyro_calibration_refused_while_moving(tmp_path, gcs):
+    conn, port = gcs
+    run = RunningService(service_config(tmp_path, port, source={"profile": "figure8"}))
+    try:
+        collect(conn, 2.0)
+        conn.mav.command_long_send(1, 1, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 1, 0, 0, 0, 0, 0, 0)
+        ack = _ack(conn, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION)
+        assert ack.result == mavlink2.MAV_RESULT_TEMPORARILY_REJECTED
+    finally:
+        run.stop()
+
+
+def test_signed_mode_rejects_unsigned_parameter_writes(tmp_path, gcs):
+    conn, port = gcs
+    run = RunningService(service_config(tmp_path, port, estimator={"name": "madgwick"}, mavlink={"signing_key": KEY_HEX}))
+    try:
+        collect(conn, 1.0)
+        conn.mav.param_set_send(1, 1, b"EST_BETA", 0.5, mavlink2.MAV_PARAM_TYPE_REAL32)
+        collect(conn, 1.0)
+        assert run.service.estimator.get_params()["beta"] == pytest.approx(0.1)
+        assert run.service.mavlink.stats()["unsigned_rejected"] >= 1
+
+        conn.setup_signing(bytes.fromhex(KEY_HEX), sign_outgoing=True)
+        conn.mav.param_set_send(1, 1, b"EST_BETA", 0.5, mavlink2.MAV_PARAM_TYPE_REAL32)
+        assert _param_value(conn, "EST_BETA").param_value == pytest.approx(0.5)
+        assert run.service.estimator.get_params()["beta"] == pytest.approx(0.5)
+    finally:
+        run.stop()
+
+
+def test_companion_identity(tmp_path, gcs):
+    conn, port = gcs
+    run = RunningService(service_config(tmp_path, port, mavlink={"identity": "companion", "system_id": 7}))
+    try:
+        hb = [m for m in collect(conn, 2.5, until=lambda m: m.get_type() == "HEARTBEAT") if m.get_type() == "HEARTBEAT"]
+    finally:
+        run.stop()
+    assert hb and (hb[0].get_srcSystem(), hb[0].get_srcComponent()) == (7, 200)
+    assert hb[0].type == mavlink2.MAV_TYPE_IMU and hb[0].autopilot == mavlink2.MAV_AUTOPILOT_INVALID
