@@ -79,6 +79,10 @@ def _table(key: str, v: Any) -> dict:
     return dict(v)
 
 
+def _optional(check: Checker) -> Checker:
+    return lambda key, v: None if v is None else check(key, v)
+
+
 def _estimator_name(key: str, v: Any) -> str:
     from ahrs_service import estimators
 
@@ -142,6 +146,13 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "system_id": (1, _number(1, 255, integer=True)),
         "signing_key": ("", _signing_key),
     },
+    # where the vehicle flies: when latitude and longitude are set, the magnetic declination
+    # comes from the World Magnetic Model for today (it replaces estimator.declination_deg)
+    "location": {
+        "latitude_deg": (None, _optional(_number(-90.0, 90.0))),
+        "longitude_deg": (None, _optional(_number(-180.0, 180.0))),
+        "altitude_km": (0.0, _number(-1.0, 850.0)),
+    },
     "log": {
         "enabled": (True, _boolean),
         "directory": ("flight-logs", _string),
@@ -189,6 +200,8 @@ def validate(data: dict[str, Any]) -> Config:
                 raise ConfigError(f"{section}.{key}: unknown key; accepted keys: {', '.join(keys)}")
             out[section][key] = keys[key][1](f"{section}.{key}", value)
     _check_estimator_params(out["estimator"])
+    if (out["location"]["latitude_deg"] is None) != (out["location"]["longitude_deg"] is None):
+        raise ConfigError("location: give both latitude_deg and longitude_deg, or neither")
     _check_source(out["source"])
     return Config(out)
 
@@ -241,7 +254,9 @@ def to_toml(cfg: dict[str, dict[str, Any]]) -> str:
         nested = {k: v for k, v in keys.items() if isinstance(v, dict)}
         lines.append(f"[{section}]")
         for k, v in keys.items():
-            if not isinstance(v, dict):
+            if v is None:
+                lines.append(f"# {k} = (not set)")
+            elif not isinstance(v, dict):
                 lines.append(f"{k} = {_toml_value(v)}")
         lines.append("")
         for k, v in nested.items():

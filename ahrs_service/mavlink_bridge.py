@@ -62,6 +62,8 @@ class MavlinkBridge:
             signing_key=key,
             params=self._parameter_table(),
             gyro_calibration=self._calibrate_gyro,
+            mag_calibration=lambda action: self._start_collection("mag"),
+            accel_calibration=lambda action: self._start_collection("accel"),
             max_rate_hz=1e9 / IO_PERIOD_NS,
         )
 
@@ -104,6 +106,10 @@ class MavlinkBridge:
         bias = self.svc.pipeline.calibration.gyro_bias
         self.svc.record_calibration("gyro")
         return mavlink.MAV_RESULT_ACCEPTED, "gyro bias set to [{:.4f}, {:.4f}, {:.4f}] rad/s".format(*bias)
+
+    def _start_collection(self, kind: str) -> tuple[int, str]:
+        started, text = self.svc.start_live_calibration(kind)
+        return (mavlink.MAV_RESULT_ACCEPTED if started else mavlink.MAV_RESULT_TEMPORARILY_REJECTED), text
 
     # ------------------------------------------------------------------ per tick
     def telemetry(self, now_ns: int) -> Telemetry:

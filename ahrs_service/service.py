@@ -17,7 +17,8 @@ from typing import Any
 from ahrs_service import config as config_mod
 from ahrs_service import estimators
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID, ImuSource
-from ahrs_service.drivers.calibration import SensorCalibration
+from ahrs_service.calibration.live import LiveCalibrator
+from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
 from ahrs_service.pipeline import EstimationPipeline
 from ahrs_service.scheduler import FixedRateScheduler
 from ahrs_service.sources import make_source
@@ -27,13 +28,6 @@ log = logging.getLogger("ahrs_service")
 
 IO_PERIOD_NS = 5_000_000  # MAVLink publish/poll granularity: 200 Hz
 HOUSEKEEPING_NS = 1_000_000_000  # loop statistics, STATUS=, health reports
-
-
-def calibration_from_config(cfg: config_mod.Config) -> SensorCalibration:
-    """Calibration plus the mounting rotation of the configuration."""
-    data = dict(cfg.calibration)
-    data.setdefault("mounting_rpy_deg", [cfg.mounting["roll_deg"], cfg.mounting["pitch_deg"], cfg.mounting["yaw_deg"]])
-    return SensorCalibration.from_dict(data)
 
 
 class Service:
@@ -50,6 +44,7 @@ class Service:
         self.mavlink = None
         self.log_writer = None
         self.status_messages: list[str] = []
+        self.live_calibration = LiveCalibrator()
 
     # ------------------------------------------------------------------ set-up
     def start(self) -> None:
@@ -66,11 +61,22 @@ class Service:
         estimator = estimators.create(est_cfg["name"], **est_cfg["params"])
         self.pipeline = EstimationPipeline(
             estimator,
-            calibration_from_config(cfg),
+            calibration_from_config_dict(cfg.raw),
             mag_timeout_s=est_cfg["mag_timeout_s"],
-            declination_deg=est_cfg["declination_deg"],
+            declination_deg=self.declination_deg(cfg),
             nominal_dt=1.0 / cfg.rates["estimation_hz"],
         )
+
+    def declination_deg(self, cfg: config_mod.Config) -> float:
+        """The configured declination, or the World Magnetic Model's for the configured place today."""
+        loc = cfg.location
+        if loc["latitude_deg"] is None:
+            return cfg.estimator["declination_deg"]
+        from ahrs_service.calibration.declination import declination_deg
+
+        value = declination_deg(loc["latitude_deg"], loc["longitude_deg"], loc["altitude_km"])
+        log.info("magnetic declination %.2f° from the World Magnetic Model", value)
+        return value
 
     @property
     def estimator(self):
@@ -136,6 +142,9 @@ class Service:
             now = sched.wait()
             sample = source.read()
             if sample is not None:
+                if self.live_calibration.active and self.live_calibration.add(sample):
+                    self.finish_live_calibration()
+                    pipeline = self.pipeline
                 cal = pipeline.process(sample)
                 if cal is not None and writer is not None:
                     est = pipeline.estimator
@@ -186,6 +195,8 @@ class Service:
         st = self.scheduler.stats()
         self.last_load_percent = st.load_percent
         self.notifier.status(self.status_line())
+        if self.live_calibration.active:
+            self.report(self.live_calibration.status_text(), 6)
         diag = self.source.diagnostics.as_dict()
         if self._last_overruns is not None and st.overruns > self._last_overruns:
             self.report(f"loop overruns: {st.overruns - self._last_overruns} in the last second", 4)
@@ -215,10 +226,31 @@ class Service:
     last_load_percent = 0.0
 
     def record_calibration(self, kind: str) -> None:
-        """Logs the calibration now in force (after a live calibration) as a configuration record."""
-        self.cfg.raw["calibration"] = self.pipeline.calibration.to_dict()
+        """Stores the calibration now in force: in the configuration file (when the service was
+        started from one; a ``.bak`` keeps the previous file) and in the log."""
+        cal = self.pipeline.calibration
+        self.cfg.raw["calibration"] = calibration_section(cal, self.cfg.raw["calibration"])
+        if self.cfg.path is not None:
+            try:
+                save_calibration(self.cfg.path, cal)
+            except (OSError, ValueError) as exc:
+                self.report(f"{kind} calibration not saved: {exc}", 4)
         if self.log_writer is not None:
             self.log_writer.write_config(time.monotonic_ns(), self.effective_config(), reason=f"calibration:{kind}")
+
+    def start_live_calibration(self, kind: str) -> tuple[bool, str]:
+        """Starts collecting samples for a magnetometer or accelerometer calibration."""
+        try:
+            return True, self.live_calibration.start(kind)
+        except RuntimeError as exc:  # one is already running
+            return False, str(exc)
+
+    def finish_live_calibration(self) -> None:
+        result = self.live_calibration.finish(self.pipeline.calibration)
+        self.report(result.text, 6 if result.accepted else 4)
+        if result.accepted:
+            self.pipeline.calibration = result.calibration
+            self.record_calibration(result.kind)
 
     def health(self) -> dict[str, bool]:
         """Present/healthy bits for gyro, accelerometer and magnetometer (SYS_STATUS)."""
@@ -262,7 +294,7 @@ class Service:
             for name, value in wanted.items():
                 if value != self.estimator.get_params()[name]:
                     self.set_estimator_param(name, value, source="reload")
-            self.pipeline.set_declination(new.estimator["declination_deg"])
+            self.pipeline.set_declination(self.declination_deg(new))
             self.pipeline.mag_timeout_ns = int(new.estimator["mag_timeout_s"] * 1e9)
         else:
             self._build_estimation(new)

@@ -230,3 +230,41 @@ def test_companion_identity(tmp_path, gcs):
         run.stop()
     assert hb and (hb[0].get_srcSystem(), hb[0].get_srcComponent()) == (7, 200)
     assert hb[0].type == mavlink2.MAV_TYPE_IMU and hb[0].autopilot == mavlink2.MAV_AUTOPILOT_INVALID
+
+
+def test_magnetometer_calibration_collects_and_refuses_a_second_start(tmp_path, gcs):
+    conn, port = gcs
+    run = RunningService(service_config(tmp_path, port, source={"profile": "figure8"}))
+    try:
+        collect(conn, 1.0)
+        conn.mav.command_long_send(1, 1, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 1, 0, 0, 0, 0, 0)
+        assert _ack(conn, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION).result == mavlink2.MAV_RESULT_ACCEPTED
+        assert run.service.live_calibration.active
+        conn.mav.command_long_send(1, 1, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 1, 0, 0, 0, 0, 0)
+        assert _ack(conn, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION).result == mavlink2.MAV_RESULT_TEMPORARILY_REJECTED
+        texts = [m.text for m in collect(conn, 2.5) if m.get_type() == "STATUSTEXT"]
+        assert any("mag" in t.lower() for t in texts)
+        assert run.service.live_calibration.samples > 100
+    finally:
+        run.stop()
+
+
+def test_declination_from_the_world_magnetic_model(tmp_path, gcs):
+    from ahrs_service.calibration.declination import declination_deg
+
+    conn, port = gcs
+    cfg = service_config(tmp_path, port, location={"latitude_deg": 52.5, "longitude_deg": 13.4})
+    run = RunningService(cfg)
+    try:
+        collect(conn, 1.0)
+    finally:
+        run.stop()
+    pipeline = run.service.pipeline
+    assert pipeline.declination_deg == pytest.approx(declination_deg(52.5, 13.4))
+    assert abs(pipeline.declination_deg) > 1.0  # Berlin: several degrees east
+    # the published yaw is the estimator's magnetic heading turned by the declination
+    from ahrs_service.quaternion import quat_to_euler
+
+    yaw_magnetic = quat_to_euler(tuple(pipeline.estimator.state[:4]))[2]
+    diff = (pipeline.published_euler()[2] - yaw_magnetic + math.pi) % (2 * math.pi) - math.pi
+    assert math.degrees(diff) == pytest.approx(pipeline.declination_deg, abs=1e-6)
