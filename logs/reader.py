@@ -1,0 +1,234 @@
+"""Reading a flight log back into NumPy arrays, for replay, analysis and tests.
+
+:func:`read_log` uses the MCAP summary and indexes (``mcap.reader.make_reader``) when the
+file is complete, and falls back to record-by-record stream reading
+(:class:`~ahrs_service.logs.recover.RecordScanner`) when it is not — a crashed or truncated
+log is read up to the damage, and the damage is reported in ``RecordedLog.damage``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+from mcap.reader import make_reader
+from mcap.records import Channel, Message, Metadata
+
+from ahrs_service.logs.recover import Damage, RecordScanner
+
+
+class MessageSource:
+    """Iterates (topic, log_time_ns, publish_time_ns, data bytes) of a log in file order.
+
+    Indexed reading (with chunk CRC checks) when the summary is readable, else stream reading
+    up to the damage. After iteration: ``damage`` (None if sound), ``indexed`` and
+    ``metadata`` ({name: {key: value}}).
+    """
+
+    def __init__(self, path: str | os.PathLike, *, stream_only: bool = False) -> None:
+        self.path = Path(path)
+        self.stream_only = stream_only
+        self.damage: Damage | None = None
+        self.indexed = False
+        self.metadata: dict[str, dict[str, str]] = {}
+
+    def _summary_reader(self, f: Any) -> Any:
+        try:
+            reader = make_reader(f, validate_crcs=True)
+            summary = reader.get_summary()
+        except Exception:  # noqa: BLE001 - no readable footer/summary: stream read instead
+            return None
+        if summary is None or not summary.chunk_indexes:
+            return None
+        return reader
+
+    def __iter__(self) -> Iterator[tuple[str, int, int, bytes]]:
+        with open(self.path, "rb") as f:
+            reader = None if self.stream_only else self._summary_reader(f)
+            if reader is not None:
+                self.indexed = True
+                try:
+                    for m in reader.iter_metadata():
+                        self.metadata[m.name] = dict(m.metadata)
+                    for _, channel, msg in reader.iter_messages(log_time_order=False):
+                        yield channel.topic, msg.log_time, msg.publish_time, msg.data
+                except Exception as exc:  # noqa: BLE001 - damage inside an indexed file
+                    size = self.path.stat().st_size
+                    self.damage = Damage(-1, size, f"indexed read failed: {type(exc).__name__}: {exc}")
+                return
+        scanner = RecordScanner(self.path)
+        topics: dict[int, str] = {}
+        for rec in scanner:
+            if isinstance(rec, Channel):
+                topics[rec.id] = rec.topic
+            elif isinstance(rec, Message) and rec.channel_id in topics:
+                yield topics[rec.channel_id], rec.log_time, rec.publish_time, rec.data
+            elif isinstance(rec, Metadata):
+                self.metadata[rec.name] = dict(rec.metadata)
+        self.damage = scanner.damage if not scanner.complete or scanner.damage else None
+
+
+def _vec(values: Any, n: int) -> list[float]:
+    if values is None:
+        return [np.nan] * n
+    return [np.nan if v is None else float(v) for v in values]
+
+
+@dataclass
+class RecordedLog:
+    """A flight log as arrays. Rows are the /imu/raw samples, in file order.
+
+    t_ns (N,) int64 sample times; rows (N, 10) float64 [gx, gy, gz, ax, ay, az, mx, my, mz, dt]
+    exactly as fed to the estimator (rad/s, m/s², µT, s; NaN where null); flags (N,) int64;
+    index (N,) int64 the writer's sample counter (what /params sample_index refers to);
+    attitudes (N, 4) the recorded /attitude q_earth←body [w, x, y, z] (NaN where none) or None;
+    original (N, 4) /attitude/original (a replayed log's source estimate) or None;
+    truth (N, 4) /attitude/truth in NED or None; movement (N,) bool or None;
+    estimator / params: the recorded estimator name and its parameters at the start of the
+    file (from /config: config["estimator"] = {"name", "params"}); param_changes: the /params
+    messages; configs: every /config message; counts: messages per topic; damage: None for a
+    sound file; initial_state: the /estimator/state snapshot a rotated file starts from
+    ({"estimator", "sample_index", "state" (ndarray)}) or None.
+    """
+
+    path: Path
+    t_ns: np.ndarray
+    rows: np.ndarray
+    flags: np.ndarray
+    index: np.ndarray
+    attitudes: np.ndarray | None
+    original: np.ndarray | None
+    truth: np.ndarray | None
+    movement: np.ndarray | None
+    estimator: str | None
+    params: dict[str, Any]
+    param_changes: list[dict[str, Any]]
+    config: dict[str, Any]
+    configs: list[dict[str, Any]] = field(default_factory=list)
+    counts: dict[str, int] = field(default_factory=dict)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    damage: Damage | None = None
+    indexed: bool = False
+    initial_state: dict[str, Any] | None = None
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t_ns[-1] - self.t_ns[0]) / 1e9 if len(self) > 1 else 0.0
+
+    def local_index(self, sample_index: int) -> int:
+        """Row of this file at which writer sample number ``sample_index`` sits (may be < 0)."""
+        first = int(self.index[0]) if len(self) else 0
+        return int(sample_index) - first
+
+
+def _align(t_ns: np.ndarray, times: list[int], values: list[list[float]]) -> np.ndarray | None:
+    if not times:
+        return None
+    out = np.full((t_ns.shape[0], len(values[0])), np.nan)
+    row_of = {int(t): i for i, t in enumerate(t_ns.tolist())}
+    for t, v in zip(times, values):
+        i = row_of.get(t)
+        if i is not None:
+            out[i] = v
+    return out
+
+
+def read_log(path: str | os.PathLike) -> RecordedLog:
+    """Reads a flight log (MCAP) into a :class:`RecordedLog`; damaged files up to the damage."""
+    log = _read(MessageSource(path))
+    if log.damage is not None and log.indexed:
+        # a complete file with a damaged chunk: read it again in file order, up to the damage
+        log = _read(MessageSource(path, stream_only=True))
+    return log
+
+
+def _read(source: MessageSource) -> RecordedLog:
+    path = source.path
+    t_ns: list[int] = []
+    rows: list[list[float]] = []
+    flags: list[int] = []
+    index: list[int] = []
+    att_t: list[int] = []
+    att_q: list[list[float]] = []
+    orig_t: list[int] = []
+    orig_q: list[list[float]] = []
+    tru_t: list[int] = []
+    tru_q: list[list[float]] = []
+    tru_m: list[float] = []
+    configs: list[dict[str, Any]] = []
+    changes: list[dict[str, Any]] = []
+    counts: dict[str, int] = {}
+    att_estimator: str | None = None
+    states: list[dict[str, Any]] = []
+    for topic, log_time, _, data in source:
+        counts[topic] = counts.get(topic, 0) + 1
+        if topic == "/imu/raw":
+            m = json.loads(data)
+            t_ns.append(int(m["t_ns"]))
+            rows.append(_vec(m["gyr"], 3) + _vec(m["acc"], 3) + _vec(m["mag"], 3) + _vec([m["dt"]], 1))
+            flags.append(int(m["flags"]))
+            index.append(int(m.get("index", len(index))))
+        elif topic in ("/attitude", "/attitude/original"):
+            m = json.loads(data)
+            (att_t if topic == "/attitude" else orig_t).append(int(m["t_ns"]))
+            (att_q if topic == "/attitude" else orig_q).append(_vec(m["q"], 4))
+            if topic == "/attitude" and att_estimator is None:
+                att_estimator = m.get("estimator")
+        elif topic == "/attitude/truth":
+            m = json.loads(data)
+            tru_t.append(int(m["t_ns"]))
+            tru_q.append(_vec(m["q"], 4))
+            mv = m.get("movement")
+            tru_m.append(np.nan if mv is None else float(bool(mv)))
+        elif topic == "/config":
+            configs.append(json.loads(data))
+        elif topic == "/params":
+            changes.append(json.loads(data))
+        elif topic == "/estimator/state":
+            states.append(json.loads(data))
+    t = np.asarray(t_ns, dtype=np.int64)
+    config = configs[0]["config"] if configs else {}
+    est_cfg = config.get("estimator") if isinstance(config.get("estimator"), dict) else {}
+    estimator = est_cfg.get("name") or att_estimator
+    params = dict(est_cfg.get("params") or {})
+    movement = None
+    if tru_t and not all(np.isnan(tru_m)):
+        mv = _align(t, tru_t, [[v] for v in tru_m])
+        movement = None if mv is None else (mv[:, 0] == 1.0)
+    changes.sort(key=lambda c: (int(c["sample_index"]), int(c["t_ns"])))
+    initial_state = None
+    if states and index and int(states[0]["sample_index"]) == index[0]:
+        st = states[0]
+        initial_state = {
+            "estimator": st["estimator"],
+            "sample_index": int(st["sample_index"]),
+            "state": np.asarray(_vec(st["state"], len(st["state"])), dtype=np.float64),
+        }
+    return RecordedLog(
+        path=Path(path),
+        t_ns=t,
+        rows=np.asarray(rows, dtype=np.float64).reshape(-1, 10),
+        flags=np.asarray(flags, dtype=np.int64),
+        index=np.asarray(index, dtype=np.int64),
+        attitudes=_align(t, att_t, att_q),
+        original=_align(t, orig_t, orig_q),
+        truth=_align(t, tru_t, tru_q),
+        movement=movement,
+        estimator=estimator,
+        params=params,
+        param_changes=changes,
+        config=config,
+        configs=configs,
+        counts=counts,
+        metadata=source.metadata,
+        damage=source.damage,
+        indexed=source.indexed,
+        initial_state=initial_state,
+    )

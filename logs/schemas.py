@@ -1,0 +1,416 @@
+"""Channels of a flight log and their JSON Schemas, defined once for writer, reader and tests.
+
+Every channel is JSON-encoded (MCAP message encoding ``"json"``) and carries a JSON Schema
+(schema encoding ``"jsonschema"``), which is what Foxglove expects for JSON data.
+
+Conventions (../shared/DESIGN.md): earth NED, body FRD, quaternions Hamilton [w, x, y, z]
+q_earth←body, gyroscope rad/s, specific force m/s², field µT, times in ns. Numbers that are
+not finite (NaN: "no magnetometer", an invalid reading) are written as ``null`` because JSON
+has no NaN; readers turn ``null`` back into NaN. Floats are written with Python's ``repr``
+(shortest round-trip form), so every float64 reads back bit-exact.
+
+The ``*_message`` functions build the messages of the main channels from plain values.
+
+The one exception to our quaternion order is ``/tf``: it uses Foxglove's own
+``foxglove.FrameTransform`` schema, whose rotation is {x, y, z, w}.
+
+:func:`validate` checks a message against these schemas; it implements the small subset of
+JSON Schema used here (type, properties, required, items, minItems, maxItems,
+additionalProperties, enum), because the ``jsonschema`` package is not a dependency.
+"""
+
+from __future__ import annotations
+
+import collections.abc
+import json
+import math
+from typing import Any, Iterable
+
+import numpy as np
+
+from ahrs_service.drivers.base import (
+    ACC_SATURATED,
+    ACC_VALID,
+    GYR_SATURATED,
+    GYR_VALID,
+    MAG_NEW,
+    MAG_SATURATED,
+    MAG_VALID,
+)
+
+SCHEMA_ENCODING = "jsonschema"
+MESSAGE_ENCODING = "json"
+
+_NUM = {"type": "number"}
+_NUM_OR_NULL = {"type": ["number", "null"]}
+_INT = {"type": "integer"}
+
+
+def _vec(n: int, item: dict[str, Any], description: str) -> dict[str, Any]:
+    return {"type": "array", "items": item, "minItems": n, "maxItems": n, "description": description}
+
+
+_T_NS = {"type": "integer", "description": "sample timestamp, ns, monotonic clock of the host"}
+_QUAT = _vec(4, _NUM, "q_earth←body [w, x, y, z], Hamilton, earth NED, body FRD")
+
+IMU_RAW = {
+    "title": "ahrs.ImuRaw",
+    "description": "One IMU sample exactly as fed to the estimator (calibrated, body frame FRD).",
+    "type": "object",
+    "properties": {
+        "t_ns": _T_NS,
+        "index": {"type": ["integer", "null"], "description": "sample number since the writer started"},
+        "dt": {"type": ["number", "null"], "description": "time step fed to the estimator, s"},
+        "gyr": _vec(3, _NUM_OR_NULL, "angular rate, rad/s, body FRD"),
+        "acc": _vec(3, _NUM_OR_NULL, "specific force, m/s², body FRD"),
+        "mag": {
+            "type": ["array", "null"],
+            "items": _NUM_OR_NULL,
+            "minItems": 3,
+            "maxItems": 3,
+            "description": "magnetic field, µT, body FRD; null when there is no reading",
+        },
+        "flags": {"type": "integer", "description": "validity bit mask (ahrs_service.drivers.base)"},
+        "valid": {
+            "type": "object",
+            "description": "the flag bits decoded",
+            "properties": {
+                "gyr": {"type": "boolean"},
+                "acc": {"type": "boolean"},
+                "mag": {"type": "boolean"},
+                "gyr_saturated": {"type": "boolean"},
+                "acc_saturated": {"type": "boolean"},
+                "mag_saturated": {"type": "boolean"},
+                "mag_new": {"type": "boolean"},
+            },
+            "required": ["gyr", "acc", "mag"],
+        },
+        "raw": {"type": ["object", "null"], "description": "uncalibrated readings (counts) when the driver has them"},
+        "temperature": {"type": ["number", "null"], "description": "sensor temperature, °C"},
+    },
+    "required": ["t_ns", "dt", "gyr", "acc", "mag", "flags", "valid"],
+}
+
+ATTITUDE = {
+    "title": "ahrs.Attitude",
+    "description": "The estimate after one sample.",
+    "type": "object",
+    "properties": {
+        "t_ns": _T_NS,
+        "q": _QUAT,
+        "roll": {"type": "number", "description": "rad, ZYX Euler"},
+        "pitch": {"type": "number", "description": "rad, ZYX Euler"},
+        "yaw": {"type": "number", "description": "rad, ZYX Euler, (−π, π]"},
+        "estimator": {"type": "string"},
+        "gyro_bias": _vec(3, _NUM_OR_NULL, "gyro-bias estimate, rad/s, body FRD"),
+        "diagnostics": {"type": "object", "description": "estimator counters (initialised, *_skipped …)"},
+    },
+    "required": ["t_ns", "q", "roll", "pitch", "yaw", "estimator"],
+}
+
+TRUTH = {
+    "title": "ahrs.AttitudeTruth",
+    "description": "Ground-truth attitude where known (simulator, optical tracking).",
+    "type": "object",
+    "properties": {
+        "t_ns": _T_NS,
+        "q": _QUAT,
+        "roll": {"type": "number"},
+        "pitch": {"type": "number"},
+        "yaw": {"type": "number"},
+        "movement": {"type": ["boolean", "null"], "description": "BROAD: sample is scored"},
+        "source": {"type": "string"},
+    },
+    "required": ["t_ns", "q"],
+}
+
+LOOP = {
+    "title": "ahrs.LoopStats",
+    "description": "Scheduler statistics over the last window of ticks (times in µs), estimator "
+    "and sensor fault counters. Further keys are allowed.",
+    "type": "object",
+    "properties": {
+        "t_ns": _T_NS,
+        "rate_hz": _NUM_OR_NULL,
+        "ticks": _INT,
+        "overruns": _INT,
+        "missed_ticks": _INT,
+        "period_jitter_p50_us": _NUM_OR_NULL,
+        "period_jitter_p99_us": _NUM_OR_NULL,
+        "period_jitter_max_us": _NUM_OR_NULL,
+        "lateness_p99_us": _NUM_OR_NULL,
+        "load_percent": _NUM_OR_NULL,
+        "reduced": {"type": "boolean", "description": "estimating without magnetometer"},
+        "estimator": {"type": "object", "description": "the estimator's diagnostics counters"},
+        "source": {"type": "object", "description": "the sensor source's fault counters"},
+        "log": {"type": "object", "description": "the log writer's own counters (FlightLogWriter.stats)"},
+    },
+    "required": ["t_ns"],
+}
+
+CONFIG = {
+    "title": "ahrs.Config",
+    "description": "Effective configuration; written at the start of every file and on reload.",
+    "type": "object",
+    "properties": {
+        "t_ns": _T_NS,
+        "reason": {"type": "string", "description": "start | reload | rotation"},
+        "config": {"type": "object", "description": "config['estimator'] = {'name', 'params'}"},
+    },
+    "required": ["t_ns", "config"],
+}
+
+PARAM_CHANGE = {
+    "title": "ahrs.ParamChange",
+    "description": "A live parameter change; it applies from sample number sample_index on.",
+    "type": "object",
+    "properties": {
+        "t_ns": _T_NS,
+        "sample_index": {"type": "integer", "description": "samples fed to the estimator before the change"},
+        "name": {"type": "string"},
+        "old": {},
+        "new": {},
+        "source": {"type": "string", "description": "mavlink | config | cli …"},
+    },
+    "required": ["t_ns", "sample_index", "name", "old", "new", "source"],
+}
+
+MAVLINK = {
+    "title": "ahrs.MavlinkStats",
+    "description": "MAVLink traffic summary counters.",
+    "type": "object",
+    "properties": {"t_ns": _T_NS, "counters": {"type": "object"}},
+    "required": ["t_ns", "counters"],
+}
+
+ESTIMATOR_STATE = {
+    "title": "ahrs.EstimatorState",
+    "description": "The estimator's full state at a file start after rotation: replaying the file "
+    "from it reproduces the recorded estimate exactly.",
+    "type": "object",
+    "properties": {
+        "t_ns": _T_NS,
+        "sample_index": {"type": "integer", "description": "the first sample processed from this state"},
+        "estimator": {"type": "string"},
+        "state": {"type": "array", "items": _NUM_OR_NULL, "description": "Estimator.state (float64)"},
+    },
+    "required": ["t_ns", "sample_index", "estimator", "state"],
+}
+
+_XYZ = {
+    "type": "object",
+    "properties": {"x": _NUM, "y": _NUM, "z": _NUM},
+    "required": ["x", "y", "z"],
+}
+
+FRAME_TRANSFORM = {
+    "title": "foxglove.FrameTransform",
+    "description": "A transform between two reference frames in 3D space",
+    "type": "object",
+    "properties": {
+        "timestamp": {
+            "type": "object",
+            "title": "time",
+            "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0}},
+            "required": ["sec", "nsec"],
+        },
+        "parent_frame_id": {"type": "string"},
+        "child_frame_id": {"type": "string"},
+        "translation": _XYZ,
+        "rotation": {
+            "type": "object",
+            "description": "Foxglove order: x, y, z, w",
+            "properties": {"x": _NUM, "y": _NUM, "z": _NUM, "w": _NUM},
+            "required": ["x", "y", "z", "w"],
+        },
+    },
+    "required": ["timestamp", "parent_frame_id", "child_frame_id", "translation", "rotation"],
+}
+
+#: topic -> (schema name, JSON Schema)
+CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
+    "/imu/raw": ("ahrs.ImuRaw", IMU_RAW),
+    "/attitude": ("ahrs.Attitude", ATTITUDE),
+    "/attitude/original": ("ahrs.Attitude", ATTITUDE),
+    "/attitude/truth": ("ahrs.AttitudeTruth", TRUTH),
+    "/loop": ("ahrs.LoopStats", LOOP),
+    "/config": ("ahrs.Config", CONFIG),
+    "/params": ("ahrs.ParamChange", PARAM_CHANGE),
+    "/mavlink": ("ahrs.MavlinkStats", MAVLINK),
+    "/estimator/state": ("ahrs.EstimatorState", ESTIMATOR_STATE),
+    "/tf": ("foxglove.FrameTransform", FRAME_TRANSFORM),
+}
+
+
+def schema_bytes(topic: str) -> bytes:
+    """The schema of ``topic`` as stored in the MCAP Schema record."""
+    return json.dumps(CHANNELS[topic][1], ensure_ascii=False).encode()
+
+
+# --------------------------------------------------------------------------- building messages
+
+
+def num_or_null(x: float) -> float | None:
+    """x, or None (JSON null) when it is not finite."""
+    return x if math.isfinite(x) else None
+
+
+def nums_or_null(values: Iterable[float]) -> list[float | None]:
+    """The values as a list, non-finite ones as None (JSON null)."""
+    return [v if math.isfinite(v) else None for v in values]
+
+
+def jsonable(value: Any) -> Any:
+    """``value`` with NumPy scalars/arrays turned into Python ones and non-finite floats into None."""
+    if isinstance(value, collections.abc.Mapping):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return num_or_null(float(value))
+    if value is None or isinstance(value, str):
+        return value
+    return str(value)  # paths, enums …: readable rather than a lost message
+
+
+def euler(q: list[float]) -> tuple[float, float, float]:
+    """ZYX (roll, pitch, yaw) in rad of [w, x, y, z]; yaw in (−π, π]."""
+    w, x, y, z = q
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = math.asin(min(1.0, max(-1.0, 2.0 * (w * y - z * x))))
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return roll, pitch, (math.pi if yaw == -math.pi else yaw)
+
+
+def raw_message(
+    t_ns: int,
+    row: list[float],
+    flags: int,
+    raw: Any = None,
+    temperature: float | None = None,
+    index: int | None = None,
+) -> dict[str, Any]:
+    """The /imu/raw message of one sample row [gx, gy, gz, ax, ay, az, mx, my, mz, dt].
+
+    index: the sample's number since the writer started (what /params sample_index counts).
+    """
+    mag = row[6:9]
+    return {
+        "t_ns": int(t_ns),
+        "index": index,
+        "dt": num_or_null(row[9]),
+        "gyr": nums_or_null(row[0:3]),
+        "acc": nums_or_null(row[3:6]),
+        "mag": None if all(math.isnan(v) for v in mag) else nums_or_null(mag),
+        "flags": int(flags),
+        "valid": {
+            "gyr": bool(flags & GYR_VALID),
+            "acc": bool(flags & ACC_VALID),
+            "mag": bool(flags & MAG_VALID),
+            "gyr_saturated": bool(flags & GYR_SATURATED),
+            "acc_saturated": bool(flags & ACC_SATURATED),
+            "mag_saturated": bool(flags & MAG_SATURATED),
+            "mag_new": bool(flags & MAG_NEW),
+        },
+        "raw": jsonable(raw),
+        "temperature": None if temperature is None else num_or_null(float(temperature)),
+    }
+
+
+def attitude_message(
+    t_ns: int, q: list[float], estimator: str, bias: list[float] | None = None, diagnostics: Any = None
+) -> dict[str, Any]:
+    """The /attitude message: q_earth←body [w, x, y, z] (NED/FRD), Euler angles, bias (rad/s)."""
+    roll, pitch, yaw = euler(q)
+    return {
+        "t_ns": int(t_ns),
+        "q": nums_or_null(q),
+        "roll": roll,
+        "pitch": pitch,
+        "yaw": yaw,
+        "estimator": str(estimator),
+        "gyro_bias": nums_or_null(bias) if bias is not None else [0.0, 0.0, 0.0],
+        "diagnostics": jsonable(diagnostics or {}),
+    }
+
+
+def truth_message(t_ns: int, q: list[float], movement: bool | None = None, source: str = "") -> dict[str, Any]:
+    """The /attitude/truth message (q_earth←body [w, x, y, z], NED/FRD)."""
+    roll, pitch, yaw = euler(q)
+    return {
+        "t_ns": int(t_ns),
+        "q": nums_or_null(q),
+        "roll": roll,
+        "pitch": pitch,
+        "yaw": yaw,
+        "movement": movement,
+        "source": source,
+    }
+
+
+def tf_message(t_ns: int, q: list[float]) -> dict[str, Any]:
+    """foxglove.FrameTransform of the body frame in the NED frame (rotation in x, y, z, w order)."""
+    return {
+        "timestamp": {"sec": int(t_ns) // 1_000_000_000, "nsec": int(t_ns) % 1_000_000_000},
+        "parent_frame_id": "ned",
+        "child_frame_id": "body",
+        "translation": {"x": 0.0, "y": 0.0, "z": 0.0},
+        "rotation": {"x": q[1], "y": q[2], "z": q[3], "w": q[0]},
+    }
+
+
+# --------------------------------------------------------------------------- validation
+
+_TYPES = {
+    "object": lambda v: isinstance(v, dict),
+    "array": lambda v: isinstance(v, list),
+    "string": lambda v: isinstance(v, str),
+    "boolean": lambda v: isinstance(v, bool),
+    "null": lambda v: v is None,
+    # JSON has one number type; bool is an int in Python but not a number in JSON
+    "integer": lambda v: isinstance(v, int) and not isinstance(v, bool),
+    "number": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+}
+
+
+def validate(instance: Any, schema: dict[str, Any], path: str = "$") -> list[str]:
+    """Errors of ``instance`` against ``schema`` (empty list when valid).
+
+    Supports type (string or list), properties, required, additionalProperties (bool),
+    items (one schema), minItems, maxItems, minimum and enum — the subset these schemas use.
+    """
+    errors: list[str] = []
+    kinds = schema.get("type")
+    if kinds is not None:
+        kinds = [kinds] if isinstance(kinds, str) else list(kinds)
+        if not any(_TYPES[k](instance) for k in kinds):
+            return [f"{path}: expected {'/'.join(kinds)}, got {type(instance).__name__}"]
+    if "enum" in schema and instance not in schema["enum"]:
+        errors.append(f"{path}: {instance!r} not one of {schema['enum']}")
+    if "minimum" in schema and _TYPES["number"](instance) and instance < schema["minimum"]:
+        errors.append(f"{path}: {instance} < minimum {schema['minimum']}")
+    if isinstance(instance, dict):
+        props = schema.get("properties", {})
+        for key in schema.get("required", []):
+            if key not in instance:
+                errors.append(f"{path}: missing required {key!r}")
+        for key, value in instance.items():
+            if key in props:
+                errors.extend(validate(value, props[key], f"{path}.{key}"))
+            elif schema.get("additionalProperties", True) is False:
+                errors.append(f"{path}: unexpected property {key!r}")
+    if isinstance(instance, list):
+        if "minItems" in schema and len(instance) < schema["minItems"]:
+            errors.append(f"{path}: {len(instance)} items < minItems {schema['minItems']}")
+        if "maxItems" in schema and len(instance) > schema["maxItems"]:
+            errors.append(f"{path}: {len(instance)} items > maxItems {schema['maxItems']}")
+        if isinstance(schema.get("items"), dict):
+            for i, value in enumerate(instance):
+                errors.extend(validate(value, schema["items"], f"{path}[{i}]"))
+    return errors

@@ -1,0 +1,265 @@
+"""FlightLogWriter: round trip through mcap's indexed reader, schemas, errors, rotation."""
+
+from __future__ import annotations
+
+import errno
+import json
+import math
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+from mcap.reader import make_reader
+
+from ahrs_service.drivers.base import ACC_VALID, GYR_SATURATED, GYR_VALID, MAG_NEW, MAG_VALID
+from ahrs_service.logs import schemas, writer as writer_mod
+from ahrs_service.logs.reader import read_log
+from ahrs_service.logs.writer import FlightLogWriter
+
+RNG = np.random.default_rng(3)
+
+
+def _rows(n: int) -> np.ndarray:
+    rows = RNG.normal(size=(n, 10))
+    rows[:, 9] = 0.001 + RNG.uniform(0, 1e-4, n)
+    rows[::3, 6:9] = np.nan  # no magnetometer on every third sample
+    rows[5, 1] = np.nan  # one invalid gyro reading
+    return rows
+
+
+def _wait_for(predicate, seconds: float = 10.0) -> bool:
+    for _ in range(int(seconds / 0.01)):
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
+
+
+def _write_all_channels(w: FlightLogWriter, rows: np.ndarray) -> None:
+    w.write_config(0, {"estimator": {"name": "madgwick", "params": {"beta": 0.1}}, "rate_hz": 1000})
+    for i, row in enumerate(rows):
+        t = 1_000_000 * (i + 1)
+        flags = GYR_VALID | ACC_VALID | (0 if np.isnan(row[6]) else MAG_VALID | MAG_NEW)
+        w.write_raw(t, row, flags, raw={"gyr": [i, -i, 3]} if i % 2 else None, temperature=25.5 if i % 2 else None)
+        q = np.array([math.cos(i * 1e-3), math.sin(i * 1e-3), 0.0, 0.0])
+        w.write_attitude(t, q, "madgwick", np.array([1e-3, 0.0, -2e-3]), {"initialised": True, "acc_skipped": i})
+        if i % 10 == 0:
+            w.write_truth(t, q, movement=bool(i % 20), source="test")
+    w.write_loop(
+        5_000_000,
+        {"rate_hz": 1000.0, "ticks": 500, "overruns": 1, "period_jitter_p99_us": 20.5, "load_percent": 30.0,
+         "source": {"bus_errors": 2}, "log": w.stats()},
+    )
+    w.write_param_change(6_000_000, None, "beta", 0.1, 0.2, "mavlink")
+    w.write_mavlink(7_000_000, {"tx": 10, "rx": 4, "heartbeats": 1})
+
+
+def test_round_trip_with_indexed_reader_is_bit_exact(tmp_path):
+    rows = _rows(500)
+    w = FlightLogWriter(tmp_path / "logs", tf_rate_hz=None)
+    _write_all_channels(w, rows)
+    w.close()
+    assert w.status == "closed" and w.dropped == 0 and len(w.files) == 1
+    path = w.files[0]
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.chunk_indexes  # indexed, finished file
+        topics = {c.topic: c for c in summary.channels.values()}
+        assert summary.statistics.channel_message_counts[topics["/imu/raw"].id] == len(rows)
+        raw = [json.loads(m.data) for _, c, m in reader.iter_messages(topics=["/imu/raw"])]
+        log_times = [m.log_time for _, _, m in reader.iter_messages(topics=["/imu/raw"])]
+    assert log_times == [1_000_000 * (i + 1) for i in range(len(rows))]
+    for i, m in enumerate(raw):
+        assert m["t_ns"] == log_times[i] and m["index"] == i
+        for key, cols in (("gyr", slice(0, 3)), ("acc", slice(3, 6))):
+            expect = [None if math.isnan(v) else v for v in rows[i, cols].tolist()]
+            assert m[key] == expect  # floats compare exactly: repr round-trips
+        assert m["mag"] is None if i % 3 == 0 else m["mag"] == rows[i, 6:9].tolist()
+        assert m["dt"] == rows[i, 9]
+    log = read_log(path)
+    assert log.indexed and log.damage is None
+    assert np.array_equal(log.rows, rows, equal_nan=True)
+    assert log.estimator == "madgwick" and log.params == {"beta": 0.1}
+    assert log.param_changes[0]["sample_index"] == len(rows)  # None = samples written so far
+    assert log.counts["/tf"] == len(rows)  # tf_rate_hz=None: one per attitude
+
+
+def test_every_message_matches_its_json_schema(tmp_path):
+    w = FlightLogWriter(tmp_path, tf_rate_hz=200.0)
+    _write_all_channels(w, _rows(200))
+    w.close()
+    seen = set()
+    with open(w.files[0], "rb") as f:
+        reader = make_reader(f)
+        for schema, channel, message in reader.iter_messages():
+            assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+            assert schema.name == schemas.CHANNELS[channel.topic][0]
+            doc = json.loads(schema.data)
+            msg = json.loads(message.data)
+            assert schemas.validate(msg, doc) == [], (channel.topic, msg)
+            seen.add(channel.topic)
+            if channel.topic == "/tf":
+                # Foxglove order x, y, z, w; ours is w, x, y, z
+                assert msg["parent_frame_id"] == "ned" and msg["child_frame_id"] == "body"
+                t = message.log_time
+                assert msg["timestamp"] == {"sec": t // 10**9, "nsec": t % 10**9}
+                i = t // 1_000_000 - 1
+                assert msg["rotation"]["w"] == math.cos(i * 1e-3) and msg["rotation"]["x"] == math.sin(i * 1e-3)
+    assert seen == {"/config", "/imu/raw", "/attitude", "/attitude/truth", "/loop", "/params", "/mavlink", "/tf"}
+
+
+def test_validator_rejects_what_the_schemas_forbid():
+    good = schemas.raw_message(1, [0.0] * 9 + [0.01], GYR_VALID)
+    assert schemas.validate(good, schemas.IMU_RAW) == []
+    bad = dict(good, gyr=[0.0, 0.0], flags="3")
+    del bad["dt"]
+    errors = schemas.validate(bad, schemas.IMU_RAW)
+    assert any("dt" in e for e in errors) and any("gyr" in e for e in errors) and any("flags" in e for e in errors)
+    assert schemas.validate({"t_ns": True, "q": [1, 0, 0, 0]}, schemas.TRUTH) != []  # bool is not an integer
+
+
+def test_flags_are_decoded_and_saturation_kept():
+    m = schemas.raw_message(1, [0.0] * 10, GYR_SATURATED | ACC_VALID)
+    assert m["valid"]["gyr"] is False and m["valid"]["gyr_saturated"] is True and m["valid"]["acc"] is True
+
+
+def test_file_name_carries_utc_start_and_directory_is_created(tmp_path):
+    target = tmp_path / "a" / "b"
+    w = FlightLogWriter(target, prefix="rov")
+    w.write_raw(1, np.zeros(10), 0)
+    w.close()
+    (path,) = w.files
+    assert path.parent == target
+    m = re.fullmatch(r"rov-(\d{8}T\d{6})Z\.mcap", path.name)
+    assert m is not None
+    started = time.strptime(m.group(1), "%Y%m%dT%H%M%S")
+    assert abs(time.mktime(started) - time.mktime(time.gmtime())) < 3600
+
+
+def test_unwritable_directory_is_reported_not_raised_and_retried(tmp_path):
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("a file where the log folder should be")
+    w = FlightLogWriter(blocker / "logs", retry_interval_s=0.05)
+    for i in range(50):
+        w.write_raw(i, np.zeros(10), 0)  # must not raise
+        w.write_attitude(i, [1.0, 0.0, 0.0, 0.0], "madgwick")
+    assert _wait_for(lambda: w.dropped >= 100)
+    assert w.status == "error" and "NotADirectoryError" in w.last_error and w.files == []
+    # the folder becomes writable: the writer starts a file on its own
+    blocker.unlink()
+    assert _wait_for(lambda: (w.write_raw(10**6, np.zeros(10), 0), w.status == "ok")[1])
+    w.close()
+    assert len(w.files) == 1 and read_log(w.files[0]).counts["/imu/raw"] >= 1
+
+
+def test_disk_full_drops_counts_and_continues_in_a_new_file(tmp_path, monkeypatch):
+    original = writer_mod.McapLogFile.flush
+    state = {"fail": True}
+
+    def flush(self, fsync=True):
+        if state["fail"]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return original(self, fsync)
+
+    monkeypatch.setattr(writer_mod.McapLogFile, "flush", flush)
+    w = FlightLogWriter(tmp_path, flush_interval_s=0.05, retry_interval_s=0.05)
+    w.write_config(0, {"estimator": {"name": "madgwick", "params": {"beta": 0.1}}})
+    for i in range(20):
+        w.write_raw(i + 1, np.full(10, float(i)), 0)
+    assert _wait_for(lambda: w.status == "error")
+    assert "No space left" in w.last_error and w.dropped >= 20
+    state["fail"] = False
+    i = 100
+    while not (w.status == "ok" and len(w.files) == 2) and i < 2000:  # bounded
+        w.write_raw(i, np.full(10, float(i)), 0)
+        i += 1
+        time.sleep(0.005)
+    w.close()
+    assert len(w.files) == 2
+    second = read_log(w.files[1])
+    # the new file restates the configuration, so it can be replayed on its own
+    assert second.damage is None and second.estimator == "madgwick" and len(second) > 0
+
+
+def test_rotation_by_size_keeps_every_sample_and_restates_config(tmp_path):
+    rows = _rows(3000)
+    w = FlightLogWriter(tmp_path, chunk_size=4096, rotate_bytes=40_000, flush_interval_s=0.05)
+    w.write_config(0, {"estimator": {"name": "madgwick", "params": {"beta": 0.1}}})
+    for i, row in enumerate(rows):
+        if i == 10:
+            w.write_param_change(i, i, "beta", 0.1, 0.25, "mavlink")
+        w.write_raw(i + 1, row, 0)
+        w.write_attitude(i + 1, [1.0, 0.0, 0.0, 0.0], "madgwick")
+        if i % 500 == 0:
+            time.sleep(0.1)  # let the writer thread reach the size limit mid-recording
+    w.close()
+    assert len(w.files) >= 2 and w.dropped == 0
+    logs = [read_log(p) for p in w.files]
+    assert all(log.damage is None and log.indexed for log in logs)
+    assert np.array_equal(np.concatenate([log.rows for log in logs]), rows, equal_nan=True)
+    assert np.array_equal(np.concatenate([log.index for log in logs]), np.arange(len(rows)))
+    assert logs[0].params == {"beta": 0.1}
+    # a later file starts from the parameters in force, the live change folded in
+    assert all(log.params == {"beta": 0.25} and log.configs[0]["reason"] == "rotation" for log in logs[1:])
+
+
+def test_rotation_by_duration(tmp_path):
+    w = FlightLogWriter(tmp_path, rotate_seconds=0.2, flush_interval_s=0.05)
+    for i in range(200):  # bounded: ~0.6 s of samples
+        w.write_raw(i + 1, np.zeros(10), 0)
+        time.sleep(0.003)
+    w.close()
+    assert len(w.files) >= 2
+    assert sum(len(read_log(p)) for p in w.files) == 200
+
+
+def test_full_queue_drops_and_counts_without_blocking(tmp_path, monkeypatch):
+    import threading
+
+    release = threading.Event()
+    handle = FlightLogWriter._handle
+
+    def slow_handle(self, item):
+        release.wait(10.0)  # a stalled disk
+        handle(self, item)
+
+    monkeypatch.setattr(FlightLogWriter, "_handle", slow_handle)
+    w = FlightLogWriter(tmp_path, queue_size=10)
+    w.write_raw(0, np.zeros(10), 0)
+    assert _wait_for(lambda: len(w._q) == 0)  # the thread holds the first sample
+    for i in range(1, 16):
+        w.write_raw(i, np.zeros(10), 0)  # 10 fit in the queue, 5 do not
+    assert w.dropped == 5
+    release.set()
+    w.close()
+    log = read_log(w.files[0])
+    assert log.index.tolist() == list(range(11))
+
+
+def test_writer_default_directory_is_relative_to_working_directory(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    w = FlightLogWriter()
+    w.write_raw(1, np.zeros(10), 0)
+    w.close()
+    assert w.files[0].resolve().parent == (tmp_path / "flight-logs").resolve()
+    assert Path(writer_mod.__file__).resolve().parent not in w.files[0].resolve().parents
+
+
+def test_new_file_on_estimator_rebuild_and_sample_numbering(tmp_path):
+    w = FlightLogWriter(tmp_path, first_sample_index=1000)
+    w.write_config(1, {"estimator": {"name": "madgwick", "params": {"beta": 0.1}}})
+    for i in range(5):
+        w.write_raw(10 + i, np.full(10, float(i)), 0)
+    w.write_param_change(20, None, "beta", 0.1, 0.2, "mavlink")
+    w.new_file()  # the service rebuilt its estimator
+    w.write_config(30, {"estimator": {"name": "mahony_passive", "params": {"kp": 1.0}}}, reason="reload")
+    for i in range(5, 8):
+        w.write_raw(40 + i, np.full(10, float(i)), 0)
+    w.close()
+    first, second = (read_log(p) for p in w.files)
+    assert first.index.tolist() == [1000, 1001, 1002, 1003, 1004]
+    assert first.param_changes[0]["sample_index"] == 1005 and first.local_index(1005) == 5
+    assert second.estimator == "mahony_passive" and second.configs[0]["reason"] == "reload"
+    assert second.index.tolist() == [1005, 1006, 1007] and len(second.configs) == 1
