@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import logging
 import signal
+import sys
 import time
 from typing import Any
 
 from ahrs_service import config as config_mod
 from ahrs_service import estimators
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID, ImuSource
+from ahrs_service.drivers.calibration import SensorCalibration
 from ahrs_service.calibration.live import LiveCalibrator
 from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
 from ahrs_service.pipeline import EstimationPipeline
@@ -53,6 +55,7 @@ class Service:
         self.scheduler = FixedRateScheduler(cfg.rates["estimation_hz"])
         self.source = make_source(cfg.source, cfg.rates["estimation_hz"])
         self.source.open()
+        self._use_source_calibration()
         self._open_log(cfg)
         self._open_mavlink(cfg)
 
@@ -78,6 +81,13 @@ class Service:
         log.info("magnetic declination %.2f° from the World Magnetic Model", value)
         return value
 
+    def _use_source_calibration(self) -> None:
+        """A recorded log hands out samples already calibrated into the body frame."""
+        if getattr(self.source, "calibrated", False):
+            if self.cfg.calibration:
+                log.info("recorded source is already calibrated: the configured calibration is not applied")
+            self.pipeline.calibration = SensorCalibration()
+
     @property
     def estimator(self):
         return self.pipeline.estimator
@@ -93,6 +103,7 @@ class Service:
             cfg.log["directory"],
             rotate_bytes=int(mb * 1e6) if mb else None,
             rotate_seconds=minutes * 60 if minutes else None,
+            first_sample_index=self.pipeline.samples,
         )
         self.log_writer.write_config(time.monotonic_ns(), self.effective_config())
 
@@ -129,6 +140,8 @@ class Service:
     # ------------------------------------------------------------------ the loop
     def run(self) -> int:
         """Runs until stopped, the duration ends, or a recorded source finishes. Returns 0."""
+        # the log writer's thread must not hold the interpreter for Python's default 5 ms
+        sys.setswitchinterval(0.0005)
         sched = self.scheduler
         pipeline = self.pipeline
         source = self.source
@@ -149,7 +162,7 @@ class Service:
                 if cal is not None and writer is not None:
                     est = pipeline.estimator
                     writer.write_raw(cal.t_ns, pipeline.row, cal.flags, raw=sample.raw, temperature=cal.temperature_c)
-                    writer.write_attitude(cal.t_ns, est.state[:4], est.name, est.state[8:11], None)
+                    writer.write_attitude(cal.t_ns, est.state[:4], est.name, est.state[8:11], None, state=est.state)
                     if cal.truth_q is not None:
                         writer.write_truth(cal.t_ns, cal.truth_q)
             if now >= next_io:
@@ -298,6 +311,9 @@ class Service:
             self.pipeline.mag_timeout_ns = int(new.estimator["mag_timeout_s"] * 1e9)
         else:
             self._build_estimation(new)
+            self._use_source_calibration()
+            if self.log_writer is not None and new.log == old_cfg.log:
+                self.log_writer.new_file()  # a fresh estimator: its own file replays exactly
         if new.rates["estimation_hz"] != old_cfg.rates["estimation_hz"]:
             self.scheduler.set_rate(new.rates["estimation_hz"])
         if new.log != old_cfg.log:
