@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytestmark = pytest.mark.timeout(180)
@@ -165,3 +166,32 @@ def test_config_errors_stop_the_start_naming_the_key(tmp_path, text, message):
     assert proc.returncode == 2
     assert message in proc.stderr
     assert not (tmp_path / "flight-logs").exists()
+
+
+def test_kill_9_then_recover_keeps_all_but_the_last_second(tmp_path):
+    from ahrs_service.logs.reader import read_log
+    from ahrs_service.logs.recover import recover
+
+    notify = FakeSystemd(tmp_path)
+    cfg = tmp_path / "config.toml"
+    write_config(cfg, tmp_path / "logs", 14997)
+    proc = start(["run", "--config", str(cfg)], tmp_path, notify)
+    try:
+        assert notify.wait_for("READY=1", 90)
+        notify.wait_for("never", 3.0)
+        killed_ns = time.monotonic_ns()  # CLOCK_MONOTONIC: the clock of the samples' t_ns
+        proc.kill()
+        proc.wait(5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    crashed = next((tmp_path / "logs").glob("flight-*.mcap"))
+    report = recover(crashed, tmp_path / "recovered.mcap")
+    log = read_log(tmp_path / "recovered.mcap")
+    assert log.damage is None and log.indexed
+    assert len(log.t_ns) > 400  # 200 Hz for more than 2 s
+    # the writer closes a chunk at least every second: at most ~1 s (plus scheduling) lost
+    assert (killed_ns - log.t_ns[-1]) / 1e9 < 1.5
+    assert np.all(np.diff(log.t_ns) > 0) and np.isfinite(log.attitudes).all()
+    assert report.bytes_lost >= 0
