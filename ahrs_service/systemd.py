@@ -23,6 +23,8 @@ class Notifier:
             if self._address.startswith("@"):
                 self._address = "\0" + self._address[1:]
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+            # never block the estimation loop on a reader that stopped reading
+            self._sock.setblocking(False)
         usec = env.get("WATCHDOG_USEC")
         pid = env.get("WATCHDOG_PID")
         enabled = usec is not None and usec.isdigit() and int(usec) > 0
@@ -41,8 +43,8 @@ class Notifier:
             return
         try:
             self._sock.sendto(message.encode(), self._address)
-        except OSError:
-            self.errors += 1  # systemd gone or socket full: never stop estimating for this
+        except OSError:  # systemd gone or its queue full (EAGAIN): never stop estimating for this
+            self.errors += 1
 
     def ready(self, status: str = "") -> None:
         self.notify("READY=1" + (f"\nSTATUS={status}" if status else ""))

@@ -1,0 +1,190 @@
+"""Service benchmark: the real ``ahrs-service run`` process at a fixed rate, measured from outside.
+
+    python benchmarks/service.py [--seconds 60] [--rate 1000] [--estimator robust] [--source recorded]
+
+What runs: the service as a subprocess (its scheduler, estimator, MAVLink over UDP to a
+pymavlink ground station in this process, MCAP logging to a temporary folder), started under
+a fake systemd NOTIFY_SOCKET. The default source replays a 1 kHz recording of the simulator
+(generated once into ``benchmarks/.cache``) in real time, so the figures are the service's own
+cost; ``--source simulated`` runs the live simulator instead (its physics cost included).
+
+Printed: start-up time to READY=1, CPU use of the service process (one core = 100 %, from
+/proc after a 5 s warm-up), period jitter p50/p99/max and overruns from the log's /loop
+channel, the ATTITUDE/ATTITUDE_QUATERNION rates the ground station saw, and log drops.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+CACHE = HERE / ".cache"
+
+
+def recording_1khz(seconds: float) -> Path:
+    """A 1 kHz simulated flight (figure-eight, MPU-9250 error models) as an MCAP log."""
+    path = CACHE / f"sim-figure8-1khz-{int(seconds)}s.mcap"
+    if path.exists():
+        return path
+    from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID
+    from ahrs_service.drivers.sim.imu import ManualClock, SimulatedImu
+    from ahrs_service.drivers.sim.motion import profile
+    from ahrs_service.drivers.sim.sensor_model import PART_MODELS
+    from ahrs_service.logs.writer import FlightLogWriter
+
+    CACHE.mkdir(exist_ok=True)
+    imu = SimulatedImu(
+        profile("figure8", looping=True),
+        {"gyr": PART_MODELS["MPU9250_GYRO"], "acc": PART_MODELS["MPU9250_ACC"], "mag": PART_MODELS["AK8963"]},
+        clock=ManualClock(),
+    )
+    n = int(seconds * 1000)
+    tmp = CACHE / "recording"
+    with FlightLogWriter(tmp, queue_size=10 * n, fsync=False, tf_rate_hz=1.0) as f:
+        f.write_config(0, {"estimator": {"name": "madgwick", "params": {}}}, reason="benchmark recording")
+        mag = np.full(3, np.nan)
+        for i in range(n):
+            t = i / 1000.0
+            p = imu.physics(t)
+            flags = GYR_VALID | ACC_VALID | MAG_VALID
+            if i % 10 == 0:  # a 100 Hz magnetometer, held in between as the service does
+                mag = p["mag"]
+                flags |= MAG_NEW
+            row = np.concatenate([p["gyr"], p["acc"], mag, [0.001]])
+            t_ns = int(round(t * 1e9))
+            f.write_raw(t_ns, row, flags)
+            f.write_truth(t_ns, p["truth"].q)
+    next(tmp.glob("*.mcap")).rename(path)
+    tmp.rmdir()
+    return path
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--rate", type=float, default=1000.0, help="estimation rate, Hz")
+    ap.add_argument("--publish", type=float, default=100.0, help="ATTITUDE and ATTITUDE_QUATERNION rate, Hz")
+    ap.add_argument("--estimator", default="madgwick")
+    ap.add_argument("--source", choices=("recorded", "simulated", "simulated_i2c"), default="recorded")
+    ap.add_argument("--markdown", action="store_true")
+    args = ap.parse_args(argv)
+
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0")
+        port = gcs.port.getsockname()[1]
+        if args.source == "recorded":
+            source = f'type = "recorded"\nrecorded_path = "{recording_1khz(args.seconds + 30)}"\nrecorded_realtime = true'
+        else:
+            source = f'type = "{args.source}"\nprofile = "figure8"\nboard = "mpu9250"'
+        cfg = tmp / "bench.toml"
+        cfg.write_text(
+            f"[source]\n{source}\n\n[estimator]\nname = \"{args.estimator}\"\n\n"
+            f"[rates]\nestimation_hz = {args.rate}\nattitude_hz = {args.publish}\nattitude_quaternion_hz = {args.publish}\n\n"
+            f"[mavlink]\nendpoints = [\"udpout:127.0.0.1:{port}\"]\n\n[log]\ndirectory = \"{tmp / 'logs'}\"\n"
+        )
+        notify_path = str(tmp / "notify.sock")
+        notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        notify.bind(notify_path)
+        notify.settimeout(0.05)
+        exe = Path(sys.executable).with_name("ahrs-service")
+        env = dict(os.environ, NOTIFY_SOCKET=notify_path)
+        t_start = time.monotonic()
+        service_log = open(tmp / "service.log", "w")
+        proc = subprocess.Popen([str(exe), "run", "--config", str(cfg)], env=env, stderr=service_log)
+        ready_s = None
+        try:
+            while ready_s is None and time.monotonic() - t_start < 120:
+                try:
+                    if b"READY=1" in notify.recv(4096):
+                        ready_s = time.monotonic() - t_start
+                except socket.timeout:
+                    pass
+            if ready_s is None:
+                raise SystemExit("the service did not get READY within 120 s")
+            counts: dict[str, list[int]] = {"ATTITUDE": [], "ATTITUDE_QUATERNION": []}
+            warm_end = time.monotonic() + 5.0
+            cpu0 = None
+            t_end = time.monotonic() + args.seconds
+            while time.monotonic() < t_end:
+                if cpu0 is None and time.monotonic() >= warm_end:
+                    cpu0, wall0 = cpu_seconds(proc.pid), time.monotonic()
+                m = gcs.recv_match(blocking=True, timeout=0.05)
+                if m is not None and m.get_type() in counts:
+                    counts[m.get_type()].append(m.time_boot_ms)
+            cpu = 100.0 * (cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - wall0)
+            proc.send_signal(signal.SIGTERM)
+            t_stop = time.monotonic()
+            proc.wait(30)
+            stop_s = time.monotonic() - t_stop
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        from ahrs_service.logs.reader import read_log
+
+        from mcap.reader import make_reader
+        import json
+
+        log_file = next((tmp / "logs").glob("flight-*.mcap"))
+        loops = []
+        with open(log_file, "rb") as f:
+            for _, channel, message in make_reader(f).iter_messages(topics=["/loop"]):
+                loops.append(json.loads(message.data))
+        log = read_log(log_file)
+        steady = loops[5:] or loops
+        p50 = float(np.median([l["period_jitter_p50_us"] for l in steady]))
+        p99 = float(max(l["period_jitter_p99_us"] for l in steady))
+        jmax = float(max(l["period_jitter_max_us"] for l in steady))
+        overruns = loops[-1]["overruns"]
+        load = float(np.mean([l["load_percent"] for l in steady]))
+        rates = {
+            k: (len(v) - 1) / ((v[-1] - v[0]) / 1e3) if len(v) > 1 else 0.0 for k, v in counts.items()
+        }
+        rows = [
+            ("source", args.source),
+            ("estimator", args.estimator),
+            ("estimation rate", f"{args.rate:.0f} Hz"),
+            ("run", f"{args.seconds:.0f} s"),
+            ("start-up to READY", f"{ready_s:.2f} s"),
+            ("CPU (one core = 100 %)", f"{cpu:.1f} %"),
+            ("loop busy (load)", f"{load:.1f} %"),
+            ("period jitter p50", f"{p50:.0f} µs"),
+            ("period jitter p99 (worst 8 s window)", f"{p99:.0f} µs"),
+            ("period jitter max", f"{jmax:.0f} µs"),
+            ("overruns", str(overruns)),
+            ("ATTITUDE seen by the GCS", f"{rates['ATTITUDE']:.1f} Hz"),
+            ("ATTITUDE_QUATERNION seen by the GCS", f"{rates['ATTITUDE_QUATERNION']:.1f} Hz"),
+            ("samples logged", str(len(log.t_ns))),
+            ("stop after SIGTERM", f"{stop_s:.2f} s"),
+        ]
+        width = max(len(k) for k, _ in rows)
+        if args.markdown:
+            print("| measure | value |\n|---|---|")
+            for k, v in rows:
+                print(f"| {k} | {v} |")
+        else:
+            for k, v in rows:
+                print(f"{k:<{width}}  {v}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
