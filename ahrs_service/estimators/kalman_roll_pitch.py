@@ -1,0 +1,139 @@
+"""Kalman "sensor fusion" of roll and pitch: two independent scalar Kalman filters.
+
+Second source paper, eq. 27–32 (after Suh, 2003). Each angle is predicted by integrating the
+gyroscope (eq. 27–28, the process; noise ζ, σ_ζ) and corrected by the angle the accelerometer
+gives when it senses gravity only (eq. 29–30, the measurement; noise ξ, σ_ξ), eq. 31–32.
+
+Adaptations, all documented in docs/estimators-paper2.md:
+
+* the process input is the Euler-angle rate of eq. 7 rather than the raw body rate; eq. 27–28
+  are its small-angle form, and the exact rate keeps the filter right at large roll and pitch;
+* the measurement (eq. 29–30) is written for our specific force in FRD: at rest
+  f = g (sin θ, −sin φ cos θ, −cos φ cos θ), so φ_y = atan2(−f_y, −f_z) (all four quadrants,
+  upside-down included) and θ_y = atan2(f_x, √(f_y² + f_z²));
+* yaw is the integral of eq. 7's yaw rate (no magnetometer: heading drifts with the gyro);
+* the process noise enters as h ζ with h the actual time step of each sample (eq. 31–32), so the
+  filter is right for any sample timing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from numba import njit
+
+from ahrs_service.estimators import _kernel as K
+from ahrs_service.estimators.base import Estimator
+from ahrs_service.quaternion import quat_from_euler, quat_to_euler
+
+ROLL = K.HEADER  # roll, pitch, yaw (rad), then the variances of roll and pitch (rad²)
+P_ROLL = K.HEADER + 3
+STATE_SIZE = K.HEADER + 5
+
+# |cos θ| floor of eq. 7 at gimbal lock: a finite rate instead of a division by zero
+_COS_MIN = 1e-6
+
+
+@njit(cache=True, inline="always")
+def _wrap(a):
+    """Angle wrapped to (−π, π]."""
+    a -= 2.0 * math.pi * math.floor((a + math.pi) / (2.0 * math.pi))
+    if a <= -math.pi:
+        a += 2.0 * math.pi
+    return a
+
+
+@dataclass
+class KalmanRollPitchParams:
+    """Tuning of :class:`KalmanRollPitch` (σ values of eq. 31–32; only their ratio and the
+    sample time set the gain, so the paper's degree units carry over unchanged).
+
+    sigma_zeta: process noise σ_ζ, the gyro rate noise, rad/s. Default 5 (the paper); 1 scores
+        best on BROAD (8.1° mean inclination RMSE against 12.4°).
+    sigma_xi: measurement noise σ_ξ, the accelerometer-angle noise, rad. Default 3 (the paper).
+    """
+
+    sigma_zeta: float = 5.0
+    sigma_xi: float = 3.0
+
+    def __post_init__(self) -> None:
+        if not self.sigma_zeta >= 0:
+            raise ValueError(f"sigma_zeta must be >= 0, got {self.sigma_zeta}")
+        if not self.sigma_xi > 0:
+            raise ValueError(f"sigma_xi must be > 0, got {self.sigma_xi}")
+
+
+@njit(cache=True)
+def kalman_roll_pitch_step(s, p, x):
+    sigma_zeta, sigma_xi = p[0], p[1]
+    r_meas = sigma_xi * sigma_xi
+    gyro_ok, acc_ok, _ = K.check_sample(s, x, False)
+    if K.initialise_from_sample(s, x, acc_ok, False):
+        roll, pitch, yaw = quat_to_euler(K.load_quat(s))
+        s[ROLL], s[ROLL + 1], s[ROLL + 2] = roll, pitch, yaw
+        s[P_ROLL] = r_meas
+        s[P_ROLL + 1] = r_meas
+        return
+    if s[K.INITIALISED] == 0.0:
+        return
+    roll, pitch, yaw = s[ROLL], s[ROLL + 1], s[ROLL + 2]
+    if gyro_ok:
+        h = x[K.DT]
+        gp, gq, gr = x[0], x[1], x[2]
+        sr, cr = math.sin(roll), math.cos(roll)
+        cp = math.cos(pitch)
+        if abs(cp) < _COS_MIN:
+            cp = _COS_MIN if cp >= 0.0 else -_COS_MIN
+        tp = math.sin(pitch) / cp
+        # eq. 7: Euler rates; eq. 27–28 / 31–32: x_{k+1} = x_k + h u_k
+        roll += h * (gp + tp * (gq * sr + gr * cr))
+        pitch += h * (gq * cr - gr * sr)
+        yaw += h * (gq * sr + gr * cr) / cp
+        # pitch past ±90°: the same attitude with pitch mirrored and roll, yaw turned by π
+        if pitch > 0.5 * math.pi:
+            pitch = math.pi - pitch
+            roll += math.pi
+            yaw += math.pi
+        elif pitch < -0.5 * math.pi:
+            pitch = -math.pi - pitch
+            roll += math.pi
+            yaw += math.pi
+        roll, yaw = _wrap(roll), _wrap(yaw)
+        # Algorithm 1 line 2: P ← A P Aᵀ + H Q Hᵀ with A = 1, H = h
+        qn = h * h * sigma_zeta * sigma_zeta
+        s[P_ROLL] += qn
+        s[P_ROLL + 1] += qn
+    if acc_ok:
+        fx, fy, fz = x[3], x[4], x[5]
+        # eq. 29–30 in FRD specific force
+        y_roll = math.atan2(-fy, -fz)
+        y_pitch = math.atan2(fx, math.sqrt(fy * fy + fz * fz))
+        # Algorithm 1 lines 4–6, C = 1: G = P / (P + R), x ← x + G (y − x), P ← (1 − G) P
+        g = s[P_ROLL] / (s[P_ROLL] + r_meas)
+        roll = _wrap(roll + g * _wrap(y_roll - roll))
+        s[P_ROLL] *= 1.0 - g
+        g = s[P_ROLL + 1] / (s[P_ROLL + 1] + r_meas)
+        pitch += g * (y_pitch - pitch)
+        s[P_ROLL + 1] *= 1.0 - g
+    s[ROLL], s[ROLL + 1], s[ROLL + 2] = roll, pitch, yaw
+    K.store_quat(s, quat_from_euler(roll, pitch, yaw))
+
+
+@njit(cache=True)
+def kalman_roll_pitch_batch(s, p, rows, out):
+    for i in range(rows.shape[0]):
+        kalman_roll_pitch_step(s, p, rows[i])
+        out[i] = s[:4]
+
+
+class KalmanRollPitch(Estimator):
+    """Two scalar Kalman filters on roll and pitch (eq. 27–32); yaw from gyro integration."""
+
+    name = "kalman_roll_pitch"
+    Params = KalmanRollPitchParams
+    uses_mag = False
+    observes_heading = False
+    state_size = STATE_SIZE
+    step = staticmethod(kalman_roll_pitch_step)
+    batch = staticmethod(kalman_roll_pitch_batch)

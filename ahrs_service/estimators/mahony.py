@@ -1,0 +1,143 @@
+"""Mahony's nonlinear complementary filters on SO(3), direct and passive, with gyro bias.
+
+Second source paper, eq. 33–35 (after Mahony, Hamel and Pflimlin, 2008). Both filters drive
+the estimate R̂ towards an algebraic attitude sample R_y with the innovation
+ϱ = vex(P_a(R̃)), R̃ = R̂ᵀ R_y, and integrate the bias estimate ḃ = −k_i ϱ:
+
+* direct (eq. 33):  Ṙ̂ = S(R_y (Ω_y − b̂) + k_p R̂ ϱ) R̂  ⇔ body rate R̃ (Ω_y − b̂) + k_p ϱ;
+* passive (eq. 34): Ṙ̂ = R̂ S(Ω_y − b̂ + k_p ϱ).
+
+For a quaternion q̃ of R̃, P_a(R(q̃)) = 2 w̃ S(ṽ): ϱ = 2 w̃ ṽ = sin θ · axis of the
+attitude error, which the vector form below reproduces to first order. The attitude is
+advanced by the exact exponential of the body rate over each sample's dt.
+
+R_y (eq. 35) is Wahba's problem with weights λ₁ (gravity) and λ₂ (field). Mahony et al.
+(2008, §V) show that to first order vex(P_a(R̂ᵀ R_y)) is then the weighted sum of the
+vector errors, ϱ = λ₁ v_a × v̂_a + λ₂ v_m × v̂_m, with v̂ = R̂ᵀ v₀ each reference seen through
+the estimate; this "usual vectorial form" is used, so no R_y is formed and each weight acts
+on its own sensor. Gravity's reference is NED down; the field's is the measured field turned
+into the earth frame by R̂ with its horizontal part laid on north, b = (|h_xy|, 0, h_z),
+so no dip has to be configured. For the direct filter R_y is taken, to the same order, as
+R̂ exp(S(ϱ)), so the measured rate is turned by the rotation vector ϱ.
+Without a usable magnetometer sample only the gravity term acts (IMU form: roll and pitch
+corrected, yaw from the gyro); without a usable accelerometer sample ϱ = 0.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from numba import njit
+
+from ahrs_service.estimators import _kernel as K
+from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.triad import down_direction
+from ahrs_service.quaternion import quat_from_rotvec, quat_integrate, quat_rotate, quat_rotate_inv, vec_cross
+
+
+@dataclass
+class MahonyParams:
+    """Tuning of :class:`MahonyDirect` and :class:`MahonyPassive`.
+
+    kp: proportional gain k_p of eq. 33/34, 1/s. Default 25 (the paper).
+    ki: bias gain k_i of eq. 33/34, 1/s². Default 10 (the paper).
+    w_acc, w_mag: weights λ₁, λ₂ of gravity and field in eq. 35. Default 1 and 1 (Mahony et
+        al. 2008; the paper gives none).
+    The paper's gains suit its 565 Hz robot-arm runs and follow BROAD's accelerations (mean
+    total RMSE about 40°); the passive filter scores best on BROAD near kp = 0.4, ki = 0.001
+    (10.9°). The direct filter turns the gyro rate by the noisy R̃ and gets worse, not better,
+    with small kp (docs/estimators-paper2.md).
+    """
+
+    kp: float = 25.0
+    ki: float = 10.0
+    w_acc: float = 1.0
+    w_mag: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.kp >= 0:
+            raise ValueError(f"kp must be >= 0, got {self.kp}")
+        for key in ("ki", "w_acc", "w_mag"):
+            if not getattr(self, key) >= 0:
+                raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
+
+
+@njit(cache=True, inline="always")
+def _mahony_step(s, p, x, direct):
+    kp, ki, w_acc, w_mag = p[0], p[1], p[2], p[3]
+    gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
+    if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
+        return
+    q = K.load_quat(s)
+    dt = x[K.DT]
+    ox, oy, oz = x[0] - s[K.BIAS], x[1] - s[K.BIAS + 1], x[2] - s[K.BIAS + 2]
+    # the innovation compares the sensors with the gyro prediction for this sample, so that a
+    # perfect gyro leaves nothing to correct (evaluating it at the previous R̂ would lag by dt)
+    qp = quat_integrate(q, ox, oy, oz, dt)
+    rx, ry, rz = 0.0, 0.0, 0.0
+    if acc_ok:
+        # eq. 35, first order: ϱ = λ₁ v_a × v̂_a (+ λ₂ v_m × v̂_m)
+        ca = vec_cross(down_direction(x), quat_rotate_inv(qp, (0.0, 0.0, 1.0)))
+        rx, ry, rz = w_acc * ca[0], w_acc * ca[1], w_acc * ca[2]
+        if mag_ok:
+            nm = math.sqrt(x[6] * x[6] + x[7] * x[7] + x[8] * x[8])
+            vm = (x[6] / nm, x[7] / nm, x[8] / nm)
+            h = quat_rotate(qp, vm)
+            cm = vec_cross(vm, quat_rotate_inv(qp, (math.sqrt(h[0] * h[0] + h[1] * h[1]), 0.0, h[2])))
+            rx, ry, rz = rx + w_mag * cm[0], ry + w_mag * cm[1], rz + w_mag * cm[2]
+        if direct:
+            # eq. 33: the measured rate carried through R_y = R̂ exp(S(ϱ)): R̃ (Ω_y − b̂)
+            ox, oy, oz = quat_rotate(quat_from_rotvec(rx, ry, rz), (ox, oy, oz))
+            qp = quat_integrate(q, ox, oy, oz, dt)
+    # eq. 33/34: R̂ advances with body rate (…) + k_p ϱ; ḃ = −k_i ϱ
+    K.store_quat(s, quat_integrate(qp, kp * rx, kp * ry, kp * rz, dt))
+    s[K.BIAS] -= ki * rx * dt
+    s[K.BIAS + 1] -= ki * ry * dt
+    s[K.BIAS + 2] -= ki * rz * dt
+
+
+@njit(cache=True)
+def mahony_direct_step(s, p, x):
+    _mahony_step(s, p, x, True)
+
+
+@njit(cache=True)
+def mahony_passive_step(s, p, x):
+    _mahony_step(s, p, x, False)
+
+
+@njit(cache=True)
+def mahony_direct_batch(s, p, rows, out):
+    for i in range(rows.shape[0]):
+        mahony_direct_step(s, p, rows[i])
+        out[i] = s[:4]
+
+
+@njit(cache=True)
+def mahony_passive_batch(s, p, rows, out):
+    for i in range(rows.shape[0]):
+        mahony_passive_step(s, p, rows[i])
+        out[i] = s[:4]
+
+
+class MahonyDirect(Estimator):
+    """Mahony's direct complementary filter with gyro-bias estimation (eq. 33, R_y by eq. 35)."""
+
+    name = "mahony_direct"
+    Params = MahonyParams
+    uses_mag = True
+    observes_heading = True
+    step = staticmethod(mahony_direct_step)
+    batch = staticmethod(mahony_direct_batch)
+
+
+class MahonyPassive(Estimator):
+    """Mahony's passive complementary filter with gyro-bias estimation (eq. 34, R_y by eq. 35)."""
+
+    name = "mahony_passive"
+    Params = MahonyParams
+    uses_mag = True
+    observes_heading = True
+    step = staticmethod(mahony_passive_step)
+    batch = staticmethod(mahony_passive_batch)
