@@ -25,7 +25,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
 __all__ = ["AccCalibrationResult", "AXIS_LABELS", "G0", "find_static_segments", "fit_accelerometer"]
 
@@ -162,6 +161,8 @@ def _refine(means: np.ndarray, A: np.ndarray, b: np.ndarray, g: float) -> tuple[
 
     def residuals(p: np.ndarray) -> np.ndarray:
         return np.linalg.norm((means - p[:3]) @ _sym_from(p[3:]), axis=1) - g
+
+    from scipy.optimize import least_squares  # imported here: scipy costs ~1 s at service start
 
     sol = least_squares(residuals, np.concatenate([b, A[_TRIU]]), method="trf")
     sv = np.linalg.svd(sol.jac, compute_uv=False)

@@ -30,7 +30,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 __all__ = ["MagCalibrationResult", "fit_magnetometer", "sphere_coverage", "COVERAGE_BANDS", "COVERAGE_SECTORS"]
 
@@ -160,6 +159,8 @@ def _refine(x: np.ndarray, centre: np.ndarray, T: np.ndarray) -> tuple[np.ndarra
         return np.linalg.norm((x - p[:3]) @ _sym_from(p[3:]), axis=1) - 1.0
 
     p0 = np.concatenate([centre, T[_TRIU]])
+    from scipy.optimize import least_squares  # imported here: scipy costs ~1 s at service start
+
     sol = least_squares(residuals, p0, method="lm" if x.shape[0] >= 9 else "trf", max_nfev=500)
     T_fit = _sym_from(sol.x[3:])
     if not np.all(np.isfinite(sol.x)) or np.linalg.eigvalsh(T_fit).min() <= 0:
