@@ -42,6 +42,9 @@ class Estimator:
         self._p = self._pack(self.params)
         self._row = np.full(K.ROW, np.nan)
         self.state = self.initial_state()
+        # the hot path avoids attribute and slice work: a bound kernel and a fixed view of q
+        self._step = type(self).step
+        self._q = self.state[:4]
 
     # ---------------------------------------------------------------- parameters
     def _pack(self, params: Any) -> np.ndarray:
@@ -68,7 +71,8 @@ class Estimator:
         return s
 
     def reset(self) -> None:
-        self.state = self.initial_state()
+        """Back to the state before the first sample (in place: views of the state stay valid)."""
+        self.state[:] = self.initial_state()
 
     @property
     def quaternion(self) -> np.ndarray:
@@ -105,13 +109,16 @@ class Estimator:
         else:
             row[6:9] = mag
         row[K.DT] = dt
-        self.step(self.state, self._p, row)
-        return self.state[:4]
+        self._step(self.state, self._p, row)
+        return self._q
 
     def update_row(self, row: np.ndarray) -> np.ndarray:
-        """Fast path for the service: ``row`` is a filled float64 sample row (see ``_kernel``)."""
-        self.step(self.state, self._p, row)
-        return self.state[:4]
+        """Fast path for the service: ``row`` is a filled float64 sample row (see ``_kernel``).
+
+        Returns the new q_earth←body (a view into the state; copy it to keep it).
+        """
+        self._step(self.state, self._p, row)
+        return self._q
 
     def run(self, gyr: Any, acc: Any, mag: Any = None, *, dt: Any) -> np.ndarray:
         """Runs over N samples from the current state; returns (N, 4) quaternions.
