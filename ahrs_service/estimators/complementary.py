@@ -1,0 +1,227 @@
+"""The Euler-angle complementary filter of the first source paper, reduced and full forms.
+
+I.J.R. Sánchez, A.C. Limache, "Estimación de orientación espacial basada en filtrado
+complementario", Mecánica Computacional XXXVI, 2018 (numbers below refer to its equations).
+
+Both forms run the paper's "short implementation" (fig. 2b): one first-order low-pass with
+cut-off ω0 applied to Θs = Θ̇_HF/ω0 + Θ_LF (eq. 22), where Θ̇_HF is the Euler-angle rate from
+the gyroscope (eq. 4–5) and Θ_LF the attitude seen by the slow sensors:
+
+* reduced form (table 1): roll and pitch from gravity (eq. 29–30), yaw kept from the estimate,
+  so yaw is gyro integration only (we use the gyro-propagated estimate Θ̂ + Θ̇Δt where the
+  table has Θ̂₃, so that yaw integrates the gyro exactly instead of by 1/(1 + ω0Δt) of it);
+* full form (table 2): yaw from the tilt-compensated magnetometer heading (eq. 43) plus the
+  magnetic declination (eq. 44).
+
+Adaptations to the project's conventions and to real data:
+
+* Specific force: a level sensor at rest reads f = (0, 0, −g), so the gravity direction of
+  eq. 28 is −f; eq. 29–30 become φ = atan2(−f_y, −f_z), θ = atan2(f_x, √(f_y² + f_z²)).
+* Euler rates over a whole sample: Θ̇_HF = (Θ(q̂ ⊗ exp(ω Δt/2)) − Θ̂)/Δt, the change of the
+  Euler angles when the estimate turns by the gyro's rotation over the sample. To first order
+  this is eq. 4, B(Θ̂) ω, but it never evaluates B's tan θ and 1/cos θ, so it stays finite and
+  exact through gimbal lock (pitch ±90°), where B(Θ) is singular. Multiplying B(Θ̂) ω by Δt
+  loses track in fast rotations: on BROAD it scored 16.9° mean total RMSE against 8.0°, with
+  30° inclination error on the fast-rotation trial, because roll and yaw rates blow up
+  whenever pitch nears ±90°. Past ±90° the Euler angles are kept canonical (θ in [−π/2, π/2],
+  roll and yaw turned by π), as the gravity angles of eq. 29–30 are.
+* Declination is positive east (magnetic north east of true north, as in the World Magnetic
+  Model and ArduPilot's COMPASS_DEC), the sense of α in eq. 31–33. With that α the heading is
+  ψ = ψ_M + α; eq. 38/44 print the opposite sign, which contradicts eq. 31–33. The heading of
+  eq. 43 is tilt-compensated with the gyro-propagated roll and pitch of the same sample.
+* Angles wrap: each Θ_LF component is unwrapped against the estimate before filtering, so
+  yaw (and roll when upside down) crosses ±180° without a jump; the output is wrapped back.
+* Linear-acceleration gate (not in the paper): a sample whose specific-force magnitude
+  differs from g by more than ``acc_gate``·g gives no gravity angles (the gyro carries roll
+  and pitch through it). Without it the filter follows the accelerations of BROAD's
+  fast-translation trials (37° inclination RMSE on one of them).
+* The filter coefficient α = Δt/(1/ω0 + Δt) (eq. 13) is computed from each sample's real Δt.
+* With gimbal lock itself (|θ| = 90°) roll and yaw are not separable: the gravity angles and
+  the tilt compensation stay finite (atan2), and the quaternion output is exact, but the two
+  angles are only defined up to their sum/difference there.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from numba import njit
+
+from ahrs_service.estimators import _kernel as K
+from ahrs_service.estimators.base import Estimator
+from ahrs_service.quaternion import quat_from_euler, quat_integrate, quat_to_euler
+
+# state after the common header: the filtered Euler angles Θ̂ (rad)
+PHI, THETA, PSI = K.HEADER, K.HEADER + 1, K.HEADER + 2
+STATE_SIZE = K.HEADER + 3
+
+#: standard gravity, m/s²
+GRAVITY = 9.81
+
+
+def _check_omega0(omega0: float) -> None:
+    if not omega0 > 0:
+        raise ValueError(f"omega0 must be > 0, got {omega0}")
+
+
+@dataclass
+class ComplementaryReducedParams:
+    """Tuning of :class:`ComplementaryReduced`.
+
+    omega0: cut-off of the low-pass, rad/s. Below it the attitude follows gravity, above it
+        the gyroscope. The paper gives no value; 0.2 rad/s scores best on the BROAD
+        development recordings (inclination RMSE, values 0.05–2 tried).
+    acc_gate: largest relative error |‖f‖ − g|/g of a specific-force sample still used for
+        roll and pitch. The paper has no gate (use 1e9 for that); 0.1 scores best on BROAD
+        (0.05–0.4 tried).
+    """
+
+    omega0: float = 0.2
+    acc_gate: float = 0.1
+
+    def __post_init__(self) -> None:
+        _check_omega0(self.omega0)
+
+
+@dataclass
+class ComplementaryFullParams:
+    """Tuning of :class:`ComplementaryFull`.
+
+    omega0: cut-off of the low-pass, rad/s, for all three angles (see the reduced form).
+        0.2 rad/s scores best on the BROAD development recordings.
+    declination: magnetic declination, rad, positive when magnetic north lies east of true
+        north (eq. 44). Default 0: heading against magnetic north. The service sets it live.
+    acc_gate: as for the reduced form; 0.1 scores best on BROAD.
+    """
+
+    omega0: float = 0.2
+    declination: float = 0.0
+    acc_gate: float = 0.1
+
+    def __post_init__(self) -> None:
+        _check_omega0(self.omega0)
+
+
+_inline = njit(cache=True, inline="always")
+
+
+@_inline
+def _wrap(a):
+    """Angle in (−π, π]."""
+    return a - 2.0 * math.pi * math.ceil((a - math.pi) / (2.0 * math.pi))
+
+
+@_inline
+def _unwrap_to(measured, reference):
+    """The measured angle moved by whole turns to within π of the reference."""
+    return reference + _wrap(measured - reference)
+
+
+@_inline
+def _store_euler(s, phi, theta, psi):
+    # fold pitch past ±90° back into [−π/2, π/2]: the same attitude, canonical angles
+    if theta > 0.5 * math.pi:
+        theta = math.pi - theta
+        phi += math.pi
+        psi += math.pi
+    elif theta < -0.5 * math.pi:
+        theta = -math.pi - theta
+        phi += math.pi
+        psi += math.pi
+    phi = _wrap(phi)
+    psi = _wrap(psi)
+    s[PHI], s[THETA], s[PSI] = phi, theta, psi
+    K.store_quat(s, quat_from_euler(phi, theta, psi))
+
+
+@_inline
+def _complementary_update(s, x, omega0, declination, acc_gate, use_mag):
+    gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, use_mag)
+    if K.initialise_from_sample(s, x, acc_ok, mag_ok):
+        phi, theta, psi = quat_to_euler(K.load_quat(s))
+        if mag_ok:
+            psi += declination  # eq. 44: the start-up heading is magnetic
+        _store_euler(s, phi, theta, psi)
+        return
+    if s[K.INITIALISED] == 0.0 or not gyro_ok:
+        return
+    phi, theta, psi = s[PHI], s[THETA], s[PSI]
+    wx, wy, wz, dt = x[0], x[1], x[2], x[K.DT]
+
+    # eq. 4–5 over one sample: the Euler-angle change of the gyro-propagated attitude
+    # (the stored quaternion is always the one of the stored Euler angles)
+    r1, t1, y1 = quat_to_euler(quat_integrate(K.load_quat(s), wx, wy, wz, dt))
+    phi_p, theta_p, psi_p = phi + _wrap(r1 - phi), t1, psi + _wrap(y1 - psi)
+    phi_dot, theta_dot, psi_dot = (phi_p - phi) / dt, (theta_p - theta) / dt, (psi_p - psi) / dt
+
+    # Θ_LF: the slow sensors' attitude, unwrapped against the gyro-propagated estimate; where
+    # a sensor is missing (or, for yaw, in the reduced form) that estimate stands in for it
+    phi_lf, theta_lf, psi_lf = phi_p, theta_p, psi_p
+    fx, fy, fz = x[3], x[4], x[5]
+    if acc_ok and abs(math.sqrt(fx * fx + fy * fy + fz * fz) - GRAVITY) <= acc_gate * GRAVITY:
+        phi_lf = _unwrap_to(math.atan2(-fy, -fz), phi_p)  # eq. 29 (specific force)
+        theta_lf = math.atan2(fx, math.sqrt(fy * fy + fz * fz))  # eq. 30
+    if mag_ok:
+        mx, my, mz = x[6], x[7], x[8]
+        # eq. 43: tilt-compensated magnetic heading, tilt from the gyro-propagated estimate
+        sr, cr, st, c_t = math.sin(r1), math.cos(r1), math.sin(t1), math.cos(t1)
+        num = -my * cr + mz * sr
+        den = mx * c_t + my * sr * st + mz * cr * st
+        if num * num + den * den > 0.0:
+            psi_lf = _unwrap_to(math.atan2(num, den) + declination, psi_p)  # eq. 44
+
+    # eq. 22 and eq. 13: Θs = Θ̇/ω0 + Θ_LF, low-passed with α from this sample's Δt
+    alpha = dt / (1.0 / omega0 + dt)
+    phi = alpha * (phi_dot / omega0 + phi_lf) + (1.0 - alpha) * phi
+    theta = alpha * (theta_dot / omega0 + theta_lf) + (1.0 - alpha) * theta
+    psi = alpha * (psi_dot / omega0 + psi_lf) + (1.0 - alpha) * psi
+    _store_euler(s, phi, theta, psi)
+
+
+@njit(cache=True)
+def complementary_reduced_step(s, p, x):
+    _complementary_update(s, x, p[0], 0.0, p[1], False)
+
+
+@njit(cache=True)
+def complementary_full_step(s, p, x):
+    _complementary_update(s, x, p[0], p[1], p[2], True)
+
+
+@njit(cache=True)
+def complementary_reduced_batch(s, p, rows, out):
+    for i in range(rows.shape[0]):
+        complementary_reduced_step(s, p, rows[i])
+        out[i] = s[:4]
+
+
+@njit(cache=True)
+def complementary_full_batch(s, p, rows, out):
+    for i in range(rows.shape[0]):
+        complementary_full_step(s, p, rows[i])
+        out[i] = s[:4]
+
+
+class ComplementaryReduced(Estimator):
+    """Euler-angle complementary filter, reduced form: roll/pitch from gravity, yaw from the gyro."""
+
+    name = "complementary_reduced"
+    Params = ComplementaryReducedParams
+    uses_mag = False
+    observes_heading = False
+    state_size = STATE_SIZE
+    step = staticmethod(complementary_reduced_step)
+    batch = staticmethod(complementary_reduced_batch)
+
+
+class ComplementaryFull(Estimator):
+    """Euler-angle complementary filter, full form: adds the magnetometer heading and declination."""
+
+    name = "complementary_full"
+    Params = ComplementaryFullParams
+    uses_mag = True
+    observes_heading = True
+    state_size = STATE_SIZE
+    step = staticmethod(complementary_full_step)
+    batch = staticmethod(complementary_full_batch)
