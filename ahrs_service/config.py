@@ -108,6 +108,8 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "type": ("simulated_i2c", _choice(SOURCE_TYPES)),
         "board": ("gy80", _choice(BOARDS)),
         "i2c_bus": (1, _number(0, 255, integer=True)),
+        # board options (addresses, ranges, rates), e.g. {gyro_rate_hz = 800}: docs/drivers.md
+        "board_options": ({}, _table),
         "profile": ("validation", _choice(PROFILES)),
         "loop_profile": (True, _boolean),
         "sensor_errors": (True, _boolean),
@@ -233,6 +235,13 @@ def _check_estimator_params(section: dict[str, Any]) -> None:
 
 
 def _check_source(section: dict[str, Any]) -> None:
+    if section["board_options"] and section["type"] in ("i2c", "simulated_i2c"):
+        from ahrs_service.drivers.i2c.boards import board_class
+
+        try:
+            board_class(section["board"], dict(section["board_options"]))
+        except ValueError as exc:
+            raise ConfigError(f"source.board_options: {exc}") from None
     if section["type"] == "recorded" and not section["recorded_path"]:
         raise ConfigError("source.recorded_path: required when source.type = 'recorded' (an .mcap log or a BROAD .hdf5 file)")
 

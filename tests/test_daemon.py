@@ -155,6 +155,7 @@ def test_sighup_reloads_configuration(tmp_path):
         ("[estimator]\nname = 'madgwick'\n[estimator.params]\ngain = 2\n", "estimator.params: unknown parameter(s) gain"),
         ("[calibration]\ngyro_bias = [1, 2]\n", "calibration key 'gyro_bias' must be"),
         ("this is not toml", "not valid TOML"),
+        ("[source]\nboard_options = {gyro_rate = 800}\n", "source.board_options: board 'gy80': unknown option(s) gyro_rate; valid:"),
     ],
 )
 def test_config_errors_stop_the_start_naming_the_key(tmp_path, text, message):

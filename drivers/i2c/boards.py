@@ -327,7 +327,8 @@ def board_names() -> list[str]:
     return list(BOARDS)
 
 
-def _board_class(name: str, options: dict[str, Any]) -> type[I2CBoard]:
+def board_class(name: str, options: dict[str, Any]) -> type[I2CBoard]:
+    """The board class for ``name``; ValueError naming unknown boards or options."""
     try:
         cls = BOARDS[name]
     except KeyError:
@@ -347,7 +348,7 @@ def make_board(name: str, bus_number: int = 1, **options: Any) -> I2CBoard:
     options: the board's addresses, ranges and rates (e.g. ``gyro_rate_hz=400``); an unknown
     option raises ValueError listing the valid ones.
     """
-    cls = _board_class(name, options)
+    cls = board_class(name, options)
     return cls(SMBusI2C(bus_number), own_bus=True, **options)
 
 
@@ -358,7 +359,7 @@ def make_simulated_board(name: str, simulated_imu: Any, **options: Any) -> I2CBo
     as ``ahrs_service.drivers.sim.SimulatedImu``. The board (not opened yet) has its
     :class:`SimulatedI2CBus` as ``board.bus``, for fault injection.
     """
-    cls = _board_class(name, options)
+    cls = board_class(name, options)
     bus = SimulatedI2CBus(simulated_imu.clock, name=f"sim-i2c[{name}]")
     cls.attach_simulated(bus, simulated_imu, **options)
     return cls(bus, **options)
