@@ -122,7 +122,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "recorded_realtime": (True, _boolean),
     },
     "estimator": {
-        "name": ("complementary_full", _estimator_name),
+        "name": ("robust", _estimator_name),
         "params": ({}, _table),
         "reduced_fallback": (True, _boolean),
         "mag_timeout_s": (0.5, _number(0.01, 60.0)),

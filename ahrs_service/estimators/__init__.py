@@ -33,6 +33,7 @@ _REGISTRY: dict[str, tuple[str, str]] = {
     "ekf": ("ekf", "QuaternionEKF"),
     "madgwick": ("madgwick", "Madgwick"),
     "valenti": ("valenti", "Valenti"),
+    "robust": ("robust", "RobustEstimator"),
 }
 
 

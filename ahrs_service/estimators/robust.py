@@ -1,0 +1,288 @@
+"""The project's robust real-time attitude estimator ("robust"): GIMLET.
+
+GIMLET — *Gyro-consistent Inertial-frame filter with Magnetic Learning of hard iron and
+Extended rejection* — is a causal, one-sample-at-a-time estimator built on the structure of
+VQF (D. Laidig, T. Seel, "VQF: Highly accurate IMU orientation estimation with bias
+estimation and magnetic disturbance rejection", Information Fusion 91, 2023, doi:
+10.1016/j.inffus.2022.10.014). The attitude is factored as (VQF eq. 3)
+
+    q_E←S = q_δ ⊗ q_a ⊗ q_g
+
+* q_g (I←S): strapdown integration of the bias-corrected gyroscope into an almost-inertial
+  frame I (VQF eq. 4);
+* q_a (E6←I): inclination correction. The accelerometer is rotated into I and low-pass
+  filtered there (2nd-order, τ_acc), so linear accelerations that average out over a few
+  seconds (tapping, translation) cannot tilt the estimate; q_a turns the filtered vector onto
+  the vertical (VQF eq. 7–10);
+* q_δ (E←E6): rotation about the vertical by the heading offset δ, a first-order filter of
+  the magnetometer's heading disagreement (τ_mag, VQF eq. 11–12) gated by the magnetic
+  rejection features below.
+
+Gyro bias: a 3-state Kalman filter updated at rest (rest detection from the deviations of
+gyro and accelerometer from their low-passed values) and in motion (the inclination
+correction rate tells the bias on the horizontal axes), VQF section 3.3.
+
+Magnetic rejection features (documented in docs/robust-estimator.md):
+
+* **norm/dip gate** — the field's norm and dip, learned while undisturbed, must match;
+* **gyro consistency** — an undisturbed field is constant in the gyro frame I after the
+  hard-iron offset is removed; a field that changes there while the gyroscope says the body
+  did not turn accordingly (vibrating phone, passing magnet) is rejected;
+* **hard-iron learning** — a body-fixed offset h (an attached magnet) obeys
+  R_g(t)(m(t) − h) = const, so differences of block means of R_g m are linear in h:
+  Δ(R̄_g m) = Δ(R̄_g) h. A recursive least squares with forgetting estimates h while rotation
+  makes it observable; the corrected field m − h feeds the heading once its norm and dip
+  match the learned reference again;
+* **offset change detection** — a block jump no rotation explains restarts the least
+  squares and vetoes the field until the new offset is known (magnet attached or removed);
+* **start-up confirmation** — the switch-on field sets the initial heading but corrects it
+  only once it stayed steady while turning (VQF's magNewFirstTime);
+* **rejection timeout** and **new-field acceptance** as in VQF.
+
+The published attitude is carried forward by ``output_lead`` (latency compensation, see
+``RobustParams``); the filter state is not.
+
+A row whose magnetometer is NaN carries no new field: the heading update is skipped and the
+time since the last field sample is kept, so a magnetometer slower than the gyroscope works.
+
+Modules: this one (start-up, rest detection, inclination, bias, the step and the class),
+``robust_layout`` (parameters and state slots), ``robust_mag`` (the magnetic features),
+``robust_blocks`` (filters and small linear algebra). The state array starts with the common
+header of ``_kernel`` (q, flags, counters, gyro bias at 8..10); ``robust_layout`` lists the
+rest. Earth frame NED, body frame FRD or the sensor's own axes; units rad/s, m/s², µT, s.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ahrs_service.estimators import _kernel as K
+from ahrs_service.estimators import robust_blocks as B
+from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.robust_layout import *  # noqa: F403 - slot and parameter indices
+from ahrs_service.estimators.robust_mag import hard_iron_and_consistency, heading
+from ahrs_service.quaternion import quat_integrate, quat_mul, quat_normalize, quat_rotate
+
+_jit = njit(cache=True, inline="always")
+
+
+@_jit
+def _update_coefficients(s, p, dt):
+    """Recomputes the cached low-pass coefficients when dt or a time constant changed."""
+    if (
+        s[COEF_DT] != dt
+        or s[COEF_TAU_ACC] != p[P_TAU_ACC]
+        or s[COEF_TAU_REST] != p[P_REST_TAU]
+        or s[COEF_TAU_ACC_REST] != p[P_TAU_ACC_REST]
+    ):
+        B.butter2_coefficients(s, CA, dt, p[P_TAU_ACC])
+        B.butter2_coefficients(s, CR, dt, p[P_REST_TAU])
+        B.butter2_coefficients(s, CAR, dt, p[P_TAU_ACC_REST])
+        s[COEF_DT], s[COEF_TAU_ACC], s[COEF_TAU_REST] = dt, p[P_TAU_ACC], p[P_REST_TAU]
+        s[COEF_TAU_ACC_REST] = p[P_TAU_ACC_REST]
+
+
+@_jit
+def _start(s, x):
+    """First usable sample: q_g from gravity (and field), q_a = 1, δ = 0, filters at steady state."""
+    s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3] = s[0], s[1], s[2], s[3]
+    s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3] = 1.0, 0.0, 0.0, 0.0
+    s[DELTA] = 0.0
+    s[DELTA_C], s[DELTA_S] = 1.0, 0.0
+    a_i = quat_rotate(K.load_quat(s), (x[3], x[4], x[5]))
+    r = B.quat_to_matrix(K.load_quat(s))
+    for k in range(3):
+        B.butter2_reset(s, CA, ACC_LP, 3, k, a_i[k])
+        s[ACC_OUT + k] = a_i[k]
+        B.butter2_reset(s, CR, REST_GYR, 3, k, x[k])
+        B.butter2_reset(s, CR, REST_ACC, 3, k, x[3 + k])
+        s[GYR_LP + k] = x[k]
+    for k in range(9):
+        B.butter2_reset(s, CA, R_LP, 9, k, r[k])
+    for k in range(2):
+        B.butter2_reset(s, CA, BIAS_LP, 2, k, 0.0)
+    s[MAG_N] = 0.0
+    s[MAG_T] = 0.0
+    s[HI_PREV_OK] = 0.0
+
+
+@_jit
+def _rest_detection(s, p, x, dt):
+    """VQF's rest detection: gyro and accelerometer stay near their low-passed values."""
+    dev_g = 0.0
+    dev_a = 0.0
+    lp2 = 0.0
+    for k in range(3):
+        g = B.butter2_step(s, CR, REST_GYR, 3, k, x[k])
+        s[GYR_LP + k] = g
+        a = B.butter2_step(s, CR, REST_ACC, 3, k, x[3 + k])
+        dev_g += (x[k] - g) ** 2
+        dev_a += (x[3 + k] - a) ** 2
+        lp2 += g * g
+    th_g = p[P_REST_TH_GYR] * DEG
+    clip = p[P_BIAS_CLIP] * DEG
+    if dev_g >= th_g * th_g or lp2 > clip * clip or dev_a >= p[P_REST_TH_ACC] ** 2:
+        s[REST_T] = 0.0
+        s[REST] = 0.0
+    else:
+        s[REST_T] += dt
+        if s[REST_T] >= p[P_REST_MIN_T]:
+            s[REST] = 1.0
+
+
+@_jit
+def _inclination_and_bias(s, p, x, dt):
+    """Accelerometer low-pass in I, inclination correction of q_a, gyro-bias Kalman update."""
+    qg = (s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3])
+    a_i = quat_rotate(qg, (x[3], x[4], x[5]))
+    ca = CAR if s[REST] != 0.0 else CA  # at rest nothing needs rejecting: converge faster
+    lp0 = B.butter2_step(s, ca, ACC_LP, 3, 0, a_i[0])
+    lp1 = B.butter2_step(s, ca, ACC_LP, 3, 1, a_i[1])
+    lp2 = B.butter2_step(s, ca, ACC_LP, 3, 2, a_i[2])
+    s[ACC_OUT], s[ACC_OUT + 1], s[ACC_OUT + 2] = lp0, lp1, lp2
+    qa = (s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3])
+    a_e = quat_rotate(qa, (lp0, lp1, lp2))
+    n = math.sqrt(a_e[0] ** 2 + a_e[1] ** 2 + a_e[2] ** 2)
+    if not n > 0.0:
+        return
+    # down direction u = −f/|f| must become NED z: rotate u onto (0, 0, 1) (VQF eq. 9–10)
+    ux, uy, uz = -a_e[0] / n, -a_e[1] / n, -a_e[2] / n
+    qw = math.sqrt(max(0.0, 0.5 * (uz + 1.0)))
+    if qw > 1e-6:
+        corr = (qw, 0.5 * uy / qw, -0.5 * ux / qw, 0.0)
+    else:
+        corr = (0.0, 1.0, 0.0, 0.0)
+    qa = quat_normalize(quat_mul(corr, qa))
+    s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3] = qa
+
+    # ---- gyro bias (VQF section 3.3): P in (0.01 °/s)², bias in rad/s
+    clip = p[P_BIAS_CLIP] * DEG
+    r = B.quat_to_matrix(quat_mul(qa, qg))  # R(q_a ⊗ q_g), E6←S
+    b0, b1, b2 = s[K.BIAS], s[K.BIAS + 1], s[K.BIAS + 2]
+    rb0 = r[0] * b0 + r[1] * b1 + r[2] * b2
+    rb1 = r[3] * b0 + r[4] * b1 + r[5] * b2
+    rl = (
+        B.butter2_step(s, CA, R_LP, 9, 0, r[0]), B.butter2_step(s, CA, R_LP, 9, 1, r[1]),
+        B.butter2_step(s, CA, R_LP, 9, 2, r[2]), B.butter2_step(s, CA, R_LP, 9, 3, r[3]),
+        B.butter2_step(s, CA, R_LP, 9, 4, r[4]), B.butter2_step(s, CA, R_LP, 9, 5, r[5]),
+        B.butter2_step(s, CA, R_LP, 9, 6, r[6]), B.butter2_step(s, CA, R_LP, 9, 7, r[7]),
+        B.butter2_step(s, CA, R_LP, 9, 8, r[8]),
+    )  # fmt: skip
+    blp0 = B.butter2_step(s, CA, BIAS_LP, 2, 0, rb0)
+    blp1 = B.butter2_step(s, CA, BIAS_LP, 2, 1, rb1)
+
+    # process noise: the variance grows by (0.1 °/s)² per forgetting time, up to its initial value
+    v = 100.0 * dt / p[P_BIAS_FORGET]
+    p0 = (p[P_BIAS_INIT] * 100.0) ** 2
+    for k in range(3):
+        if s[BIAS_P + 4 * k] < p0:
+            s[BIAS_P + 4 * k] += v
+    if s[REST] != 0.0 and p[P_BIAS_REST] > 0.0:
+        # at rest the low-passed gyro is the bias itself: H = I
+        pr = (p[P_BIAS_REST] * 100.0) ** 2
+        w = pr * pr / v + pr
+        e = (
+            min(clip, max(-clip, s[GYR_LP] - b0)),
+            min(clip, max(-clip, s[GYR_LP + 1] - b1)),
+            min(clip, max(-clip, s[GYR_LP + 2] - b2)),
+        )
+        B.bias_kalman_update(s, BIAS_P, K.BIAS, SCRATCH, (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), e, (w, w, w), 3)
+    elif p[P_BIAS_MOTION] > 0.0:
+        # in motion the horizontal correction rate −r/dt is what the bias error turned the
+        # estimate by: R b_true ≈ −r/dt + LP(R b̂) on the two horizontal rows
+        pm = (p[P_BIAS_MOTION] * 100.0) ** 2
+        w = pm * pm / v + pm
+        e = (
+            min(clip, max(-clip, -uy / dt + blp0 - (rl[0] * b0 + rl[1] * b1 + rl[2] * b2))),
+            min(clip, max(-clip, ux / dt + blp1 - (rl[3] * b0 + rl[4] * b1 + rl[5] * b2))),
+            0.0,
+        )
+        B.bias_kalman_update(s, BIAS_P, K.BIAS, SCRATCH, rl, e, (w, w, w), 2)
+    for k in range(3):
+        s[K.BIAS + k] = min(clip, max(-clip, s[K.BIAS + k]))
+
+
+@njit(cache=True, error_model="numpy")
+def robust_step(s, p, x):
+    """Advances the robust estimator by one sample row (see ``_kernel``)."""
+    gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
+    if K.initialise_from_sample(s, x, acc_ok, mag_ok):
+        dt0 = x[K.DT] if gyro_ok else 0.01
+        _update_coefficients(s, p, dt0)
+        _start(s, x)
+        if mag_ok:
+            s[MAG_DT] = dt0
+            heading(s, p, x)
+        return
+    if s[K.INITIALISED] == 0.0 or not gyro_ok:
+        return
+    dt = x[K.DT]
+    _update_coefficients(s, p, dt)
+    s[MAG_DT] += dt
+    s[HI_T] += dt
+    # strapdown integration of the bias-corrected rate (VQF eq. 4)
+    wx, wy, wz = x[0] - s[K.BIAS], x[1] - s[K.BIAS + 1], x[2] - s[K.BIAS + 2]
+    qg = quat_integrate((s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3]), wx, wy, wz, dt)
+    s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3] = qg
+    if acc_ok:
+        _rest_detection(s, p, x, dt)
+        _inclination_and_bias(s, p, x, dt)
+    if mag_ok:
+        hard_iron_and_consistency(s, p, x, dt)
+        heading(s, p, x)
+    q = quat_mul((s[DELTA_C], 0.0, 0.0, s[DELTA_S]), quat_mul((s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3]), qg))
+    lead = 0.5 * p[P_LEAD]
+    if lead > 0.0:
+        # q ⊗ exp(ω̂ t_lead / 2) to first order: the lead angle is a few mrad, the neglected
+        # terms (angle³/24) far below a microradian. |q ⊗ v| = |v| for a unit q, so scaling
+        # by 1/|v| normalises exactly
+        vx, vy, vz = wx * lead, wy * lead, wz * lead
+        inv = 1.0 / math.sqrt(1.0 + vx * vx + vy * vy + vz * vz)
+        q = quat_mul(q, (inv, vx * inv, vy * inv, vz * inv))
+    K.store_quat(s, q)
+
+
+@njit(cache=True, error_model="numpy")
+def robust_batch(s, p, rows, out):
+    for i in range(rows.shape[0]):
+        robust_step(s, p, rows[i])
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = s[0], s[1], s[2], s[3]
+
+
+class RobustEstimator(Estimator):
+    """GIMLET, the project's robust estimator: VQF-structured inclination and bias, heading
+    with norm/dip, gyro-consistency and hard-iron-learning magnetic rejection."""
+
+    name = "robust"
+    Params = RobustParams
+    uses_mag = True
+    observes_heading = True
+    state_size = STATE_SIZE
+    step = staticmethod(robust_step)
+    batch = staticmethod(robust_batch)
+
+    def initial_state(self) -> np.ndarray:
+        s = super().initial_state()
+        p0 = (self.params.bias_sigma_init * 100.0) ** 2
+        s[BIAS_P] = s[BIAS_P + 4] = s[BIAS_P + 8] = p0
+        s[COEF_DT] = -1.0  # forces the first coefficient computation
+        s[GAIN_DT] = -1.0  # and the first gain computation
+        return s
+
+    @property
+    def diagnostics(self) -> dict[str, float]:
+        s = self.state
+        return {
+            **super().diagnostics,
+            "rest": bool(s[REST]),
+            "mag_disturbed": bool(s[MAG_DIST]),
+            "mag_used": int(s[MAG_USED]),
+            "mag_ref_norm_ut": float(s[MAG_REF_NORM]),
+            "mag_ref_dip_deg": float(np.degrees(s[MAG_REF_DIP])),
+            "hard_iron_ut": s[HI_H : HI_H + 3].copy(),
+            "hard_iron_trusted": bool(s[HI_OK]),
+            "consistency_ut": float(np.sqrt(max(s[CONS], 0.0))),
+        }
