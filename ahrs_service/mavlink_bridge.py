@@ -36,9 +36,24 @@ RATE_CONFIG_KEYS = {
 }
 
 
-def estimator_param_name(name: str) -> str:
-    """MAVLink name of an estimator parameter: ``EST_`` + upper case, at most 16 characters."""
-    return ("EST_" + name.upper())[:16]
+def estimator_param_names(names: list[str]) -> dict[str, str]:
+    """MAVLink names (≤ 16 characters) of an estimator's parameters: ``EST_`` + upper case,
+    long names shortened word by word (``consistency_tau`` → ``EST_CONS_TAU``), clashes
+    numbered. The full name is each parameter's description."""
+    out: dict[str, str] = {}
+    for name in names:
+        words = name.upper().split("_")
+        for width in (99, 6, 5, 4, 3, 2):
+            short = "_".join(w[:width] for w in words)
+            if len(short) <= 12:
+                break
+        short = short[:12]
+        candidate, k = short, 1
+        while "EST_" + candidate in out.values():
+            k += 1
+            candidate = f"{short[:10]}{k:02d}"
+        out[name] = "EST_" + candidate
+    return out
 
 
 class MavlinkBridge:
@@ -71,9 +86,9 @@ class MavlinkBridge:
     def _parameter_table(self) -> ParameterTable:
         svc = self.svc
         table = ParameterTable()
-        for name in svc.estimator.param_names():
+        for name, mav_name in estimator_param_names(svc.estimator.param_names()).items():
             table.add(
-                estimator_param_name(name),
+                mav_name,
                 getter=lambda n=name: svc.estimator.get_params()[n],
                 setter=lambda v, n=name: svc.set_estimator_param(n, float(v)),
                 description=f"{svc.estimator.name} parameter {name}",
