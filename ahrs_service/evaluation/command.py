@@ -1,0 +1,51 @@
+"""Command-line plug-in of the evaluation: ``ahrs-service evaluate``."""
+
+from __future__ import annotations
+
+import argparse
+
+from ahrs_service.evaluation.broad import ENV_VAR
+
+
+def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
+    """Adds ``evaluate`` to the ``ahrs-service`` command line."""
+    p = subparsers.add_parser(
+        "evaluate",
+        help="score the estimators on the BROAD recordings (RMSE, L2 index, Friedman/Nemenyi, plots)",
+        description=(
+            "Runs the estimators (and optionally peer libraries) over the BROAD recordings and "
+            "writes results.md, results.json and PNG plots. Data: D. Laidig et al., BROAD, "
+            "Data 6(7), 2021, doi:10.3390/data6070072."
+        ),
+    )
+    p.add_argument(
+        "--data",
+        metavar="DIR",
+        default=None,
+        help=f"folder of the BROAD *.hdf5 files and trials.json (default: ${ENV_VAR}, else ../shared/data/broad)",
+    )
+    p.add_argument("--estimators", default="all", metavar="LIST", help="comma-separated names, or all (default)")
+    p.add_argument(
+        "--peers",
+        default="none",
+        metavar="LIST",
+        help="reference libraries: vqf,imufusion,ahrs (or single peers such as ahrs.ekf), all, or none (default)",
+    )
+    p.add_argument("--trials", default=None, metavar="PATTERN", help="only trials whose name matches (glob or substring)")
+    p.add_argument("--out", default="results/evaluation", metavar="DIR", help="output folder (default ./results/evaluation)")
+    p.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME.KEY=VALUE",
+        help="tuning parameter for one column, e.g. madgwick.beta=0.05 (repeatable)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    # imported here so that `ahrs-service --help` stays fast
+    from ahrs_service.evaluation.report import main
+
+    return main(args)

@@ -1,0 +1,137 @@
+"""Attitude error metrics: BROAD's total/heading/inclination RMSE and the second paper's L2 index.
+
+BROAD (Laidig et al., Data 6(7), 2021, doi:10.3390/data6070072) defines, with q_est and q_ref
+both q_enu←sensor: q_err = q_est ⊗ q_ref⁻¹ (the error expressed in the earth frame), then per
+sample total 2·acos|w|, heading 2·atan|z/w| and inclination 2·acos√(w² + z²); each reduced to
+an RMSE in degrees over the ``movement`` samples, samples without reference (NaN) skipped. A
+group's figure is the mean of its trials' RMSEs. Our estimators work in NED, so their output
+is turned into ENU first (``ned_to_enu_array``).
+
+Heading and inclination split the error rotation into a rotation about the vertical and one
+about a horizontal axis; since ENU and NED share the vertical axis, the split does not depend
+on which of the two the error is written in — only the reference must be in the same frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Iterable, Mapping
+
+import numpy as np
+
+from ahrs_service.quaternion import ned_to_enu_array, quat_conj_array, quat_mul_array
+
+KINDS = ("total", "heading", "inclination")
+
+
+def error_angles(q_est: np.ndarray, q_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-sample (total, heading, inclination) error in radians of two (N, 4) q_earth←body arrays.
+
+    Both must be against the same earth frame (z vertical). NaN rows give NaN errors.
+    """
+    e = quat_mul_array(np.asarray(q_est, dtype=float), quat_conj_array(q_ref))
+    # normalise: both inputs are unit up to rounding, and acos is steep near 1
+    e = e / np.linalg.norm(e, axis=-1, keepdims=True)
+    w, z = e[..., 0], e[..., 3]
+    aw = np.abs(w)
+    total = 2.0 * np.arccos(np.clip(aw, 0.0, 1.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # |z/w| → ∞ as w → 0: a 180° heading error; arctan handles inf, not 0/0
+        ratio = np.where(aw > 0.0, np.abs(z) / np.where(aw > 0.0, aw, 1.0), np.where(np.abs(z) > 0.0, np.inf, 0.0))
+    ratio = np.where(np.isnan(w) | np.isnan(z), np.nan, ratio)
+    heading = 2.0 * np.arctan(ratio)
+    inclination = 2.0 * np.arccos(np.clip(np.sqrt(w * w + z * z), 0.0, 1.0))
+    return total, heading, inclination
+
+
+def rmse(values: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Root mean square over the masked, non-NaN entries; NaN when none is left."""
+    v = np.asarray(values, dtype=float)
+    if mask is not None:
+        v = v[np.asarray(mask, dtype=bool)]
+    v = v[~np.isnan(v)]
+    return float(np.sqrt(np.mean(v * v))) if v.size else math.nan
+
+
+def l2_index(error: np.ndarray, dt: float | np.ndarray, mask: np.ndarray | None = None) -> float:
+    """The second paper's performance index (its eq. 38): L2(e) = √( 1/(t − t0) ∫ |e| dt ).
+
+    ``error`` per sample (any unit u; the index is in √u), ``dt`` the time step(s) in s. The
+    integral is the rectangle sum over the masked, non-NaN samples and t − t0 the time they
+    cover, so gaps in the reference do not count as zero error.
+    """
+    e = np.asarray(error, dtype=float)
+    d = np.broadcast_to(np.asarray(dt, dtype=float), e.shape)
+    keep = ~np.isnan(e)
+    if mask is not None:
+        keep &= np.asarray(mask, dtype=bool)
+    span = float(np.sum(d[keep]))
+    if not span > 0.0:
+        return math.nan
+    return math.sqrt(float(np.sum(np.abs(e[keep]) * d[keep])) / span)
+
+
+@dataclass
+class TrialScore:
+    """Errors of one estimator on one trial, degrees.
+
+    total_rmse/heading_rmse are None when heading is not scored (estimator without heading or
+    run without magnetometer). ``l2`` is the eq. 38 index of the scored error (total error when
+    heading is scored, else inclination) in √deg; ``mean`` that error's mean in degrees (the
+    third paper's "mean value").
+    """
+
+    inclination_rmse: float
+    total_rmse: float | None = None
+    heading_rmse: float | None = None
+    l2: float = math.nan
+    mean: float = math.nan
+    samples: int = 0
+
+    def get(self, kind: str) -> float | None:
+        return getattr(self, f"{kind}_rmse")
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def score(
+    q_est_ned: np.ndarray,
+    q_ref_enu: np.ndarray,
+    movement: np.ndarray | None = None,
+    *,
+    rate_hz: float,
+    with_heading: bool = True,
+) -> TrialScore:
+    """Scores an (N, 4) NED estimate against an (N, 4) ENU reference as BROAD does.
+
+    ``movement`` selects the scored samples (default all); ``with_heading`` False scores the
+    inclination only (total and heading become None).
+    """
+    q_est_ned = np.asarray(q_est_ned, dtype=float)
+    q_ref_enu = np.asarray(q_ref_enu, dtype=float)
+    if q_est_ned.shape != q_ref_enu.shape or q_est_ned.ndim != 2 or q_est_ned.shape[1] != 4:
+        raise ValueError(f"estimate {q_est_ned.shape} and reference {q_ref_enu.shape} must both be (N, 4)")
+    mask = np.ones(len(q_est_ned), bool) if movement is None else np.asarray(movement, dtype=bool)
+    if mask.shape != (len(q_est_ned),):
+        raise ValueError(f"movement must have shape ({len(q_est_ned)},), got {mask.shape}")
+    total, heading, incl = (np.degrees(a) for a in error_angles(ned_to_enu_array(q_est_ned), q_ref_enu))
+    scored = total if with_heading else incl
+    valid = mask & ~np.isnan(scored)
+    return TrialScore(
+        inclination_rmse=rmse(incl, mask),
+        total_rmse=rmse(total, mask) if with_heading else None,
+        heading_rmse=rmse(heading, mask) if with_heading else None,
+        l2=l2_index(scored, 1.0 / rate_hz, mask),
+        mean=float(np.mean(scored[valid])) if valid.any() else math.nan,
+        samples=int(valid.sum()),
+    )
+
+
+def group_mean(per_trial: Mapping[str, float | None], members: Iterable[str]) -> float | None:
+    """A group's figure: the mean of its trials' values (None when any member has no value)."""
+    values = [per_trial.get(t) for t in members]
+    if not values or any(v is None for v in values):
+        return None
+    return float(np.mean(values))

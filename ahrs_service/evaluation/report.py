@@ -1,0 +1,365 @@
+"""``ahrs-service evaluate``: runs estimators (and peer libraries) over BROAD and reports as the papers did.
+
+For every trial: BROAD's total/heading/inclination RMSE (``metrics``), the second paper's L2
+index, the mean error ("mean value", third paper) and the cost of an update, measured with the
+batch run. Per group: the mean of its trials' RMSEs. Across trials: Friedman + Nemenyi
+(``stats``). Written as ``results.json``, ``results.md`` and PNG plots, each carrying the
+BROAD citation.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ahrs_service import estimators
+from ahrs_service.evaluation import broad, metrics, peers, stats
+from ahrs_service.quaternion import ned_to_enu_array
+
+
+@dataclass
+class Column:
+    """One column of the results: an estimator of ours or a peer library."""
+
+    name: str
+    kind: str  # "estimator" | "peer"
+    observes_heading: bool
+    uses_mag: bool
+    params: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def scores_heading(self) -> bool:
+        # heading is only observable with a magnetometer in the loop
+        return self.observes_heading and self.uses_mag
+
+
+# ------------------------------------------------------------------------------ selection
+
+
+def select_estimators(spec: str | None) -> tuple[list[str], list[str]]:
+    """Estimator names for ``--estimators`` ("all" or "a,b"); returns (chosen, skipped-with-reason).
+
+    "all" skips estimators whose module is not there yet; a name given explicitly must load.
+    """
+    spec = (spec or "all").strip()
+    if spec == "all":
+        chosen, skipped = [], []
+        for name in estimators.names():
+            try:
+                estimators.get(name)
+            except ImportError as exc:
+                skipped.append(f"{name} ({exc})")
+                continue
+            chosen.append(name)
+        return chosen, skipped
+    chosen = []
+    for name in (s.strip() for s in spec.split(",")):
+        if name and name not in chosen:
+            estimators.get(name)  # ValueError for unknown names, ImportError when not built
+            chosen.append(name)
+    if not chosen:
+        raise ValueError("no estimator selected")
+    return chosen, []
+
+
+def parse_params(items: list[str] | None, columns: list[str]) -> dict[str, dict[str, Any]]:
+    """``name.key=value`` items → {name: {key: value}}; names must be among ``columns``.
+
+    Values become floats when they parse as numbers (estimator parameters always do).
+    """
+    out: dict[str, dict[str, Any]] = {}
+    for item in items or []:
+        lhs, sep, value = item.partition("=")
+        name, dot, key = lhs.strip().rpartition(".")
+        if not sep or not dot or not name or not key:
+            raise ValueError(f"--param {item!r}: expected name.key=value, e.g. madgwick.beta=0.05")
+        if name not in columns:
+            raise ValueError(f"--param {item!r}: {name!r} is not among the selected columns ({', '.join(columns)})")
+        try:
+            parsed: Any = float(value)
+        except ValueError:
+            parsed = value.strip()
+        out.setdefault(name, {})[key] = parsed
+    return out
+
+
+def make_columns(names: list[str], peer_names: list[str], params: dict[str, dict[str, Any]]) -> list[Column]:
+    """Columns for the chosen estimators and peers; estimator parameters are checked here."""
+    cols = []
+    for name in names:
+        cls = estimators.get(name)
+        p = params.get(name, {})
+        estimators.create(name, **p)  # raises ValueError for unknown or bad parameters
+        cols.append(Column(name, "estimator", bool(cls.observes_heading), bool(cls.uses_mag), p))
+    for name in peer_names:
+        peer = peers.PEERS[name]
+        cols.append(Column(name, "peer", peer.observes_heading, True, params.get(name, {})))
+    return cols
+
+
+# ------------------------------------------------------------------------------ running
+
+
+def _run_column(col: Column, trial: broad.Trial) -> tuple[np.ndarray, float]:
+    """(N, 4) NED estimate and the wall time of the batch run in seconds."""
+    mag = trial.mag if col.uses_mag else None
+    if col.kind == "estimator":
+        t0 = time.perf_counter()
+        q = estimators.run(col.name, trial.gyr, trial.acc, mag, rate_hz=trial.rate_hz, **col.params)
+        return q, time.perf_counter() - t0
+    t0 = time.perf_counter()
+    q = peers.run(col.name, trial.gyr, trial.acc, trial.mag, rate_hz=trial.rate_hz, **col.params)
+    return q, time.perf_counter() - t0
+
+
+def _warm_up(col: Column, trial: broad.Trial) -> None:
+    # the first call compiles (numba) or loads caches: keep that out of the measured cost
+    if col.kind == "estimator":
+        n = min(32, len(trial))
+        mag = trial.mag[:n] if col.uses_mag else None
+        estimators.run(col.name, trial.gyr[:n], trial.acc[:n], mag, rate_hz=trial.rate_hz, **col.params)
+
+
+def evaluate(
+    data_dir: str | os.PathLike,
+    columns: list[Column],
+    trial_names: list[str],
+    *,
+    progress: bool = False,
+    on_trial: Callable[[broad.Trial, dict[str, dict[str, np.ndarray]]], None] | None = None,
+) -> dict:
+    """Runs every column over every trial (each trial loaded once) and returns the results dict.
+
+    ``on_trial(trial, errors)`` is called after each trial with per-column per-sample errors in
+    degrees ({"total", "heading", "inclination"} → (N,) arrays) — the plots use it.
+    """
+    if not trial_names:
+        raise ValueError("no trial selected")
+    if not columns:
+        raise ValueError("nothing to evaluate: no estimator and no peer selected")
+    per_trial: dict[str, dict[str, dict]] = {c.name: {} for c in columns}
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(trial_names) * len(columns), unit="run", file=sys.stderr, dynamic_ncols=True)
+    warmed: set[str] = set()
+    try:
+        for tname in trial_names:
+            trial = broad.load_trial(data_dir, tname)
+            errors: dict[str, dict[str, np.ndarray]] = {}
+            for col in columns:
+                if bar is not None:
+                    bar.set_description(f"{tname[:24]} {col.name}")
+                if col.name not in warmed:
+                    _warm_up(col, trial)
+                    warmed.add(col.name)
+                q, seconds = _run_column(col, trial)
+                score = metrics.score(q, trial.ref, trial.movement, rate_hz=trial.rate_hz, with_heading=col.scores_heading)
+                row = score.as_dict()
+                row["us_per_sample"] = seconds / len(trial) * 1e6
+                per_trial[col.name][tname] = row
+                if on_trial is not None:
+                    tot, head, inc = (np.degrees(a) for a in metrics.error_angles(ned_to_enu_array(q), trial.ref))
+                    errors[col.name] = {"total": tot, "heading": head, "inclination": inc}
+                if bar is not None:
+                    bar.update(1)
+            if on_trial is not None:
+                on_trial(trial, errors)
+    finally:
+        if bar is not None:
+            bar.close()
+
+    groups = broad.list_groups(data_dir, trial_names)
+    per_group: dict[str, dict[str, dict]] = {}
+    for col in columns:
+        per_group[col.name] = {}
+        for gname, members in groups.items():
+            per_group[col.name][gname] = {
+                kind: metrics.group_mean({t: per_trial[col.name][t][f"{kind}_rmse"] for t in members}, members)
+                for kind in metrics.KINDS
+            } | {"l2": metrics.group_mean({t: per_trial[col.name][t]["l2"] for t in members}, members)}
+
+    tests = {
+        "inclination": stats.rank_test(
+            {c.name: [per_trial[c.name][t]["inclination_rmse"] for t in trial_names] for c in columns}, trial_names
+        ).as_dict(),
+        "total": stats.rank_test(
+            {c.name: [per_trial[c.name][t]["total_rmse"] for t in trial_names] for c in columns if c.scores_heading},
+            trial_names,
+        ).as_dict(),
+    }
+    return {
+        "citation": broad.CITATION,
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "data_dir": str(Path(data_dir).resolve()),
+        "trials": trial_names,
+        "groups": groups,
+        "columns": [
+            {"name": c.name, "kind": c.kind, "observes_heading": c.observes_heading, "uses_mag": c.uses_mag,
+             "scores_heading": c.scores_heading, "params": c.params}
+            for c in columns
+        ],
+        "per_trial": per_trial,
+        "per_group": per_group,
+        "cost_us_per_sample": {
+            c.name: float(np.mean([per_trial[c.name][t]["us_per_sample"] for t in trial_names])) for c in columns
+        },
+        "stats": tests,
+    }
+
+
+# ------------------------------------------------------------------------------ writing
+
+
+def _fmt(x: float | None, digits: int = 2) -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "n/a"
+    return f"{x:.{digits}f}"
+
+
+def to_json(results: dict, path: Path) -> None:
+    """Writes the results; NaN becomes null so the file is strict JSON."""
+
+    def clean(v):
+        if isinstance(v, float):
+            return v if math.isfinite(v) else None
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [clean(x) for x in v]
+        return v
+
+    path.write_text(json.dumps(clean(results), indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+
+
+def to_markdown(results: dict, plots: list[str] | None = None) -> str:
+    """The human-readable report (GitHub-flavoured Markdown)."""
+    cols = [c["name"] for c in results["columns"]]
+    meta = {c["name"]: c for c in results["columns"]}
+    trials = results["trials"]
+    pt, pg = results["per_trial"], results["per_group"]
+    out = [
+        "# Attitude estimator evaluation on BROAD",
+        "",
+        f"Data: {broad.CITATION}",
+        "",
+        f"Created {results['created']} from `{results['data_dir']}`, {len(trials)} trial(s). "
+        "Errors in degrees, RMSE over the `movement` samples (reference gaps skipped); a group's "
+        "figure is the mean of its trials' RMSEs. Estimators without heading are scored on "
+        "inclination only (total and heading n/a). L2: the second paper's index "
+        "√(1/(t−t₀)∫|e|dt) of the scored error, √deg. µs/sample: wall time of the batch run "
+        "divided by the samples (after a warm-up call).",
+        "",
+    ]
+    params = {c: meta[c]["params"] for c in cols if meta[c]["params"]}
+    if params:
+        out += ["Parameters: " + "; ".join(f"{c}: {p}" for c, p in params.items()), ""]
+    out += ["## Summary (mean over the trials)", "",
+            "| column | kind | total RMSE | heading RMSE | inclination RMSE | L2 | mean error | µs/sample |",
+            "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for c in cols:
+        rows = [pt[c][t] for t in trials]
+
+        def mean_of(key):
+            vals = [r[key] for r in rows]
+            return None if any(v is None for v in vals) else float(np.nanmean(vals))
+
+        out.append(
+            f"| {c} | {meta[c]['kind']} | {_fmt(mean_of('total_rmse'))} | {_fmt(mean_of('heading_rmse'))} | "
+            f"{_fmt(mean_of('inclination_rmse'))} | {_fmt(mean_of('l2'))} | {_fmt(mean_of('mean'))} | "
+            f"{_fmt(results['cost_us_per_sample'][c], 3)} |"
+        )
+    out.append("")
+
+    for kind in metrics.KINDS:
+        out += [f"## {kind.capitalize()} RMSE per group (°)", "",
+                "| group | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
+        for gname, members in results["groups"].items():
+            out.append(f"| {gname} ({len(members)}) | " + " | ".join(_fmt(pg[c][gname][kind]) for c in cols) + " |")
+        out.append("")
+
+    for kind in metrics.KINDS:
+        out += [f"## {kind.capitalize()} RMSE per trial (°)", "",
+                "| trial | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
+        for t in trials:
+            out.append(f"| {t} | " + " | ".join(_fmt(pt[c][t][f'{kind}_rmse']) for c in cols) + " |")
+        out.append("")
+
+    out += ["## L2 performance index per trial (√deg)", "",
+            "| trial | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
+    for t in trials:
+        out.append(f"| {t} | " + " | ".join(_fmt(pt[c][t]["l2"], 3) for c in cols) + " |")
+    out.append("")
+
+    out += ["## Friedman and Nemenyi tests", "",
+            "Blocks are the trials, treatments the columns, values the per-trial RMSEs.", ""]
+    for kind, title in (("inclination", "inclination RMSE, all columns"), ("total", "total RMSE, columns with heading")):
+        d = results["stats"][kind]
+        test = stats.RankTest(
+            columns=d["columns"], trials=d["trials"],
+            statistic=d["friedman_chi2"] if d["friedman_chi2"] is not None else math.nan,
+            pvalue=d["friedman_p"] if d["friedman_p"] is not None else math.nan,
+            mean_ranks=[d["mean_ranks"][c] for c in d["columns"]] if d["mean_ranks"] else [],
+            nemenyi=[[d["nemenyi_p"][a][b] for b in d["columns"]] for a in d["columns"]] if d["nemenyi_p"] else [],
+            cd=d["critical_difference"] if d["critical_difference"] is not None else math.nan,
+            alpha=d["alpha"], note=d["note"],
+        )
+        out.append(stats.friedman_markdown(test, title))
+        out.append(stats.nemenyi_markdown(test, title))
+
+    if plots:
+        out += ["## Plots", ""] + [f"- [{p}]({p})" for p in plots] + [""]
+    out += ["---", "", f"Data: {broad.CITATION}", ""]
+    return "\n".join(out)
+
+
+# ------------------------------------------------------------------------------ command
+
+
+def main(args: Any) -> int:
+    """Entry of ``ahrs-service evaluate`` (arguments from ``command.add_subcommands``)."""
+    try:
+        data_dir = broad.check_dir(args.data if args.data else broad.default_dir())
+        trial_names = broad.list_trials(data_dir, args.trials)
+        if not trial_names:
+            raise ValueError(f"no trial in {str(data_dir)!r} matches {args.trials!r}")
+        est_names, skipped = select_estimators(args.estimators)
+        peer_names = peers.select(args.peers)
+        params = parse_params(args.param, est_names + peer_names)
+        columns = make_columns(est_names, peer_names, params)
+    except (FileNotFoundError, ValueError, ImportError) as exc:
+        print(f"ahrs-service evaluate: error: {exc}", file=sys.stderr)
+        return 2
+    for s in skipped:
+        print(f"ahrs-service evaluate: skipping estimator {s}", file=sys.stderr)
+
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    from ahrs_service.evaluation import plots
+
+    plot_files: list[str] = []
+
+    def on_trial(trial, errors):
+        plot_files.append(plots.error_over_time(trial, errors, columns, out_dir))
+
+    progress = not args.quiet and sys.stderr.isatty()
+    results = evaluate(data_dir, columns, trial_names, progress=progress, on_trial=on_trial)
+    plot_files += plots.group_bars(results, out_dir)
+    results["plots"] = plot_files
+    if skipped:
+        results["skipped"] = skipped
+    to_json(results, out_dir / "results.json")
+    (out_dir / "results.md").write_text(to_markdown(results, plot_files), encoding="utf-8")
+    if not args.quiet:
+        print(f"wrote {out_dir / 'results.md'}, {out_dir / 'results.json'} and {len(plot_files)} plot(s)")
+    return 0
