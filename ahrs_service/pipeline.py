@@ -76,6 +76,23 @@ class EstimationPipeline:
         self._recent_gyr: deque[np.ndarray] = deque(maxlen=self.REST_WINDOW)
         self._recent_acc: deque[np.ndarray] = deque(maxlen=self.REST_WINDOW)
 
+    def warm_up(self) -> None:
+        """Compiles, or loads from numba's cache, every kernel of the per-sample path.
+
+        Called before the loop starts: the first start on a machine compiles the estimator
+        (tens of seconds once), and that must not happen on the first sample of a flight.
+        """
+        probe = type(self.estimator)(**self.estimator.get_params())
+        sample = ImuSample(
+            t_ns=0,
+            gyr=np.zeros(3),
+            acc=np.array([0.0, 0.0, -G]),
+            mag=np.array([20.0, 0.0, 45.0]),
+            flags=GYR_VALID | ACC_VALID | MAG_VALID | MAG_NEW,
+        )
+        apply_calibration(sample, self.calibration)
+        probe.update_row(np.array([0.0, 0.0, 0.0, 0.0, 0.0, -G, 20.0, 0.0, 45.0, self.nominal_dt]))
+
     def set_declination(self, degrees: float) -> None:
         self.declination_deg = float(degrees)
         self._q_decl = quat_from_euler(0.0, 0.0, math.radians(degrees))

@@ -53,6 +53,10 @@ class Service:
         cfg = self.cfg
         self._build_estimation(cfg)
         self.scheduler = FixedRateScheduler(cfg.rates["estimation_hz"])
+        t0 = time.monotonic()
+        self.pipeline.warm_up()
+        if time.monotonic() - t0 > 1.0:
+            log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
         self.source = make_source(cfg.source, cfg.rates["estimation_hz"])
         self.source.open()
         self._use_source_calibration()
@@ -311,6 +315,7 @@ class Service:
             self.pipeline.mag_timeout_ns = int(new.estimator["mag_timeout_s"] * 1e9)
         else:
             self._build_estimation(new)
+            self.pipeline.warm_up()
             self._use_source_calibration()
             if self.log_writer is not None and new.log == old_cfg.log:
                 self.log_writer.new_file()  # a fresh estimator: its own file replays exactly
