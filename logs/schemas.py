@@ -288,6 +288,19 @@ def euler(q: list[float]) -> tuple[float, float, float]:
     return roll, pitch, (math.pi if yaw == -math.pi else yaw)
 
 
+def _valid(flags: int) -> dict[str, bool]:
+    """The /imu/raw "valid" object: the flag bits decoded."""
+    return {
+        "gyr": bool(flags & GYR_VALID),
+        "acc": bool(flags & ACC_VALID),
+        "mag": bool(flags & MAG_VALID),
+        "gyr_saturated": bool(flags & GYR_SATURATED),
+        "acc_saturated": bool(flags & ACC_SATURATED),
+        "mag_saturated": bool(flags & MAG_SATURATED),
+        "mag_new": bool(flags & MAG_NEW),
+    }
+
+
 def raw_message(
     t_ns: int,
     row: list[float],
@@ -309,15 +322,7 @@ def raw_message(
         "acc": nums_or_null(row[3:6]),
         "mag": None if all(math.isnan(v) for v in mag) else nums_or_null(mag),
         "flags": int(flags),
-        "valid": {
-            "gyr": bool(flags & GYR_VALID),
-            "acc": bool(flags & ACC_VALID),
-            "mag": bool(flags & MAG_VALID),
-            "gyr_saturated": bool(flags & GYR_SATURATED),
-            "acc_saturated": bool(flags & ACC_SATURATED),
-            "mag_saturated": bool(flags & MAG_SATURATED),
-            "mag_new": bool(flags & MAG_NEW),
-        },
+        "valid": _valid(flags),
         "raw": jsonable(raw),
         "temperature": None if temperature is None else num_or_null(float(temperature)),
     }
@@ -363,6 +368,125 @@ def tf_message(t_ns: int, q: list[float]) -> dict[str, Any]:
         "translation": {"x": 0.0, "y": 0.0, "z": 0.0},
         "rotation": {"x": q[1], "y": q[2], "z": q[3], "w": q[0]},
     }
+
+
+# --------------------------------------------------------------------------- fast encoding
+#
+# The writer thread encodes /imu/raw and /attitude at the sample rate (1 kHz). Building the dict
+# and handing it to json.dumps costs about twice as much as formatting the JSON text directly,
+# which leaves mostly the float formatting itself (repr, ~1 µs a float). These encoders write
+# exactly the bytes of ``json.dumps(<the *_message dict>, allow_nan=False, separators=(",", ":"))``
+# for the values the writer passes (Python floats and ints); tests/test_logs_fast_encoding.py
+# checks that. On anything else they raise TypeError/ValueError (as json.dumps would), and the writer
+# then takes the dict path, so an unusual value is never encoded differently.
+
+_float_repr = float.__repr__  # what json writes for a float; TypeError on a non-float (the int/bool case)
+_int_repr = int.__repr__  # what json writes for an int; TypeError on a non-int (NumPy integers)
+_json_str = json.encoder.encode_basestring_ascii  # json.dumps' string encoder (ensure_ascii=True)
+_NOT_FINITE = "Out of range float values are not JSON compliant"
+
+
+def _num(x: float) -> str:
+    """A float as JSON, null when not finite (num_or_null)."""
+    # x - x is 0.0 exactly for finite x, NaN for NaN and ±inf: cheaper than math.isfinite
+    return _float_repr(x) if x - x == 0.0 else "null"
+
+
+def _finite(x: float) -> str:
+    """A float that the dict path writes as it is: json.dumps(allow_nan=False) refuses NaN/inf."""
+    if x - x == 0.0:
+        return _float_repr(x)
+    raise ValueError(_NOT_FINITE)
+
+
+def _int_or_null(x: int | None) -> str:
+    """An int (or None) written as given, as the dict path does (bool and others via json)."""
+    return _int_repr(x) if type(x) is int else _dumps(x)
+
+
+def _dumps(value: Any) -> str:
+    return json.dumps(value, allow_nan=False, separators=(",", ":"))
+
+
+_VALID_BITS = GYR_VALID | ACC_VALID | MAG_VALID | GYR_SATURATED | ACC_SATURATED | MAG_SATURATED | MAG_NEW
+_valid_json_cache: dict[int, str] = {}
+
+
+def _valid_json(flags: int) -> str:
+    """The "valid" object of ``flags`` as JSON, produced by json.dumps once per bit pattern."""
+    bits = flags & _VALID_BITS
+    text = _valid_json_cache.get(bits)
+    if text is None:
+        text = _valid_json_cache[bits] = _dumps(_valid(bits))
+    return text
+
+
+def encode_raw(
+    t_ns: int,
+    row: list[float],
+    flags: int,
+    raw: Any = None,
+    temperature: float | None = None,
+    index: int | None = None,
+) -> bytes:
+    """``raw_message(...)`` as JSON bytes, without building the dict (same arguments)."""
+    gx, gy, gz, ax, ay, az, mx, my, mz, dt = row
+    flags = int(flags)
+    if mx != mx and my != my and mz != mz:  # all NaN: no reading (raw_message's test)
+        mag = "null"
+    else:
+        mag = f"[{_num(mx)},{_num(my)},{_num(mz)}]"
+    return (
+        f'{{"t_ns":{int(t_ns)},"index":{_int_or_null(index)},'
+        f'"dt":{_num(dt)},"gyr":[{_num(gx)},{_num(gy)},{_num(gz)}],'
+        f'"acc":[{_num(ax)},{_num(ay)},{_num(az)}],"mag":{mag},'
+        f'"flags":{flags},"valid":{_valid_json(flags)},'
+        f'"raw":{"null" if raw is None else _dumps(jsonable(raw))},'
+        f'"temperature":{"null" if temperature is None else _num(float(temperature))}}}'
+    ).encode()
+
+
+def _euler_json(q: list[float]) -> str:
+    roll, pitch, yaw = euler(q)
+    return f'"roll":{_finite(roll)},"pitch":{_finite(pitch)},"yaw":{_finite(yaw)}'
+
+
+def encode_attitude(
+    t_ns: int, q: list[float], estimator: str, bias: list[float] | None = None, diagnostics: Any = None
+) -> bytes:
+    """``attitude_message(...)`` as JSON bytes, without building the dict (same arguments)."""
+    w, x, y, z = q
+    if bias is None:
+        gyro_bias = "[0.0,0.0,0.0]"
+    else:
+        bx, by, bz = bias
+        gyro_bias = f"[{_num(bx)},{_num(by)},{_num(bz)}]"
+    return (
+        f'{{"t_ns":{int(t_ns)},"q":[{_num(w)},{_num(x)},{_num(y)},{_num(z)}],{_euler_json(q)},'
+        f'"estimator":{_json_str(str(estimator))},"gyro_bias":{gyro_bias},'
+        f'"diagnostics":{_dumps(jsonable(diagnostics)) if diagnostics else "{}"}}}'
+    ).encode()
+
+
+def encode_truth(t_ns: int, q: list[float], movement: bool | None = None, source: str = "") -> bytes:
+    """``truth_message(...)`` as JSON bytes, without building the dict (same arguments)."""
+    w, x, y, z = q
+    return (
+        f'{{"t_ns":{int(t_ns)},"q":[{_num(w)},{_num(x)},{_num(y)},{_num(z)}],{_euler_json(q)},'
+        f'"movement":{"null" if movement is None else _dumps(movement)},"source":{_dumps(source)}}}'
+    ).encode()
+
+
+def encode_tf(t_ns: int, q: list[float]) -> bytes:
+    """``tf_message(...)`` as JSON bytes, without building the dict (same arguments)."""
+    t_ns = int(t_ns)
+    w, x, y, z = q
+    return (
+        f'{{"timestamp":{{"sec":{t_ns // 1_000_000_000},"nsec":{t_ns % 1_000_000_000}}},'
+        f'"parent_frame_id":"ned","child_frame_id":"body",'
+        f'"translation":{{"x":0.0,"y":0.0,"z":0.0}},'
+        f'"rotation":{{"x":{_finite(x)},"y":{_finite(y)},"z":{_finite(z)},"w":{_finite(w)}}}}}'
+    ).encode()
 
 
 # --------------------------------------------------------------------------- validation

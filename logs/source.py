@@ -67,9 +67,24 @@ class RecordedSource(ImuSource):
             self.damage = log.damage
             self.calibrated = True
         self.has_mag = bool(np.isfinite(self.rows[:, 6:9]).any())
+        self._precompute()
         self._i = 0
         self._t0_host = None
         self.finished = len(self.t_ns) == 0
+
+    def _precompute(self) -> None:
+        """What read() needs per sample, for the whole recording at once (vectorised).
+
+        read() runs at the sample rate; NumPy reductions and scalar arithmetic on a 3-element
+        slice cost microseconds each, the same answers looked up in a Python list ~50 ns.
+        """
+        t = self.t_ns
+        # t_ns is int64 (reader, BROAD import): Python ints give the same values exactly
+        self._t_list = t.tolist()
+        self._offsets = (t - t[0]).tolist() if len(t) else []
+        self._flags_list = self.flags.tolist()
+        self._mag_ok = np.isfinite(self.rows[:, 6:9]).all(axis=1).tolist()
+        self._truth_ok = None if self.truth is None else np.isfinite(self.truth).all(axis=1).tolist()
 
     def __len__(self) -> int:
         return len(self.t_ns)
@@ -81,29 +96,28 @@ class RecordedSource(ImuSource):
         if self._t0_host is None:
             self._t0_host = now
         i = self._i
-        offset = int(self.t_ns[i] - self.t_ns[0])
-        if self.realtime and now - self._t0_host < offset:
-            return None  # not due yet
+        offsets = self._offsets
         if self.realtime:
+            elapsed = now - self._t0_host
+            if elapsed < offsets[i]:
+                return None  # not due yet
             # a late caller gets the newest due sample, like a live sensor: skip the missed ones
-            n = len(self.t_ns)
-            while i + 1 < n and self.t_ns[i + 1] - self.t_ns[0] <= now - self._t0_host:
+            n = len(offsets)
+            while i + 1 < n and offsets[i + 1] <= elapsed:
                 i += 1
                 self.diagnostics.dropped_frames += 1
-        offset = int(self.t_ns[i] - self.t_ns[0])
         self._i = i + 1
-        self.finished = self._i >= len(self.t_ns)
+        self.finished = self._i >= len(offsets)
         row = self.rows[i]
-        mag = row[6:9]
-        truth = self.truth[i] if self.truth is not None else None
+        truth_ok = self._truth_ok is not None and self._truth_ok[i]
         self.diagnostics.samples += 1
         return ImuSample(
-            t_ns=int(self._t0_host + offset if self.rebase_time else self.t_ns[i]),
+            t_ns=self._t0_host + offsets[i] if self.rebase_time else self._t_list[i],
             gyr=row[0:3].copy(),
             acc=row[3:6].copy(),
-            mag=mag.copy() if np.all(np.isfinite(mag)) else None,
-            flags=int(self.flags[i]),
-            truth_q=None if truth is None or not np.all(np.isfinite(truth)) else truth.copy(),
+            mag=row[6:9].copy() if self._mag_ok[i] else None,
+            flags=self._flags_list[i],
+            truth_q=self.truth[i].copy() if truth_ok else None,
         )
 
     @property
