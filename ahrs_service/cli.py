@@ -21,16 +21,12 @@ _COMMAND_MODULES = [
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ahrs-service", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="ahrs-service", description="MAVLink AHRS companion service: run, evaluate, log tools, replay, calibration."
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in _COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name != name:
-                raise
-            continue  # that part is not built yet
-        module.add_subcommands(sub)
+        importlib.import_module(name).add_subcommands(sub)
     return parser
 
 
