@@ -256,8 +256,9 @@ def heading(s, p, x):
             k /= p[P_MAG_REJ_FACTOR]
     else:
         s[MAG_REJECT_T] = max(s[MAG_REJECT_T] - p[P_MAG_REJ_FACTOR] * dtm, 0.0)
-    s[DELTA] = wrap(s[DELTA] + k * e)
-    s[DELTA_C], s[DELTA_S] = math.cos(0.5 * s[DELTA]), math.sin(0.5 * s[DELTA])
+    if k != 0.0:  # a rejected field leaves δ, and so its cached half-angle cosine and sine
+        s[DELTA] = wrap(s[DELTA] + k * e)
+        s[DELTA_C], s[DELTA_S] = math.cos(0.5 * s[DELTA]), math.sin(0.5 * s[DELTA])
 
 
 # error_model="numpy": divisions by zero give inf/NaN instead of raising (every division
