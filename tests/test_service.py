@@ -118,16 +118,18 @@ def test_streams_rates_and_attitude_matches_truth(tmp_path, gcs):
         errors.append(math.degrees(2 * math.acos(min(1.0, abs(e[0, 0])))))
     errors = np.array(errors)
     assert len(errors) > 50
-    # complementary_full on the simulated GY-80 (with its datasheet bias and noise)
+    # the default (robust) estimator on the simulated GY-80 with ideal sensor models
     assert np.sqrt(np.mean(errors**2)) < 3.0
     assert np.abs(np.linalg.norm([[m.q1, m.q2, m.q3, m.q4] for m in by_type["ATTITUDE_QUATERNION"]], axis=1) - 1).max() < 1e-6
 
 
+def _first(conn, wanted, seconds=3.0):
+    """The first message for which ``wanted(msg)`` is true, within ``seconds`` (else None)."""
+    return next((m for m in collect(conn, seconds, until=wanted) if wanted(m)), None)
+
+
 def _param_value(conn, name, seconds=3.0):
-    for m in collect(conn, seconds, until=lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == name):
-        if m.get_type() == "PARAM_VALUE" and m.param_id == name:
-            return m
-    return None
+    return _first(conn, lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == name, seconds)
 
 
 def test_parameters_change_the_running_estimator(tmp_path, gcs):
@@ -180,10 +182,7 @@ def test_unwritable_log_directory_is_reported_and_publishing_goes_on(tmp_path, g
 
 
 def _ack(conn, command, seconds=3.0):
-    for m in collect(conn, seconds, until=lambda m: m.get_type() == "COMMAND_ACK" and m.command == command):
-        if m.get_type() == "COMMAND_ACK" and m.command == command:
-            return m
-    return None
+    return _first(conn, lambda m: m.get_type() == "COMMAND_ACK" and m.command == command, seconds)
 
 
 def test_message_interval_and_gyro_calibration_commands(tmp_path, gcs):
