@@ -30,6 +30,7 @@ log = logging.getLogger("ahrs_service")
 
 IO_PERIOD_NS = 5_000_000  # MAVLink publish/poll granularity: 200 Hz
 HOUSEKEEPING_NS = 1_000_000_000  # loop statistics, STATUS=, health reports
+MAX_SAMPLES_PER_TICK = 16  # a source with a backlog catches up at most this fast
 
 
 class Service:
@@ -157,8 +158,10 @@ class Service:
         was_reduced = pipeline.reduced
         while not self._stop:
             now = sched.wait()
-            sample = source.read()
-            if sample is not None:
+            for _ in range(MAX_SAMPLES_PER_TICK if source.may_have_backlog else 1):
+                sample = source.read()
+                if sample is None:
+                    break
                 if self.live_calibration.active and self.live_calibration.add(sample):
                     self.finish_live_calibration()
                     pipeline = self.pipeline

@@ -82,6 +82,9 @@ class ImuSource(abc.ABC):
 
     #: whether this source can deliver magnetometer readings at all
     has_mag: bool = True
+    #: whether several samples can be due at once (a FIFO, a replayed log): the service then
+    #: reads until ``read`` returns None, a bounded number per tick, so a late tick loses nothing
+    may_have_backlog: bool = False
 
     def __init__(self) -> None:
         self.diagnostics = SourceDiagnostics()

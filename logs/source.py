@@ -25,6 +25,10 @@ class RecordedSource(ImuSource):
     rebase_time: give t_ns on the host's monotonic clock (recorded offsets added to the time
         of the first read) instead of the recorded t_ns; default: the same as ``realtime``.
     start_s, duration_s: a slice (HDF5 only).
+    catch_up: in real time, a late caller gets the missed samples one by one, in order (True:
+        a replay loses nothing; ``may_have_backlog`` tells the service to read until None);
+        False gives the newest due sample and counts the skipped ones as ``dropped_frames``,
+        like a live sensor without a FIFO.
 
     ``calibrated`` tells the service whether the samples are already calibrated body-frame
     values (True for a flight log: it recorded what the estimator was fed) or raw sensor-axis
@@ -39,8 +43,10 @@ class RecordedSource(ImuSource):
         rebase_time: bool | None = None,
         start_s: float | None = None,
         duration_s: float | None = None,
+        catch_up: bool = True,
     ) -> None:
         super().__init__()
+        self.may_have_backlog = self.catch_up = catch_up
         self.path = Path(path)
         self.realtime = realtime
         self.rebase_time = realtime if rebase_time is None else rebase_time
@@ -101,11 +107,12 @@ class RecordedSource(ImuSource):
             elapsed = now - self._t0_host
             if elapsed < offsets[i]:
                 return None  # not due yet
-            # a late caller gets the newest due sample, like a live sensor: skip the missed ones
-            n = len(offsets)
-            while i + 1 < n and offsets[i + 1] <= elapsed:
-                i += 1
-                self.diagnostics.dropped_frames += 1
+            if not self.catch_up:
+                # the newest due sample, like a live sensor: skip the missed ones
+                n = len(offsets)
+                while i + 1 < n and offsets[i + 1] <= elapsed:
+                    i += 1
+                    self.diagnostics.dropped_frames += 1
         self._i = i + 1
         self.finished = self._i >= len(offsets)
         row = self.rows[i]
