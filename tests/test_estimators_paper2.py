@@ -258,25 +258,6 @@ def test_no_nan_from_garbage_and_gimbal_lock(name):
     assert np.allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-9)
 
 
-@pytest.mark.parametrize("name", ALL)
-def test_per_sample_and_batch_identical(name):
-    q, gyr, acc, mag, dt = jittered_rotation([0.5, 0.2, -0.3], 3.0, (0.2, 0.1, 0.4))
-    rng = np.random.default_rng(2)
-    acc = acc + rng.normal(0, 0.3, acc.shape)
-    mag = mag + rng.normal(0, 1.0, mag.shape)
-    mag[50:60] = np.nan
-    batch = estimators.create(name).run(gyr, acc, mag, dt=dt)
-    est = estimators.create(name)
-    single = np.array([est.update(gyr[i], acc[i], mag[i], dt=dt[i]).copy() for i in range(len(q))])
-    assert np.array_equal(batch, single)
-
-
-@pytest.mark.parametrize("name", ALL)
-def test_parameters_are_checked(name):
-    with pytest.raises(ValueError, match="unknown parameter.*gain"):
-        estimators.create(name, gain=1.0)
-
-
 def test_parameter_values_are_checked():
     with pytest.raises(ValueError, match="w_acc"):
         estimators.create("quest", w_acc=0.0)

@@ -49,15 +49,6 @@ def test_bad_samples_skipped_and_counted():
     assert error_deg(out, q)[0].max() < 0.1  # β·dt chatter, as at rest
 
 
-def test_per_sample_and_batch_identical():
-    q, gyr, acc, mag = constant_rotation([0.5, 0.2, -0.3], RATE, 3.0)
-    dt = np.full(len(q), 1 / RATE) * (1 + 0.2 * np.sin(np.arange(len(q))))
-    batch = estimators.create("madgwick", beta=0.05).run(gyr, acc, mag, dt=dt)
-    est = estimators.create("madgwick", beta=0.05)
-    single = np.array([est.update(gyr[i], acc[i], mag[i], dt=dt[i]).copy() for i in range(len(q))])
-    assert np.array_equal(batch, single)
-
-
 def test_unknown_parameter_is_a_clear_error():
     with pytest.raises(ValueError, match="gain.*accepted: beta"):
         estimators.run("madgwick", np.zeros((2, 3)), np.ones((2, 3)), rate_hz=100, gain=0.1)
