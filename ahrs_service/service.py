@@ -46,7 +46,6 @@ class Service:
         self.source: ImuSource | None = None
         self.mavlink = None
         self.log_writer = None
-        self.status_messages: list[str] = []
         self.live_calibration = LiveCalibrator()
 
     # ------------------------------------------------------------------ set-up
@@ -136,9 +135,8 @@ class Service:
         signal.signal(signal.SIGHUP, self.request_reload)
 
     def report(self, text: str, severity: int = 6) -> None:
-        """A health message: STATUSTEXT on MAVLink, the service log, and the status list."""
+        """A health message: STATUSTEXT on MAVLink and the service log."""
         log.log(logging.WARNING if severity <= 4 else logging.INFO, text)
-        self.status_messages.append(text)
         if self.mavlink is not None:
             self.mavlink.statustext(severity, text)
 
