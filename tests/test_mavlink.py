@@ -599,6 +599,7 @@ def test_forged_future_timestamp_does_not_lock_out_the_real_sender(gcs, params, 
         conn.setup_signing(KEY, sign_outgoing=True, link_id=7)
         conn.mav.param_set_send(1, 1, b"AHRS_BETA", 0.3, mavlink2.MAV_PARAM_TYPE_REAL32)
         got = exchange(c, conn, lambda m: m.get_type() == "PARAM_VALUE")
+        assert [m.param_value for m in of(got, "PARAM_VALUE")] == [pytest.approx(0.3)]
         assert store["beta"] == pytest.approx(0.3)
         assert c.stats.unsigned_rejected == 1
 

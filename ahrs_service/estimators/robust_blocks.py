@@ -70,7 +70,7 @@ def butter2_step(s, coef, st, n, k, x):
 @_jit
 def butter2_reset(s, coef, st, n, k, x):
     """Puts channel ``k`` into its steady state for a constant input ``x`` (output = x)."""
-    b0, a1, a2 = s[coef], s[coef + 1], s[coef + 2]
+    b0, a2 = s[coef], s[coef + 2]
     s[st + n + k] = (b0 - a2) * x
     s[st + k] = (1.0 - b0) * x
 

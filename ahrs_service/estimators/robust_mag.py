@@ -44,7 +44,6 @@ def hard_iron_and_consistency(s, p, x, dt):
     ok = s[HI_PREV_OK] != 0.0
     h0, h1, h2 = s[HI_H], s[HI_H + 1], s[HI_H + 2]
     res2 = 0.0
-    dy = (0.0, 0.0, 0.0)
     for i in range(3):
         mean = s[HI_SUM_M + i] * inv_n
         # Δȳ_i and residual Δȳ_i − (ΔR̄ h)_i
