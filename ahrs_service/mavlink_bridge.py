@@ -21,6 +21,10 @@ if TYPE_CHECKING:
     from ahrs_service.config import Config
     from ahrs_service.service import Service
 
+# incoming commands and parameter writes are handled at 50 Hz: a ground station does not
+# notice 20 ms, and an idle non-blocking read costs as much as a published message
+POLL_PERIOD_NS = 20_000_000
+
 RATE_PARAMS = {
     "RATE_ATT_HZ": "ATTITUDE",
     "RATE_ATTQ_HZ": "ATTITUDE_QUATERNION",
@@ -63,6 +67,7 @@ class MavlinkBridge:
         from ahrs_service.service import IO_PERIOD_NS
 
         self.svc = service
+        self._next_poll_ns = 0
         mcfg = cfg.mavlink
         identity = (
             Identity.standalone(mcfg["system_id"])
@@ -158,9 +163,17 @@ class MavlinkBridge:
         )
 
     def tick(self, now_ns: int) -> None:
-        """Publishes what is due and handles what came in."""
-        self.component.publish(now_ns, self.telemetry(now_ns))
-        self.component.poll(50)
+        """Publishes what is due and, every ``POLL_PERIOD_NS``, handles what came in.
+
+        The telemetry snapshot is built only when a stream is due: at 100 Hz ATTITUDE that is
+        every other 5 ms tick, and building it is the costliest part of a tick.
+        """
+        component = self.component
+        if component.due(now_ns):
+            component.publish(now_ns, self.telemetry(now_ns))
+        if now_ns >= self._next_poll_ns:
+            self._next_poll_ns = now_ns + POLL_PERIOD_NS
+            component.poll(50)
 
     def statustext(self, severity: int, text: str) -> None:
         self.component.statustext(severity, text)

@@ -127,6 +127,7 @@ class MavlinkComponent:
         self._streams = {n: _Stream(n, int(message_id(n)), hz)  # type: ignore[arg-type]
                          for n, hz in self._default_rates.items()}
         self._last: Telemetry | None = None
+        self._next_due_ns: int | None = None  # earliest stream deadline; None: not known yet
         self._statustext_id = 0
         self._rejected = False
         self._reply_after_ack: Any = None  # a message a command handler wants sent after its ACK
@@ -182,6 +183,7 @@ class MavlinkComponent:
         s = self._streams[name]
         s.hz = hz
         s.anchor_ns = None
+        self._next_due_ns = None
 
     # ================================================================== sending
     def _send_all(self, msg: Any, only: Endpoint | None = None) -> None:
@@ -200,6 +202,11 @@ class MavlinkComponent:
         if telemetry is None:
             return None
         return _ENCODERS[name](telemetry)
+
+    def due(self, now_ns: int) -> bool:
+        """Whether ``publish(now_ns, …)`` would send anything: lets the caller skip building
+        the telemetry snapshot on the calls where no stream is due."""
+        return self._next_due_ns is None or now_ns >= self._next_due_ns
 
     def publish(self, now_ns: int, telemetry: Telemetry | None) -> int:
         """Sends every stream that is due at ``now_ns`` (monotonic clock, ns); returns how
@@ -229,6 +236,8 @@ class MavlinkComponent:
             while s.due_ns(k) <= now_ns:
                 k += 1
             s.k = k
+        active = [s.due_ns(s.k) for s in self._streams.values() if s.hz > 0.0 and s.anchor_ns is not None]
+        self._next_due_ns = min(active) if active else now_ns + 1_000_000_000
         return built
 
     def send_now(self, name: str, telemetry: Telemetry | None = None) -> bool:
