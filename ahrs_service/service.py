@@ -144,7 +144,7 @@ class Service:
     def run(self) -> int:
         """Runs until stopped, the duration ends, or a recorded source finishes. Returns 0."""
         # the log writer's thread must not hold the interpreter for Python's default 5 ms
-        sys.setswitchinterval(0.0005)
+        sys.setswitchinterval(0.0001)
         sched = self.scheduler
         pipeline = self.pipeline
         source = self.source

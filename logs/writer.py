@@ -399,7 +399,7 @@ class FlightLogWriter:
                     self._dropped_io += 1
                     self._error(exc)
             else:
-                time.sleep(0.002)
+                time.sleep(0.02)
             now = time.monotonic()
             if now - self._last_flush >= self.flush_interval_s:
                 self._last_flush = now
