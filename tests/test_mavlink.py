@@ -750,3 +750,23 @@ def test_tcp_server_endpoint(params):
             assert len(times) >= 5 and times == sorted(times)
         finally:
             gcs.close()
+
+
+def test_due_tells_when_publish_would_send(gcs):
+    """The service builds its telemetry snapshot only when ``due``: it must never hide a deadline."""
+    conn, port = gcs
+    with MavlinkComponent([f"udpout:127.0.0.1:{port}"], rates={"HEARTBEAT": 1.0, "ATTITUDE": 100.0,
+                                                              "ATTITUDE_QUATERNION": 0.0, "HIGHRES_IMU": 0.0,
+                                                              "SYS_STATUS": 0.0}) as c:
+        assert c.due(0)  # nothing published yet
+        assert c.publish(0, telemetry(0)) == 2  # HEARTBEAT and ATTITUDE
+        sent = 0
+        for now in range(1_000_000, 1_000_000_000, 1_000_000):  # 1 ms steps over one second
+            if c.due(now):
+                sent += c.publish(now, telemetry(now // 1_000_000))
+            else:
+                assert c.publish(now, telemetry(now // 1_000_000)) == 0
+        assert sent == 99  # ATTITUDE at 10, 20, … 990 ms; the next heartbeat is due at 1 s
+        assert not c.due(999_000_000) and c.due(1_000_000_000)
+        c.set_rate("ATTITUDE", 50.0)  # a new schedule starts at once
+        assert c.due(999_000_000)

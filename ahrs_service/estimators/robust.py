@@ -134,10 +134,17 @@ def _rest_detection(s, p, x, dt):
 
 
 @_jit
-def _inclination_and_bias(s, p, x, dt):
-    """Accelerometer low-pass in I, inclination correction of q_a, gyro-bias Kalman update."""
-    qg = (s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3])
-    a_i = quat_rotate(qg, (x[3], x[4], x[5]))
+def _inclination_and_bias(s, p, x, dt, qg, rg):
+    """Accelerometer low-pass in I, inclination correction of q_a, gyro-bias Kalman update.
+
+    ``rg`` is R(q_g) as a row-major 9-tuple. Returns q_a ⊗ q_g with the corrected q_a.
+    """
+    ax, ay, az = x[3], x[4], x[5]
+    a_i = (
+        rg[0] * ax + rg[1] * ay + rg[2] * az,
+        rg[3] * ax + rg[4] * ay + rg[5] * az,
+        rg[6] * ax + rg[7] * ay + rg[8] * az,
+    )
     ca = CAR if s[REST] != 0.0 else CA  # at rest nothing needs rejecting: converge faster
     lp0 = B.butter2_step(s, ca, ACC_LP, 3, 0, a_i[0])
     lp1 = B.butter2_step(s, ca, ACC_LP, 3, 1, a_i[1])
@@ -160,7 +167,8 @@ def _inclination_and_bias(s, p, x, dt):
 
     # ---- gyro bias (VQF section 3.3): P in (0.01 °/s)², bias in rad/s
     clip = p[P_BIAS_CLIP] * DEG
-    r = B.quat_to_matrix(quat_mul(qa, qg))  # R(q_a ⊗ q_g), E6←S
+    q6 = quat_mul(qa, qg)
+    r = B.quat_to_matrix(q6)  # R(q_a ⊗ q_g), E6←S
     b0, b1, b2 = s[K.BIAS], s[K.BIAS + 1], s[K.BIAS + 2]
     rb0 = r[0] * b0 + r[1] * b1 + r[2] * b2
     rb1 = r[3] * b0 + r[4] * b1 + r[5] * b2
@@ -203,9 +211,10 @@ def _inclination_and_bias(s, p, x, dt):
         B.bias_kalman_update(s, BIAS_P, K.BIAS, SCRATCH, rl, e, (w, w, w), 2)
     for k in range(3):
         s[K.BIAS + k] = min(clip, max(-clip, s[K.BIAS + k]))
+    return q6
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
 def robust_step(s, p, x):
     """Advances the robust estimator by one sample row (see ``_kernel``)."""
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
@@ -215,7 +224,7 @@ def robust_step(s, p, x):
         _start(s, x)
         if mag_ok:
             s[MAG_DT] = dt0
-            heading(s, p, x)
+            heading(s, p, x, (s[0], s[1], s[2], s[3]))  # q_a = 1: q_a ⊗ q_g = q_g = q
         return
     if s[K.INITIALISED] == 0.0 or not gyro_ok:
         return
@@ -227,13 +236,17 @@ def robust_step(s, p, x):
     wx, wy, wz = x[0] - s[K.BIAS], x[1] - s[K.BIAS + 1], x[2] - s[K.BIAS + 2]
     qg = quat_integrate((s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3]), wx, wy, wz, dt)
     s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3] = qg
+    # R(q_g) once: it rotates the accelerometer into I and feeds the hard-iron block means
+    rg = B.quat_to_matrix(qg)
     if acc_ok:
         _rest_detection(s, p, x, dt)
-        _inclination_and_bias(s, p, x, dt)
+        q6 = _inclination_and_bias(s, p, x, dt, qg, rg)
+    else:
+        q6 = quat_mul((s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3]), qg)
     if mag_ok:
-        hard_iron_and_consistency(s, p, x, dt)
-        heading(s, p, x)
-    q = quat_mul((s[DELTA_C], 0.0, 0.0, s[DELTA_S]), quat_mul((s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3]), qg))
+        hard_iron_and_consistency(s, p, x, dt, rg)
+        heading(s, p, x, q6)
+    q = quat_mul((s[DELTA_C], 0.0, 0.0, s[DELTA_S]), q6)
     lead = 0.5 * p[P_LEAD]
     if lead > 0.0:
         # q ⊗ exp(ω̂ t_lead / 2) to first order: the lead angle is a few mrad, the neglected
@@ -245,7 +258,7 @@ def robust_step(s, p, x):
     K.store_quat(s, q)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
 def robust_batch(s, p, rows, out):
     for i in range(rows.shape[0]):
         robust_step(s, p, rows[i])

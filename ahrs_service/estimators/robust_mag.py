@@ -21,15 +21,16 @@ from numba import njit
 
 from ahrs_service.estimators import robust_blocks as B
 from ahrs_service.estimators.robust_layout import *  # noqa: F403 - slot and parameter indices
-from ahrs_service.quaternion import quat_mul, quat_rotate
+from ahrs_service.quaternion import quat_rotate
 
 _jit = njit(cache=True, inline="always")
 
 @_jit
-def hard_iron_and_consistency(s, p, x, dt):
+def hard_iron_and_consistency(s, p, x, dt, r):
     """Block means of R_g m and R_g; their block-to-block changes feed the hard-iron least
-    squares Δȳ = ΔR̄ h and the gyro-consistency statistic (the part of Δȳ not explained)."""
-    r = B.quat_to_matrix((s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3]))  # R_g, I←S
+    squares Δȳ = ΔR̄ h and the gyro-consistency statistic (the part of Δȳ not explained).
+
+    ``r`` is R_g = R(q_g), I←S, row-major."""
     mx, my, mz = x[6], x[7], x[8]
     s[HI_SUM_M] += r[0] * mx + r[1] * my + r[2] * mz
     s[HI_SUM_M + 1] += r[3] * mx + r[4] * my + r[5] * mz
@@ -141,11 +142,12 @@ def wrap(a):
 
 
 @_jit
-def heading(s, p, x):
-    """Magnetic rejection features and the heading-offset filter δ (VQF eq. 11–12, NED)."""
+def heading(s, p, x, q6):
+    """Magnetic rejection features and the heading-offset filter δ (VQF eq. 11–12, NED).
+
+    ``q6`` is q_a ⊗ q_g, the 6-D (inclination-corrected) attitude."""
     dtm = s[MAG_DT]
     s[MAG_DT] = 0.0
-    q6 = quat_mul((s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3]), (s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3]))
     m_raw = quat_rotate(q6, (x[6], x[7], x[8]))
     n_raw, d_raw = norm_dip(m_raw)
     hn = math.sqrt(s[HI_H] ** 2 + s[HI_H + 1] ** 2 + s[HI_H + 2] ** 2)
