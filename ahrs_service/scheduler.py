@@ -30,9 +30,18 @@ def _tighten_timer_slack() -> None:
         pass  # not fatal: only jitter gets worse
 
 
+def _percentile_of_sorted(values: np.ndarray, q: float) -> float:
+    """``np.percentile(values, q)`` (linear interpolation) of sorted ``values``, without its
+    ~100 µs of per-call overhead."""
+    pos = q / 100.0 * (len(values) - 1)
+    lo = int(pos)
+    hi = min(lo + 1, len(values) - 1)
+    return float(values[lo] + (values[hi] - values[lo]) * (pos - lo))
+
+
 @dataclass
 class LoopStats:
-    """Timing of the last window of ticks; all times in µs."""
+    """Timing of the last second of ticks (see ``FixedRateScheduler.stats``); times in µs."""
 
     rate_hz: float
     ticks: int
@@ -115,11 +124,18 @@ class FixedRateScheduler:
         self._busy[(self.ticks - 1) % _WINDOW] = time.monotonic_ns() - self._wake
 
     def stats(self) -> LoopStats:
-        n = min(self.ticks, _WINDOW)
+        """Timing of the last second of ticks (at least 100 ticks, at most the ring's 8192).
+
+        One second, because the service asks once a second: the figures then describe that
+        second, and percentiles over 1 000 rather than 8 192 ticks cost a tenth as much — in a
+        1 kHz loop this call must fit in one tick.
+        """
+        n = min(self.ticks, _WINDOW, max(100, int(round(self.rate_hz))))
         if n < 2:
             return LoopStats(self.rate_hz, self.ticks, self.overruns, self.missed_ticks, 0, 0, 0, 0, 0)
-        jitter = np.abs(self._period[:n] - self.period_ns) / 1e3
-        p50, p99 = np.percentile(jitter, [50, 99])
+        last = np.arange(self.ticks - n, self.ticks) % _WINDOW
+        jitter = np.sort(np.abs(self._period[last] - self.period_ns) / 1e3)
+        p50, p99 = _percentile_of_sorted(jitter, 50), _percentile_of_sorted(jitter, 99)
         return LoopStats(
             rate_hz=self.rate_hz,
             ticks=self.ticks,
@@ -127,7 +143,7 @@ class FixedRateScheduler:
             missed_ticks=self.missed_ticks,
             period_jitter_p50_us=float(p50),
             period_jitter_p99_us=float(p99),
-            period_jitter_max_us=float(jitter.max()),
-            lateness_p99_us=float(np.percentile(self._lateness[:n], 99) / 1e3),
-            load_percent=float(100.0 * self._busy[:n].mean() / self.period_ns),
+            period_jitter_max_us=float(jitter[-1]),
+            lateness_p99_us=_percentile_of_sorted(np.sort(self._lateness[last]), 99) / 1e3,
+            load_percent=float(100.0 * self._busy[last].mean() / self.period_ns),
         )
