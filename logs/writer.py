@@ -415,16 +415,21 @@ class FlightLogWriter:
         except Exception as exc:  # noqa: BLE001 - disk errors must not stop the thread
             self._fail(exc)
 
-    def _finish(self) -> None:
+    def _close_file(self) -> None:
+        """Finishes the current file (summary, indexes); on failure counts what it held unflushed."""
         f = self._file
         self._file = None
-        if f is not None:
-            try:
-                f.close(self.fsync)
-            except Exception as exc:  # noqa: BLE001
-                self._dropped_io += f.unflushed
-                self._error(exc)
-                f.abandon()
+        if f is None:
+            return
+        try:
+            f.close(self.fsync)
+        except Exception as exc:  # noqa: BLE001
+            self._dropped_io += f.unflushed
+            self._error(exc)
+            f.abandon()
+
+    def _finish(self) -> None:
+        self._close_file()
         self.status = "closed"
 
     def _error(self, exc: BaseException) -> None:
@@ -585,12 +590,5 @@ class FlightLogWriter:
             est.setdefault("params", {})[str(name)] = jsonable(new)
 
     def _finish_for_rotation(self) -> None:
-        f = self._file
-        self._file = None
-        try:
-            f.close(self.fsync)
-        except Exception as exc:  # noqa: BLE001
-            self._dropped_io += f.unflushed
-            self._error(exc)
-            f.abandon()
+        self._close_file()
         self._next_retry = 0.0
