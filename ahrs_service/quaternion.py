@@ -171,6 +171,22 @@ def vec_is_usable(x, y, z):
 
 
 @_jit
+def quat_from_down_and_field(d, m):
+    """q_earth←body from the body's unit "down" ``d`` and magnetic field ``m`` (any scale).
+
+    East = d × m, north = east × d: the rows of R_earth←body, heading against magnetic north.
+    Returns (q, ok); ok is False when the field is (nearly) parallel to down.
+    """
+    e = vec_cross(d, m)
+    ne = vec_norm(e)
+    if not ne > 1e-6 * vec_norm(m):
+        return (1.0, 0.0, 0.0, 0.0), False
+    e = vec_scale(e, 1.0 / ne)
+    nn = vec_cross(e, d)
+    return quat_from_matrix(nn[0], nn[1], nn[2], e[0], e[1], e[2], d[0], d[1], d[2]), True
+
+
+@_jit
 def quat_from_gravity_and_field(ax, ay, az, mx, my, mz, use_field):
     """Attitude from one accelerometer (specific force) and optionally one magnetometer sample.
 
@@ -179,14 +195,10 @@ def quat_from_gravity_and_field(ax, ay, az, mx, my, mz, use_field):
     north, east and down expressed in the body frame.
     """
     n = math.sqrt(ax * ax + ay * ay + az * az)
-    d = (-ax / n, -ay / n, -az / n)
     if use_field:
-        e = vec_cross(d, (mx, my, mz))
-        ne = vec_norm(e)
-        if ne > 1e-9:
-            e = vec_scale(e, 1.0 / ne)
-            nn = vec_cross(e, d)
-            return quat_from_matrix(nn[0], nn[1], nn[2], e[0], e[1], e[2], d[0], d[1], d[2])
+        q, ok = quat_from_down_and_field((-ax / n, -ay / n, -az / n), (mx, my, mz))
+        if ok:
+            return q
     roll = math.atan2(-ay, -az)
     pitch = math.atan2(ax, math.sqrt(ay * ay + az * az))
     return quat_from_euler(roll, pitch, 0.0)

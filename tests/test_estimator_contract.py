@@ -40,3 +40,40 @@ def test_per_sample_and_batch_identical(name):
 def test_unknown_parameter_is_a_clear_error(name):
     with pytest.raises(ValueError, match=f"unknown parameter.*gain.*{name}"):
         estimators.create(name, gain=1.0)
+
+
+@pytest.mark.parametrize("name", estimators.names())
+def test_identity_until_the_first_usable_accelerometer_sample(name):
+    """Every estimator starts the same way (_kernel.initialise_from_sample): nothing is
+    integrated before the attitude can be set from the sensors."""
+    q, gyr, acc, mag = constant_rotation([0.5, 0.2, -0.3], RATE, 1.0)
+    acc = acc.copy()
+    acc[:20] = np.nan  # the gyro turns, the accelerometer has nothing yet
+    m = mag if estimators.get(name).uses_mag else None
+    out = estimators.create(name).run(gyr, acc, m, dt=1 / RATE)
+    assert np.array_equal(out[:20], np.tile([1.0, 0.0, 0.0, 0.0], (20, 1)))
+    assert not np.allclose(out[20], [1.0, 0.0, 0.0, 0.0])  # started from the 21st sample
+
+
+def test_changed_kernel_sources_drop_the_cached_kernels(tmp_path, monkeypatch):
+    """numba checks only the defining file's time stamp; the package checks all the sources
+    its kernels are compiled from (ahrs_service/estimators/_cache.py)."""
+    from ahrs_service.estimators import _cache
+
+    cache = tmp_path / "__pycache__"
+    cache.mkdir()
+    src = tmp_path / "inlined.py"
+    src.write_text("x = 1\n")
+    monkeypatch.setattr(_cache, "_SOURCES", [src])
+    monkeypatch.setattr(_cache, "_CACHE", cache)
+    monkeypatch.setattr(_cache, "_STAMP", cache / "kernel-sources.sha256")
+    (cache / "k.step-1.py311.nbi").write_bytes(b"index")
+    (cache / "k.step-1.py311.1.nbc").write_bytes(b"code")
+    assert _cache.drop_stale_kernels()  # no stamp yet: the cache cannot be trusted
+    assert not list(cache.glob("*.nb?"))
+    (cache / "k.step-1.py311.nbi").write_bytes(b"index")
+    assert not _cache.drop_stale_kernels()  # same sources: the cache stays
+    assert (cache / "k.step-1.py311.nbi").exists()
+    src.write_text("x = 2\n")  # an inlined helper changed
+    assert _cache.drop_stale_kernels()
+    assert not (cache / "k.step-1.py311.nbi").exists()

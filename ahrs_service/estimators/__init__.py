@@ -17,7 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from ahrs_service.estimators.base import Estimator, stack_rows, time_steps
+from ahrs_service.estimators._cache import drop_stale_kernels
+
+drop_stale_kernels()  # before any kernel is loaded from the cache
+
+from ahrs_service.estimators.base import Estimator, stack_rows, time_steps  # noqa: E402
 
 # name -> (module, class). Order: first paper, second paper, third paper, then the project's own.
 _REGISTRY: dict[str, tuple[str, str]] = {

@@ -53,19 +53,27 @@ def check_sample(s, x, uses_mag):
     return gyro_ok, acc_ok, mag_ok
 
 
+GRAVITY = 9.81  # m/s², the nominal specific force at rest of the accelerometer gates
+RUNNING, WAITING, STARTED = 0, 1, 2  # initialise_from_sample results
+
+
 @_jit
 def initialise_from_sample(s, x, acc_ok, mag_ok):
     """Sets the attitude from the first usable accelerometer (and magnetometer) sample.
 
-    Returns True when the state was initialised by this call. Until then the estimate stays
-    at identity: no estimator converges from identity when it can start from the sensors.
+    Returns RUNNING (0) once initialised, WAITING while no usable accelerometer sample has
+    come, STARTED when this sample initialised the state. Any non-zero result means "do not
+    update with this sample": until the start the estimate stays at identity, for every
+    estimator alike (none converges from identity when it can start from the sensors).
     """
-    if s[INITIALISED] != 0.0 or not acc_ok:
-        return False
+    if s[INITIALISED] != 0.0:
+        return RUNNING
+    if not acc_ok:
+        return WAITING
     q = quat_from_gravity_and_field(x[3], x[4], x[5], x[6], x[7], x[8], mag_ok)
     s[0], s[1], s[2], s[3] = q
     s[INITIALISED] = 1.0
-    return True
+    return STARTED
 
 
 @_jit

@@ -114,8 +114,7 @@ class Estimator:
         else:
             row[6:9] = mag
         row[K.DT] = dt
-        self._step(self.state, self._p, row)
-        return self._q
+        return self.update_row(row)
 
     def update_row(self, row: np.ndarray) -> np.ndarray:
         """Fast path for the service: ``row`` is a filled float64 sample row (see ``_kernel``).
@@ -164,7 +163,7 @@ def _fill_rows(rows, gyr, acc, mag, dt):
             rows[i, k] = gyr[i, k]
             rows[i, 3 + k] = acc[i, k]
             rows[i, 6 + k] = mag[i, k]
-        rows[i, 9] = dt[i]
+        rows[i, K.DT] = dt[i]
 
 
 def time_steps(n: int, rate_hz: float | None = None, timestamps: Any = None) -> np.ndarray:

@@ -57,7 +57,6 @@ PHI, THETA, PSI = K.HEADER, K.HEADER + 1, K.HEADER + 2
 STATE_SIZE = K.HEADER + 3
 
 #: standard gravity, m/s²
-GRAVITY = 9.81
 
 
 def _check_omega0(omega0: float) -> None:
@@ -91,7 +90,10 @@ class ComplementaryFullParams:
     omega0: cut-off of the low-pass, rad/s, for all three angles (see the reduced form).
         0.2 rad/s scores best on the BROAD development recordings.
     declination: magnetic declination, rad, positive when magnetic north lies east of true
-        north (eq. 44). Default 0: heading against magnetic north. The service sets it live.
+        north (eq. 44). Default 0: heading against magnetic north. For runs outside the
+        service only: the service turns every estimator's output to true north itself
+        (``estimator.declination_deg`` or ``[location]``, MAVLink MAG_DECL_DEG), so a declination set
+        here as well would count twice.
     acc_gate: as for the reduced form; 0.1 scores best on BROAD.
     """
 
@@ -138,13 +140,13 @@ def _store_euler(s, phi, theta, psi):
 @_inline
 def _complementary_update(s, x, omega0, declination, acc_gate, use_mag):
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, use_mag)
-    if K.initialise_from_sample(s, x, acc_ok, mag_ok):
+    phase = K.initialise_from_sample(s, x, acc_ok, mag_ok)
+    if phase == K.STARTED:
         phi, theta, psi = quat_to_euler(K.load_quat(s))
         if mag_ok:
             psi += declination  # eq. 44: the start-up heading is magnetic
         _store_euler(s, phi, theta, psi)
-        return
-    if s[K.INITIALISED] == 0.0 or not gyro_ok:
+    if phase or not gyro_ok:
         return
     phi, theta, psi = s[PHI], s[THETA], s[PSI]
     wx, wy, wz, dt = x[0], x[1], x[2], x[K.DT]
@@ -159,7 +161,7 @@ def _complementary_update(s, x, omega0, declination, acc_gate, use_mag):
     # a sensor is missing (or, for yaw, in the reduced form) that estimate stands in for it
     phi_lf, theta_lf, psi_lf = phi_p, theta_p, psi_p
     fx, fy, fz = x[3], x[4], x[5]
-    if acc_ok and abs(math.sqrt(fx * fx + fy * fy + fz * fz) - GRAVITY) <= acc_gate * GRAVITY:
+    if acc_ok and abs(math.sqrt(fx * fx + fy * fy + fz * fz) - K.GRAVITY) <= acc_gate * K.GRAVITY:
         phi_lf = _unwrap_to(math.atan2(-fy, -fz), phi_p)  # eq. 29 (specific force)
         theta_lf = math.atan2(fx, math.sqrt(fy * fy + fz * fz))  # eq. 30
     if mag_ok:

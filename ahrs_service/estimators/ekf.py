@@ -40,7 +40,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
-from ahrs_service.quaternion import quat_normalize, quat_rotate
+from ahrs_service.quaternion import quat_normalize, quat_rotate, quat_rotate_inv
 
 N = 7  # state dimension: quaternion (4) + gyro bias (3)
 # layout after the common header: covariance, then scratch (contents meaningless between steps)
@@ -289,7 +289,7 @@ def _magnetometer_update(s, x, mag_noise, mag_gate, dt):
     # heading-only gain: quaternion rows onto t = (0, 0, 0, 1) ⊗ q (rotation about earth down),
     # bias rows onto the body vertical d = R(q)ᵀ (0, 0, 1)
     t = (-q3, -q2, q1, q0)
-    d = quat_rotate((q0, -q1, -q2, -q3), (0.0, 0.0, 1.0))
+    d = quat_rotate_inv((q0, q1, q2, q3), (0.0, 0.0, 1.0))
     for j in range(3):
         a = t[0] * kg[j] + t[1] * kg[3 + j] + t[2] * kg[6 + j] + t[3] * kg[9 + j]
         for i in range(4):
@@ -322,8 +322,6 @@ def ekf_step(s, p, x):
     gyro_noise, bias_noise, acc_noise, mag_noise = p[0], p[1], p[2], p[3]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
-        return
-    if s[K.INITIALISED] == 0.0:
         return
     _predict(s, x[0], x[1], x[2], x[K.DT], gyro_noise, bias_noise)
     if acc_ok:

@@ -37,7 +37,7 @@ from numba import njit
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.triad import align_down, down_direction
-from ahrs_service.quaternion import quat_from_rotvec, quat_integrate, quat_rotate_inv
+from ahrs_service.quaternion import quat_from_rotvec, quat_mul, quat_normalize, quat_rotate_inv
 
 Z = K.HEADER  # z: estimate of r₃ (body frame, ≈ unit)
 ETA2 = K.HEADER + 3  # η₂ = ξ̂ + γ₂ ν
@@ -77,21 +77,17 @@ class ImmersionInvarianceParams:
 def immersion_invariance_step(s, p, x):
     g1, g2, g3, xi_bar, mu_bar = p[0], p[1], p[2], p[3], p[4]
     gyro_ok, acc_ok, _ = K.check_sample(s, x, False)
-    if K.initialise_from_sample(s, x, acc_ok, False):
-        d = down_direction(x)
-        s[Z], s[Z + 1], s[Z + 2] = d
-        for i in range(3):
-            s[ETA2 + i] = 0.0
-            s[ETA3 + i] = 0.0
-        return
-    if s[K.INITIALISED] == 0.0 or not gyro_ok:
+    phase = K.initialise_from_sample(s, x, acc_ok, False)
+    if phase == K.STARTED:
+        s[Z], s[Z + 1], s[Z + 2] = down_direction(x)
+    if phase or not gyro_ok:
         return
     dt = x[K.DT]
     # −Ω × z over dt, exactly: the body turns by Ω dt, a fixed direction turns back
-    z = quat_rotate_inv(quat_from_rotvec(x[0] * dt, x[1] * dt, x[2] * dt), (s[Z], s[Z + 1], s[Z + 2]))
-    zx, zy, zz = z
-    # the output error compares this sample's acceleration with the prediction for this sample
-    px, py, pz = z
+    turn = quat_from_rotvec(x[0] * dt, x[1] * dt, x[2] * dt)  # exp(Ω dt / 2), also integrates q below
+    # the output error compares this sample's acceleration with this prediction p
+    px, py, pz = quat_rotate_inv(turn, (s[Z], s[Z + 1], s[Z + 2]))
+    zx, zy, zz = px, py, pz
     # ξ̄ tanh(ξ̂ + β₂): the slowly varying drift of r₃ (eq. 37, first line)
     zx += dt * xi_bar * math.tanh(s[ETA2])
     zy += dt * xi_bar * math.tanh(s[ETA2 + 1])
@@ -113,7 +109,7 @@ def immersion_invariance_step(s, p, x):
         s[ETA3 + 1] += dt * g3 * ey
         s[ETA3 + 2] += dt * g3 * ez
     s[Z], s[Z + 1], s[Z + 2] = zx, zy, zz
-    q = quat_integrate(K.load_quat(s), x[0], x[1], x[2], dt)
+    q = quat_normalize(quat_mul(K.load_quat(s), turn))  # quat_integrate, sharing exp(Ω dt / 2)
     nz = math.sqrt(zx * zx + zy * zy + zz * zz)
     if nz > 1e-9 and math.isfinite(nz):
         q = align_down(q, (zx / nz, zy / nz, zz / nz))

@@ -69,13 +69,13 @@ def kalman_roll_pitch_step(s, p, x):
     sigma_zeta, sigma_xi = p[0], p[1]
     r_meas = sigma_xi * sigma_xi
     gyro_ok, acc_ok, _ = K.check_sample(s, x, False)
-    if K.initialise_from_sample(s, x, acc_ok, False):
+    phase = K.initialise_from_sample(s, x, acc_ok, False)
+    if phase == K.STARTED:
         roll, pitch, yaw = quat_to_euler(K.load_quat(s))
         s[ROLL], s[ROLL + 1], s[ROLL + 2] = roll, pitch, yaw
         s[P_ROLL] = r_meas
         s[P_ROLL + 1] = r_meas
-        return
-    if s[K.INITIALISED] == 0.0:
+    if phase:
         return
     roll, pitch, yaw = s[ROLL], s[ROLL + 1], s[ROLL + 2]
     if gyro_ok:

@@ -26,12 +26,11 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
-from ahrs_service.estimators.quest import learn_dip, quest_quat
+from ahrs_service.estimators.quest import DIP, learn_dip, quest_quat
 from ahrs_service.estimators.triad import align_down, down_direction
 from ahrs_service.quaternion import quat_normalize
 
-DIP = K.HEADER  # earth field direction (cos δ, sin δ)
-P = K.HEADER + 2  # 4×4 covariance, row-major
+P = DIP + 2  # 4×4 covariance, row-major, after the learned dip
 G = P + 16  # 4×4 work area: the Kalman gain
 L = G + 16  # 4×4 work area: A P, then the Cholesky factor of C P Cᵀ + R
 STATE_SIZE = L + 16
@@ -69,8 +68,8 @@ def quaternion_kf_step(s, p, x):
     sigma_zeta, sigma_xi, w_acc, w_mag = p[0], p[1], p[3], p[4]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if s[DIP] == 0.0 and s[DIP + 1] == 0.0 and acc_ok and mag_ok:
-        learn_dip(s, x, DIP)
-    if K.initialise_from_sample(s, x, acc_ok, mag_ok) or s[K.INITIALISED] == 0.0:
+        learn_dip(s, x)
+    if K.initialise_from_sample(s, x, acc_ok, mag_ok):
         return
     q0, q1, q2, q3 = K.load_quat(s)
     if gyro_ok:
@@ -106,7 +105,7 @@ def quaternion_kf_step(s, p, x):
         pred = quat_normalize((q0, q1, q2, q3))
         d = down_direction(x)
         ok = False
-        if mag_ok and (s[DIP] != 0.0 or s[DIP + 1] != 0.0):
+        if mag_ok:  # the dip is known: learn_dip ran above
             y, ok = quest_quat(d, (x[6], x[7], x[8]), (s[DIP], 0.0, s[DIP + 1]), w_acc, w_mag)
         if not ok:
             y = align_down(pred, d)

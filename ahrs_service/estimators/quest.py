@@ -128,14 +128,14 @@ def quest_quat(d, m, rm, w_acc, w_mag):
 
 
 @_inline
-def learn_dip(s, x, off):
-    """Stores the earth field direction (cos δ, sin δ) from down · m of a row at s[off:off+2]."""
+def learn_dip(s, x):
+    """Stores the earth field direction (cos δ, sin δ) from down · m of a row at s[DIP:DIP+2]."""
     d = down_direction(x)
     nm = math.sqrt(x[6] * x[6] + x[7] * x[7] + x[8] * x[8])
     sd = (d[0] * x[6] + d[1] * x[7] + d[2] * x[8]) / nm
     sd = min(1.0, max(-1.0, sd))
-    s[off] = math.sqrt(1.0 - sd * sd)
-    s[off + 1] = sd
+    s[DIP] = math.sqrt(1.0 - sd * sd)
+    s[DIP + 1] = sd
 
 
 @dataclass
@@ -163,21 +163,20 @@ def quest_step(s, p, x):
     w_acc, w_mag = p[0], p[1]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if s[DIP] == 0.0 and s[DIP + 1] == 0.0 and acc_ok and mag_ok:
-        learn_dip(s, x, DIP)
+        learn_dip(s, x)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok):
         return
+    if acc_ok and mag_ok:  # the dip is known: learn_dip ran above
+        qq, ok = quest_quat(down_direction(x), (x[6], x[7], x[8]), (s[DIP], 0.0, s[DIP + 1]), w_acc, w_mag)
+        if ok:
+            K.store_quat(s, qq)
+            return
+    # without an algebraic fix the gyro carries the attitude, gravity sets its tilt
     q = K.load_quat(s)
     if gyro_ok:
         q = quat_integrate(q, x[0], x[1], x[2], x[K.DT])
     if acc_ok:
-        d = down_direction(x)
-        ok = False
-        if mag_ok and (s[DIP] != 0.0 or s[DIP + 1] != 0.0):
-            qq, ok = quest_quat(d, (x[6], x[7], x[8]), (s[DIP], 0.0, s[DIP + 1]), w_acc, w_mag)
-            if ok:
-                q = qq
-        if not ok:
-            q = align_down(q, d)
+        q = align_down(q, down_direction(x))
     K.store_quat(s, q)
 
 

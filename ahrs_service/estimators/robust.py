@@ -96,7 +96,6 @@ def _start(s, x):
     r = B.quat_to_matrix(K.load_quat(s))
     for k in range(3):
         B.butter2_reset(s, CA, ACC_LP, 3, k, a_i[k])
-        s[ACC_OUT + k] = a_i[k]
         B.butter2_reset(s, CR, REST_GYR, 3, k, x[k])
         B.butter2_reset(s, CR, REST_ACC, 3, k, x[3 + k])
         s[GYR_LP + k] = x[k]
@@ -149,7 +148,6 @@ def _inclination_and_bias(s, p, x, dt, qg, rg):
     lp0 = B.butter2_step(s, ca, ACC_LP, 3, 0, a_i[0])
     lp1 = B.butter2_step(s, ca, ACC_LP, 3, 1, a_i[1])
     lp2 = B.butter2_step(s, ca, ACC_LP, 3, 2, a_i[2])
-    s[ACC_OUT], s[ACC_OUT + 1], s[ACC_OUT + 2] = lp0, lp1, lp2
     qa = (s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3])
     a_e = quat_rotate(qa, (lp0, lp1, lp2))
     n = math.sqrt(a_e[0] ** 2 + a_e[1] ** 2 + a_e[2] ** 2)
@@ -218,7 +216,8 @@ def _inclination_and_bias(s, p, x, dt, qg, rg):
 def robust_step(s, p, x):
     """Advances the robust estimator by one sample row (see ``_kernel``)."""
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
-    if K.initialise_from_sample(s, x, acc_ok, mag_ok):
+    phase = K.initialise_from_sample(s, x, acc_ok, mag_ok)
+    if phase == K.STARTED:
         dt0 = x[K.DT] if gyro_ok else 0.01
         _update_coefficients(s, p, dt0)
         _start(s, x)
@@ -226,7 +225,7 @@ def robust_step(s, p, x):
             s[MAG_DT] = dt0
             heading(s, p, x, (s[0], s[1], s[2], s[3]))  # q_a = 1: q_a ⊗ q_g = q_g = q
         return
-    if s[K.INITIALISED] == 0.0 or not gyro_ok:
+    if phase or not gyro_ok:
         return
     dt = x[K.DT]
     _update_coefficients(s, p, dt)
@@ -297,5 +296,6 @@ class RobustEstimator(Estimator):
             "mag_ref_dip_deg": float(np.degrees(s[MAG_REF_DIP])),
             "hard_iron_ut": s[HI_H : HI_H + 3].copy(),
             "hard_iron_trusted": bool(s[HI_OK]),
-            "consistency_ut": float(np.sqrt(max(s[CONS], 0.0))),
+            # residual / tolerance of the gyro-consistency test (< 1: consistent), no unit
+            "consistency_ratio": float(np.sqrt(max(s[CONS], 0.0))),
         }

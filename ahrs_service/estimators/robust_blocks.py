@@ -9,10 +9,6 @@ and magnetic disturbance rejection", Information Fusion 91, 2023 (section 3 and 
 a second-order Butterworth low-pass parametrised by a time constant τ, whose cut-off
 frequency is f_c = √2 / (2π τ), so that its step response settles like a first-order
 filter of time constant τ.
-
-numba caches the compiled ``robust_step`` by the time stamp of ``robust.py`` only: after
-editing this module, touch ``robust.py`` (or delete its ``__pycache__`` entries) so the
-step is compiled again.
 """
 
 from __future__ import annotations

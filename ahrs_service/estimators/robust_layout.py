@@ -3,10 +3,6 @@
 ``RobustParams`` holds every tuning parameter with its unit and default; the ``P_*``
 constants index the packed parameter vector and the upper-case slot names index the state
 array after the common header of ``_kernel`` (q, flags, counters, gyro bias at 8..10).
-
-numba caches the compiled ``robust_step`` by the time stamp of ``robust.py`` only: after
-editing this module, touch ``robust.py`` (or delete its ``__pycache__`` entries) so the
-step is compiled again.
 """
 
 from __future__ import annotations
@@ -163,8 +159,7 @@ COEF_DT, COEF_TAU_ACC, COEF_TAU_REST = DELTA + 1, DELTA + 2, DELTA + 3  # keys o
 CA = DELTA + 4  # (b0, a1, a2) for τ_acc
 CR = CA + 3  # (b0, a1, a2) for rest_filter_tau
 ACC_LP = CR + 3  # 2 × 3 filter states of the accelerometer in I
-ACC_OUT = ACC_LP + 6  # 3: low-passed specific force in I, m/s²
-REST_GYR = ACC_OUT + 3  # 2 × 3 states, gyro low-pass for rest detection
+REST_GYR = ACC_LP + 6  # 2 × 3 states, gyro low-pass for rest detection
 REST_ACC = REST_GYR + 6  # 2 × 3 states, accelerometer low-pass for rest detection
 GYR_LP = REST_ACC + 6  # 3: low-passed gyro, rad/s
 REST_T = GYR_LP + 3  # time the rest tests have passed, s

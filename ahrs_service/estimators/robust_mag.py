@@ -7,10 +7,6 @@ satisfy Δȳ = ΔR̄ h between consecutive blocks: linear in h (least squares wi
 and whatever Δȳ the rotation and ĥ do not explain is a field that changed in I — the
 gyro-consistency statistic. The heading offset δ follows VQF eq. 11–12 (D. Laidig, T. Seel,
 Information Fusion 91, 2023), written for NED: δ turns the field's horizontal part onto north.
-
-numba caches the compiled ``robust_step`` by the time stamp of ``robust.py`` only: after
-editing this module, touch ``robust.py`` (or delete its ``__pycache__`` entries) so the
-step is compiled again.
 """
 
 from __future__ import annotations

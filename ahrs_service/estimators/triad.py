@@ -24,7 +24,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
-from ahrs_service.quaternion import quat_from_matrix, quat_integrate, quat_mul, quat_normalize, quat_rotate
+from ahrs_service.quaternion import quat_from_down_and_field, quat_integrate, quat_mul, quat_normalize, quat_rotate
 
 _inline = njit(cache=True, inline="always")
 
@@ -57,22 +57,10 @@ def triad_quat(d, mx, my, mz):
 
     Returns (q, ok); ok is False when the field is (nearly) parallel to down.
     """
-    # eq. 15 (body triad): t1 = down, t2 = down × m / |down × m| (points east), t3 = t1 × t2
-    e0 = d[1] * mz - d[2] * my
-    e1 = d[2] * mx - d[0] * mz
-    e2 = d[0] * my - d[1] * mx
-    ne = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-    nm = math.sqrt(mx * mx + my * my + mz * mz)
-    if not ne > 1e-6 * nm:
-        return (1.0, 0.0, 0.0, 0.0), False
-    e0, e1, e2 = e0 / ne, e1 / ne, e2 / ne
-    # t3 = t1 × t2 = down × east = −north; the earth triad is (e_z, e_y, −e_x), so eq. 16's
-    # product [t1b t2b t3b][t1i t2i t3i]ᵀ is R_body←earth with columns north, east, down:
-    n0 = e1 * d[2] - e2 * d[1]
-    n1 = e2 * d[0] - e0 * d[2]
-    n2 = e0 * d[1] - e1 * d[0]
-    # rows of R_earth←body are north, east, down expressed in the body frame
-    return quat_from_matrix(n0, n1, n2, e0, e1, e2, d[0], d[1], d[2]), True
+    # eq. 15's body triad is t1 = down, t2 = down × m / |down × m| (east), t3 = t1 × t2 = −north;
+    # with the earth triad (e_z, e_y, −e_x), eq. 16's product is R_body←earth, whose columns
+    # north, east, down are the rows of R_earth←body that quat_from_down_and_field builds
+    return quat_from_down_and_field(d, (mx, my, mz))
 
 
 @dataclass
@@ -85,19 +73,17 @@ def triad_step(s, p, x):
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok):
         return
+    if acc_ok and mag_ok:
+        qt, ok = triad_quat(down_direction(x), x[6], x[7], x[8])
+        if ok:
+            K.store_quat(s, qt)
+            return
+    # between algebraic fixes the gyro carries the attitude (yaw without mag), gravity its tilt
     q = K.load_quat(s)
     if gyro_ok:
-        # between algebraic fixes the gyro carries the attitude (used for yaw without mag)
         q = quat_integrate(q, x[0], x[1], x[2], x[K.DT])
     if acc_ok:
-        d = down_direction(x)
-        ok = False
-        if mag_ok:
-            qt, ok = triad_quat(d, x[6], x[7], x[8])
-            if ok:
-                q = qt
-        if not ok:
-            q = align_down(q, d)
+        q = align_down(q, down_direction(x))
     K.store_quat(s, q)
 
 

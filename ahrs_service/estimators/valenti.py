@@ -49,7 +49,6 @@ from ahrs_service.quaternion import quat_mul, quat_normalize, quat_rotate
 #: the threshold on the delta's scalar part above which LERP replaces SLERP (eq. 54–56)
 EPSILON = 0.9
 #: standard gravity for the adaptive gain, m/s²
-GRAVITY = 9.81
 
 
 @dataclass
@@ -146,8 +145,6 @@ def valenti_step(s, p, x):
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
         return
-    if s[K.INITIALISED] == 0.0:
-        return
     q = K.load_quat(s)
     dt = x[K.DT]
 
@@ -158,7 +155,7 @@ def valenti_step(s, p, x):
     if acc_ok:
         na = math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
         # annex 3: adaptive gain from the magnitude error of the specific force
-        err = abs(na - GRAVITY) / GRAVITY
+        err = abs(na - K.GRAVITY) / K.GRAVITY
         if err <= t_low:
             factor = 1.0
         elif err >= t_high:
