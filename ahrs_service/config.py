@@ -124,7 +124,6 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
     "estimator": {
         "name": ("robust", _estimator_name),
         "params": ({}, _table),
-        "reduced_fallback": (True, _boolean),
         "mag_timeout_s": (0.5, _number(0.01, 60.0)),
         "declination_deg": (0.0, _number(-180.0, 180.0)),
     },
@@ -170,6 +169,7 @@ class Config:
 
     raw: dict[str, dict[str, Any]]
     path: Path | None = None
+    overrides: dict[str, dict[str, Any]] | None = None  # from the command line; kept for reloads
 
     def __getattr__(self, section: str) -> dict[str, Any]:
         try:
@@ -208,20 +208,27 @@ def validate(data: dict[str, Any]) -> Config:
     return Config(out)
 
 
-def load(path: str | Path | None) -> Config:
-    """Reads and validates a TOML file; None gives the embedded default."""
-    if path is None:
-        return validate({})
-    path = Path(path)
-    try:
-        with path.open("rb") as f:
-            data = tomllib.load(f)
-    except FileNotFoundError:
-        raise ConfigError(f"configuration file {path} does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+def load(path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = None) -> Config:
+    """Reads and validates a TOML file; None gives the embedded default.
+
+    ``overrides`` ({section: {key: value}}, e.g. from command-line options) replace the file's
+    values and are validated with them; the Config keeps them so that a reload applies them again.
+    """
+    data: dict[str, Any] = {}
+    if path is not None:
+        path = Path(path)
+        try:
+            with path.open("rb") as f:
+                data = tomllib.load(f)
+        except FileNotFoundError:
+            raise ConfigError(f"configuration file {path} does not exist") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    for section, values in (overrides or {}).items():
+        data[section] = {**data.get(section, {}), **values}
     cfg = validate(data)
     cfg.path = path
+    cfg.overrides = overrides
     return cfg
 
 

@@ -35,7 +35,7 @@ class EstimationPipeline:
     the recorded estimate replays unchanged.
     """
 
-    REST_WINDOW = 200  # samples kept for the rest check and gyro calibration
+    REST_WINDOW_S = 1.0  # recent samples kept for the rest check and gyro calibration, s
 
     def __init__(
         self,
@@ -62,8 +62,9 @@ class EstimationPipeline:
         self._first_t_ns: int | None = None
         self._mag = np.full(3, np.nan)
         self._mag_t_ns: int | None = None
-        self._recent_gyr: deque[np.ndarray] = deque(maxlen=self.REST_WINDOW)
-        self._recent_acc: deque[np.ndarray] = deque(maxlen=self.REST_WINDOW)
+        self.rest_window = max(20, int(round(self.REST_WINDOW_S / nominal_dt)))  # samples
+        self._recent_gyr: deque[np.ndarray] = deque(maxlen=self.rest_window)
+        self._recent_acc: deque[np.ndarray] = deque(maxlen=self.rest_window)
 
     def warm_up(self) -> None:
         """Compiles, or loads from numba's cache, every kernel of the per-sample path.
@@ -154,7 +155,7 @@ class EstimationPipeline:
         return np.array(self._recent_gyr).mean(axis=0)
 
     def calibrate_gyro_bias(self) -> GyroBiasResult:
-        """Adds the mean residual rate of the recent window (``REST_WINDOW`` samples) to the
+        """Adds the mean residual rate of the recent window (``REST_WINDOW_S``) to the
         calibration's gyro bias — only when that window shows the IMU at rest."""
         gyr = np.array(self._recent_gyr) if self._recent_gyr else np.empty((0, 3))
         acc = np.array(self._recent_acc) if self._recent_acc else np.empty((0, 3))
@@ -163,7 +164,7 @@ class EstimationPipeline:
         # block means wander by ~0.7° rms: the norm and direction tests allow that, while
         # motion still shows in the gyro spread
         result = gyro_bias_at_rest(
-            gyr, acc, min_samples=self.REST_WINDOW // 2, max_acc_norm_std=0.6, max_acc_direction_deg=2.0
+            gyr, acc, min_samples=self.rest_window // 2, max_acc_norm_std=0.6, max_acc_direction_deg=2.0
         )
         if result.at_rest:
             self.calibration = self.calibration.with_gyro_bias_shift(result.bias)

@@ -77,8 +77,7 @@ class FixedRateScheduler:
         self._lateness = np.zeros(_WINDOW)
         self._period = np.zeros(_WINDOW)
         self._busy = np.zeros(_WINDOW)
-        self._last_wake = 0
-        self._wake = 0
+        self._wake = 0  # the last wake-up, ns
 
     def set_rate(self, rate_hz: float) -> None:
         """Changes the rate; the new schedule starts at the next tick."""
@@ -112,8 +111,7 @@ class FixedRateScheduler:
                 break
         i = self.ticks % _WINDOW
         self._lateness[i] = now - deadline
-        self._period[i] = (now - self._last_wake) if self.ticks else self.period_ns
-        self._last_wake = now
+        self._period[i] = (now - self._wake) if self.ticks else self.period_ns
         self._wake = now
         self.ticks += 1
         self._k += 1

@@ -55,7 +55,7 @@ class Service:
         self.source: ImuSource | None = None
         self.mavlink = None
         self.log_writer = None
-        self.live_calibration = LiveCalibrator()
+        self.live_calibration = LiveCalibrator(max_rate_hz=cfg.rates["estimation_hz"])
 
     # ------------------------------------------------------------------ set-up
     def start(self) -> None:
@@ -205,6 +205,7 @@ class Service:
                 self._reload = False
                 self.reload()
                 sched, pipeline, writer = self.scheduler, self.pipeline, self.log_writer
+                was_reduced = pipeline.reduced  # a new pipeline starts in full form
                 _freeze_heap()
             if end_ns is not None and now >= end_ns:
                 break
@@ -308,7 +309,7 @@ class Service:
         """SIGHUP: re-reads the configuration file and applies it; a bad file changes nothing."""
         self.notifier.reloading()
         try:
-            new = config_mod.load(self.cfg.path) if self.cfg.path else config_mod.validate({})
+            new = config_mod.load(self.cfg.path, self.cfg.overrides)
         except config_mod.ConfigError as exc:
             self.report(f"reload refused: {exc}", 3)
             self.notifier.ready(self.status_line())
@@ -340,7 +341,8 @@ class Service:
             self._open_log(new)
         elif self.log_writer is not None:
             self.log_writer.write_config(time.monotonic_ns(), self.effective_config())
-        if new.mavlink != old_cfg.mavlink or new.rates != old_cfg.rates:
+        if not same_filter or new.mavlink != old_cfg.mavlink or new.rates != old_cfg.rates:
+            # another filter has other EST_* parameters: the table is rebuilt with the component
             self.mavlink.close()
             self._open_mavlink(new)
         self.report("configuration reloaded", 6)

@@ -42,11 +42,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         stream=sys.stderr,
     )
     try:
-        cfg = config_mod.load(args.config)
+        log_overrides: dict[str, object] = {}
         if args.log_dir:
-            cfg.raw["log"]["directory"] = args.log_dir
+            log_overrides["directory"] = args.log_dir
         if args.no_log:
-            cfg.raw["log"]["enabled"] = False
+            log_overrides["enabled"] = False
+        cfg = config_mod.load(args.config, {"log": log_overrides} if log_overrides else None)
     except config_mod.ConfigError as exc:
         print(f"ahrs-service: configuration error: {exc}", file=sys.stderr)
         return 2

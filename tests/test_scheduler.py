@@ -54,7 +54,7 @@ def test_stats_describe_the_last_second(clock):
     for _ in range(300):
         late = int(rng.integers(0, 2_000_000))  # up to 2 ms late, then back on the grid
         clock.now += late
-        before = s._last_wake
+        before = s._wake
         now = s.wait()
         periods.append(now - before)
         s.done()
