@@ -81,7 +81,11 @@ class EstimationPipeline:
             flags=GYR_VALID | ACC_VALID | MAG_VALID | MAG_NEW,
         )
         apply_calibration(sample, self.calibration)
+        # the identity calibration skips the compiled path: a live calibration must not be
+        # the first call of it, nor the first publish the first quaternion product
+        apply_calibration(sample, SensorCalibration().with_gyro_bias_shift(np.full(3, 1e-3)))
         probe.update_row(np.array([0.0, 0.0, 0.0, 0.0, 0.0, -G, 20.0, 0.0, 45.0, self.nominal_dt]))
+        quat_to_euler(quat_mul(self._q_decl, (1.0, 0.0, 0.0, 0.0)))
 
     def set_declination(self, degrees: float) -> None:
         self.declination_deg = float(degrees)
