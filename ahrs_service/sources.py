@@ -86,6 +86,7 @@ class SimulatedCanSource(ImuSource):
         self.can_cfg, self.imu, self.rate_hz = can_cfg, imu, rate_hz
         self.inner = DroneCanImuSource(can_cfg)
         self.diagnostics = self.inner.diagnostics
+        self.may_have_backlog = self.inner.may_have_backlog
         self.node = None
 
     def open(self) -> None:

@@ -21,6 +21,7 @@ seeded with the data type signature's CRC (``base_crc``).
 
 from __future__ import annotations
 
+import binascii
 import math
 import struct
 from collections.abc import Sequence
@@ -86,26 +87,10 @@ def parse_can_id(can_id: int) -> CanId:
 # ------------------------------------------------------------------------------------ CRC
 
 
-def _crc_table() -> tuple[int, ...]:
-    table = []
-    for byte in range(256):
-        crc = byte << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else (crc << 1)
-        table.append(crc & 0xFFFF)
-    return tuple(table)
-
-
-_CRC_TABLE = _crc_table()
-
-
 def crc16(data: bytes | bytearray, initial: int) -> int:
-    """CRC-16-CCITT (poly 0x1021, no reflection) as DroneCAN uses for multi-frame transfers."""
-    crc = initial
-    table = _CRC_TABLE
-    for b in data:
-        crc = ((crc << 8) & 0xFFFF) ^ table[(crc >> 8) ^ b]
-    return crc
+    """CRC-16-CCITT (poly 0x1021, no reflection) as DroneCAN uses for multi-frame transfers:
+    the standard library's ``binascii.crc_hqx`` (C, ~25× the table loop in Python)."""
+    return binascii.crc_hqx(data, initial)
 
 
 @lru_cache(maxsize=256)

@@ -90,6 +90,11 @@ def send_all(bus, frames):
         bus.send(f)
 
 
+def read_all(src):
+    """Every pending sample, oldest first: ``read`` until None, as the service does."""
+    return list(iter(src.read, None))
+
+
 # ------------------------------------------------------------------------ protocol level
 
 
@@ -225,22 +230,38 @@ def test_deprecated_mag_message_and_read_all(buses):
     send_all(tx, dc.encode_message(m, 7, 0))
     for k in range(3):
         send_all(tx, dc.encode_message(raw_imu_msg(1000 + 2000 * k, (0.01 * k, 0, 0), (0, 0, -9.81)), 7, k))
-    samples = src.read_all()
+    samples = read_all(src)
     assert [s.raw["sensor_time_us"] for s in samples] == [1000, 3000, 5000]
     assert [bool(s.flags & MAG_NEW) for s in samples] == [True, False, False]
     np.testing.assert_allclose(samples[2].mag, [20.0, 5.0, -40.0], rtol=F16_RTOL)
     assert samples[2].t_ns - samples[0].t_ns == 4_000_000
 
 
-def test_read_returns_newest_and_flags_fresh_mag(buses):
+def test_read_returns_backlog_oldest_first_and_flags_fresh_mag(buses):
     tx, src, clock = make(buses, node_id=42)
+    assert src.may_have_backlog
     node = SimulatedDroneCanImuNode(tx, RampImu(), node_id=42, rate_hz=100, mag_rate_hz=50)
-    node.step(0.05)  # six RawIMU and three mag transfers queued before one read
+    node.step(0.05)  # six RawIMU and three mag transfers queued before the first read
     s = src.read()
-    assert s.raw["sensor_time_us"] == node.sensor_epoch_us + 50_000
+    assert s.raw["sensor_time_us"] == node.sensor_epoch_us
     assert s.flags & MAG_NEW
-    assert src.diagnostics.extra["superseded_samples"] == 5
+    rest = read_all(src)
+    assert [s.raw["sensor_time_us"] - node.sensor_epoch_us for s in rest] == [10_000, 20_000, 30_000, 40_000, 50_000]
+    assert [bool(s.flags & MAG_NEW) for s in rest] == [False, True, False, True, False]
+    assert src.diagnostics.extra["superseded_samples"] == 0
     assert src.read() is None
+
+
+def test_pending_overflow_drops_oldest(buses):
+    tx, src, clock = make(buses, node_id=42, max_pending_samples=4)
+    node = SimulatedDroneCanImuNode(tx, RampImu(), node_id=42, rate_hz=100, mag_rate_hz=0)
+    node.step(0.05)  # six samples for room for four
+    assert src.read().raw["sensor_time_us"] - node.sensor_epoch_us == 20_000
+    node.step(0.07)  # two more arrive while three wait: one more overflow
+    got = [s.raw["sensor_time_us"] - node.sensor_epoch_us for s in read_all(src)]
+    assert got == [40_000, 50_000, 60_000, 70_000]
+    assert src.diagnostics.extra["superseded_samples"] == 3
+    assert src.diagnostics.samples == 5
 
 
 def test_node_filter_counts_foreign_frames(buses):
@@ -274,7 +295,7 @@ def test_locks_onto_first_node_and_separate_mag_node(buses):
     m = dronecan.uavcan.equipment.ahrs.MagneticFieldStrength2(sensor_id=0, magnetic_field_ga=[0.1, 0.2, 0.3])
     send_all(tx, dc.encode_message(m, 20, 0))
     first.step(0.01)
-    samples = src.read_all()
+    samples = read_all(src)
     assert src.node_id == 30
     assert [s.raw["node_id"] for s in samples] == [30, 30]
     np.testing.assert_allclose(samples[1].mag, [10.0, 20.0, 30.0], rtol=F16_RTOL)
@@ -338,7 +359,7 @@ def test_periodic_and_repeated_fault_injection(buses):
     got = []
     for k in range(9):
         node.step(k / 100)
-        got += [s.raw["sensor_time_us"] - node.sensor_epoch_us for s in src.read_all()]
+        got += [s.raw["sensor_time_us"] - node.sensor_epoch_us for s in read_all(src)]
     # transfers 0 and 1 lose a middle frame, every third (2, 5, 8) is corrupted
     assert got == [30_000, 40_000, 60_000, 70_000]
     assert node.injected["drop_middle"] == 2 and node.injected["corrupt"] == 3
@@ -448,6 +469,23 @@ def test_bus_error_recovery_reopens_with_backoff(buses):
     src.close()
 
 
+def test_reopen_after_fault_clears_device_lost_and_backoff():
+    bus = FailingBus(can.CanError("bus-off"))
+    clock = ManualNs()
+    src = DroneCanImuSource(DroneCanConfig(reopen_backoff_s=0.1), bus=bus, clock_ns=clock)
+    src.open()
+    d = src.diagnostics
+    assert src.read() is None and d.device_lost  # a fault: the back-off doubles to 0.2 s
+    src.close()
+    src.open()
+    assert not d.device_lost
+    assert src.read() is None and d.bus_errors == 2 and d.device_lost
+    clock.t += 100_000_000  # the back-off started over at 0.1 s
+    assert src.read() is None and d.reinitialisations == 1
+    src.close()
+    bus.shutdown()
+
+
 def test_given_bus_error_is_retried_on_same_bus():
     bus = FailingBus(OSError("ENETDOWN"))
     clock = ManualNs()
@@ -502,7 +540,7 @@ def test_node_thread_starts_and_stops(buses):
     try:
         # bounded in count and time; how many arrive depends on the machine, not asserted
         for _ in range(2000):
-            got += src.read_all()
+            got += read_all(src)
             if len(got) >= 5 or not node.running:
                 break
             pause.wait(0.005)
@@ -579,7 +617,7 @@ got = []
 deadline = time.monotonic() + 15
 while len(got) < {n} and time.monotonic() < deadline:
     got += [[s.t_ns, s.raw["sensor_time_us"], list(s.gyr), list(s.acc), s.mag is not None]
-            for s in src.read_all()]
+            for s in iter(src.read, None)]
     time.sleep(0.001)
 src.close()
 print(json.dumps({{"samples": got, "diag": src.diagnostics.as_dict()}}))
@@ -654,3 +692,13 @@ def test_cross_process_udp_multicast_in_network_namespace(tmp_path):
     assert all(np.diff([s[0] for s in samples]) > 0)
     assert all(np.diff([s[1] for s in samples]) > 0)
     assert samples[-1][4]  # the magnetometer arrived too
+
+
+def test_service_reads_can_sources_until_empty():
+    """A CAN source hands out every sample in order: the service must drain it each tick."""
+    from ahrs_service import config as config_mod
+    from ahrs_service.sources import make_source
+
+    for kind in ("can", "simulated_can"):
+        cfg = config_mod.validate({"source": {"type": kind, "can_interface": "virtual"}})
+        assert make_source(cfg.source, 200.0).may_have_backlog, kind

@@ -436,6 +436,7 @@ def test_st_gyro_overrun_is_counted():
     src.advance(3 / 800)  # three samples, two never read
     assert drv.read_if_new() is not None
     assert drv.overruns == 1
+    assert drv.diagnostics.extra["gyr_overruns"] == 1
     assert drv.read_if_new() is None
 
 
@@ -570,6 +571,10 @@ def test_board_gives_each_gyro_sample_once_with_mag_when_new(name):
     np.testing.assert_allclose(s.gyr, src.gyr, atol=0.002)
     np.testing.assert_allclose(s.acc, src.acc, atol=0.05)
     np.testing.assert_allclose(s.truth_q, src.q)
+    if name == "mpu9250":  # its die temperature comes in the same burst as gyro and accelerometer
+        assert abs(s.temperature_c - src.temperature_c) <= 1 / 333.87 and "temp" in s.raw
+    else:
+        assert s.temperature_c is None
     with_mag = [x for x in samples if x.mag is not None]
     assert all(x.flags & MAG_NEW and x.flags & MAG_VALID for x in with_mag)
     assert all(not x.flags & MAG_NEW for x in samples if x.mag is None)
@@ -578,6 +583,15 @@ def test_board_gives_each_gyro_sample_once_with_mag_when_new(name):
     np.testing.assert_allclose(with_mag[-1].mag, src.mag, atol=0.5)
     assert board.diagnostics.samples == len(samples)
     assert board.diagnostics.bus_errors == 0
+
+
+def test_board_counts_gyro_overruns_in_its_diagnostics():
+    src, board = stand_in_board("gy80")
+    src.advance(1 / 800)
+    assert board.read() is not None and "gyr_overruns" not in board.diagnostics.extra
+    src.advance(3 / 800)  # three samples, two never read
+    assert board.read() is not None
+    assert board.diagnostics.extra["gyr_overruns"] == 1
 
 
 def test_board_read_is_lean():

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -63,6 +64,8 @@ class DroneCanConfig:
     transfer_timeout_s: a multi-frame transfer not finished this long after its first frame
         is dropped as incomplete.
     max_frames_per_read: bound on the frames drained in one ``read`` call.
+    max_pending_samples: bound on the received samples waiting for ``read``; when more
+        arrive the oldest are dropped (counted as ``superseded_samples``).
     reopen_backoff_s, reopen_backoff_max_s: first and longest wait before reopening a bus
         that raised an error (doubles on each failure).
     negate_acc: flips the accelerometer sign for nodes that publish −specific force.
@@ -77,6 +80,7 @@ class DroneCanConfig:
     mag_sensor_id: int | None = None
     transfer_timeout_s: float = 0.5
     max_frames_per_read: int = 512
+    max_pending_samples: int = 64
     reopen_backoff_s: float = 0.05
     reopen_backoff_max_s: float = 2.0
     negate_acc: bool = False
@@ -155,12 +159,14 @@ class DroneCanImuSource(ImuSource):
     every reopen), or None to open one from ``config``. ``clock_ns`` is the host monotonic
     clock in ns (injectable for tests).
 
-    ``read`` drains the pending frames and returns the newest new sample; magnetometer values
-    are the latest received (µT), with ``MAG_NEW`` set when one arrived since the previously
-    returned sample. ``read_all`` returns every new sample in order instead.
+    ``read`` drains the pending frames and returns the oldest sample not yet delivered (the
+    service calls it until None, see ``may_have_backlog``); magnetometer values are the
+    latest received before that sample (µT), with ``MAG_NEW`` set when one arrived since the
+    previous sample.
     """
 
     has_mag = True
+    may_have_backlog = True
 
     def __init__(
         self,
@@ -199,7 +205,8 @@ class DroneCanImuSource(ImuSource):
         self._last_t_ns = -1
         self._mag: tuple[float, float, float] | None = None
         self._mag_fresh = False
-        self._pending: list[list] = []  # [t_ns, usec, gyr, acc, mag_new, mag, node]
+        # received, not yet delivered: [t_ns, usec, gyr, acc, mag_new, mag, node], oldest first
+        self._pending: deque[list] = deque(maxlen=config.max_pending_samples)
         self._reasm_dropped = 0
         self.diagnostics.extra.update(
             foreign_frames=0,
@@ -218,20 +225,23 @@ class DroneCanImuSource(ImuSource):
     def open(self) -> None:
         """Opens the bus; raises ``OSError`` naming interface and channel when that fails."""
         self._opened = True
+        self._next_open_ns = 0
+        self._backoff_s = self.config.reopen_backoff_s
         if self._given_bus is not None:
             self._bus = self._given_bus
-            return
-        try:
-            self._bus = self._factory()  # type: ignore[misc]
-        except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise OSError(
-                f"cannot open CAN bus interface={self.config.interface!r} channel={self.config.channel!r}: {exc}"
-            ) from exc
+        else:
+            try:
+                self._bus = self._factory()  # type: ignore[misc]
+            except (can.CanError, OSError, ValueError, ImportError) as exc:
+                raise OSError(
+                    f"cannot open CAN bus interface={self.config.interface!r} channel={self.config.channel!r}: {exc}"
+                ) from exc
         self.diagnostics.device_lost = False
 
     def close(self) -> None:
-        """Shuts the bus down when this source opened it."""
+        """Shuts the bus down when this source opened it; undelivered samples are discarded."""
         self._opened = False
+        self._pending.clear()
         bus, self._bus = self._bus, None
         if bus is not None and bus is not self._given_bus:
             try:
@@ -277,42 +287,26 @@ class DroneCanImuSource(ImuSource):
     # ---------------------------------------------------------------------------- read
 
     def read(self) -> ImuSample | None:
-        """The newest sample received since the last call, or None. Never raises on bus faults."""
+        """The oldest sample not yet delivered, or None. Never raises on bus faults."""
         self._drain()
-        pending = self._pending
-        if not pending:
-            return None
-        if len(pending) > 1:
-            self.diagnostics.extra["superseded_samples"] += len(pending) - 1
-        mag_new = any(p[4] for p in pending)
-        newest = pending[-1]
-        pending.clear()
-        return self._sample(newest, mag_new)
+        return self._sample(self._pending.popleft()) if self._pending else None
 
-    def read_all(self) -> list[ImuSample]:
-        """Every sample received since the last call, oldest first (for logging and tests)."""
-        self._drain()
-        out = [self._sample(p, p[4]) for p in self._pending]
-        self._pending.clear()
-        return out
-
-    def _sample(self, p: list, mag_new: bool) -> ImuSample:
-        t_ns, usec, gyr, acc, _, mag, src = p
-        gyr_a = np.array(gyr, dtype=np.float64)
-        acc_a = np.array(acc, dtype=np.float64)
+    def _sample(self, p: list) -> ImuSample:
+        t_ns, usec, gyr, acc, mag_new, mag, src = p
         flags = 0
-        if math.isfinite(gyr[0]) and math.isfinite(gyr[1]) and math.isfinite(gyr[2]):
+        if _finite(gyr):
             flags |= GYR_VALID
         else:
             self.diagnostics.non_finite += 1
-        if math.isfinite(acc[0]) and math.isfinite(acc[1]) and math.isfinite(acc[2]):
+        if _finite(acc):
             flags |= ACC_VALID
         else:
             self.diagnostics.non_finite += 1
         mag_a = None
         if mag is not None:
+            # float16 values: finite ones stay finite when scaled to µT
             mag_a = np.array(mag, dtype=np.float64) * GAUSS_TO_UT
-            if np.isfinite(mag_a).all():
+            if _finite(mag):
                 flags |= MAG_VALID
                 if mag_new:
                     flags |= MAG_NEW
@@ -320,8 +314,8 @@ class DroneCanImuSource(ImuSource):
                 self.diagnostics.non_finite += 1
         self.diagnostics.samples += 1
         return ImuSample(
-            t_ns=t_ns, gyr=gyr_a, acc=acc_a, mag=mag_a, flags=flags,
-            raw={"sensor_time_us": usec, "node_id": src},
+            t_ns=t_ns, gyr=np.array(gyr, dtype=np.float64), acc=np.array(acc, dtype=np.float64),
+            mag=mag_a, flags=flags, raw={"sensor_time_us": usec, "node_id": src},
         )
 
     def _drain(self) -> None:
@@ -333,7 +327,7 @@ class DroneCanImuSource(ImuSource):
             return
         bus = self._bus
         push = self.reassembler.push
-        first_new = len(self._pending)
+        batch: list[list] = []
         extra = self.diagnostics.extra
         for _ in range(self.config.max_frames_per_read):
             try:
@@ -363,9 +357,15 @@ class DroneCanImuSource(ImuSource):
                 continue
             tr = push(cid, msg.data, now)
             if tr is not None:
-                self._on_transfer(tr)
-        if len(self._pending) > first_new:
-            self._stamp(first_new)
+                p = self._on_transfer(tr)
+                if p is not None:
+                    batch.append(p)
+        if batch:
+            self._stamp(batch)
+            overflow = len(self._pending) + len(batch) - self.config.max_pending_samples
+            if overflow > 0:  # the reader fell behind: the deque drops the oldest
+                extra["superseded_samples"] += overflow
+            self._pending.extend(batch)
         self.reassembler.expire(now)
         self._sync_counters()
 
@@ -379,7 +379,8 @@ class DroneCanImuSource(ImuSource):
             return src == self._imu_node
         return src == self._mag_node
 
-    def _on_transfer(self, tr: Transfer) -> None:
+    def _on_transfer(self, tr: Transfer) -> list | None:
+        """Handles one transfer; a RawIMU one gives a new sample ``[t_ns, usec, gyr, acc, mag_new, mag, node]``."""
         extra = self.diagnostics.extra
         try:
             if tr.data_type_id == RAW_IMU_ID:
@@ -387,39 +388,39 @@ class DroneCanImuSource(ImuSource):
             elif tr.data_type_id == MAG2_ID:
                 sid, mag = unpack_mag2(tr.payload)
                 if self.config.mag_sensor_id is not None and sid != self.config.mag_sensor_id:
-                    return
+                    return None
                 self._mag, self._mag_fresh = mag, True
-                return
+                return None
             else:
                 self._mag, self._mag_fresh = unpack_mag(tr.payload), True
-                return
+                return None
         except ValueError as exc:
             extra["malformed_frames"] += 1
             self.diagnostics.last_error = str(exc)
-            return
+            return None
         if usec != 0:
             # A repeated or older timestamp is a duplicate (redundant interface, replay): the
             # same reading must not be delivered twice. A large step back is a node reboot.
             if usec <= self._last_usec and (self._last_usec - usec) * 1000 <= self.clock_map.reset_ns:
                 extra["stale_samples"] += 1
-                return
+                return None
             self._last_usec = usec
         if self.config.negate_acc:
             acc = (-acc[0], -acc[1], -acc[2])
         # t_ns is filled in by _stamp once the whole batch is known; until then the host time
         # of the transfer's first frame
-        self._pending.append([tr.t_ns, usec, gyr, acc, self._mag_fresh, self._mag, tr.source_node_id])
+        p = [tr.t_ns, usec, gyr, acc, self._mag_fresh, self._mag, tr.source_node_id]
         self._mag_fresh = False
+        return p
 
-    def _stamp(self, first: int) -> None:
-        """Host-clock times of the samples received in this drain, ``pending[first:]``.
+    def _stamp(self, batch: list[list]) -> None:
+        """Host-clock times of the samples received in one drain, ``batch``.
 
         Frames read in one batch share one receive time, and the newest sample of a batch
         has waited least, so only the batch's smallest (receive − sensor) difference feeds
         the offset estimate; every sample of the batch is then mapped with that offset.
         Stamping each sample on its own would squash a backlog onto the receive time.
         """
-        batch = self._pending[first:]
         timed = [p for p in batch if p[1] != 0]
         cm = self.clock_map
         if timed:
@@ -451,6 +452,10 @@ class DroneCanImuSource(ImuSource):
     def node_id(self) -> int | None:
         """The IMU node in use (configured, or the first one heard), None before any."""
         return self._imu_node
+
+
+def _finite(v: tuple[float, float, float]) -> bool:
+    return math.isfinite(v[0]) and math.isfinite(v[1]) and math.isfinite(v[2])
 
 
 __all__ = ["DroneCanConfig", "DroneCanImuSource", "SensorClockMap"]

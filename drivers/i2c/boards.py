@@ -56,6 +56,8 @@ from ahrs_service.drivers.i2c.lsm303dlhc import (
 )
 from ahrs_service.drivers.i2c.mpu9250 import MPU9250, SimulatedMPU9250
 
+#: what :meth:`I2CBoard._read_inertial` gives: (t_ns, gyr, acc, flags, raw, temperature_c)
+_Inertial = tuple[int, np.ndarray, np.ndarray, int, dict[str, Any], float | None]
 
 class I2CBoard(ImuSource):
     """Base of the boards: parts ``gyro``, ``acc``, ``mag`` (drivers), configured in that order.
@@ -141,6 +143,7 @@ class I2CBoard(ImuSource):
         if saturated:
             d.saturated += 1
             return sat_flag
+        # integer counts times a float scale: a corrupted scale (NaN/inf) is what this catches
         if not np.isfinite(values).all():
             d.non_finite += 1
             return 0
@@ -168,9 +171,20 @@ class I2CBoard(ImuSource):
             self._recover()
             if "gyro" in self.lost or "acc" in self.lost:
                 return None
-        return self._read_sample()
+        got = self._read_inertial()
+        if got is None:
+            return None
+        t_ns, gyr, acc, flags, raw, temperature_c = got
+        m, mag, mflags = self._read_mag(t_ns)
+        if m is not None:
+            raw["mag"] = m
+        self.diagnostics.samples += 1
+        return ImuSample(t_ns, gyr, acc, mag, flags | mflags, raw,
+                         self._truth_q() if self.bus.simulated else None, temperature_c)
 
-    def _read_sample(self) -> ImuSample | None:
+    def _read_inertial(self) -> _Inertial | None:
+        """A new gyro sample with the accelerometer read after it: (t_ns, gyr, acc, flags, raw,
+        temperature_c), or None (nothing new, or a part lost)."""
         gyro, acc = self.parts["gyro"], self.parts["acc"]
         try:
             g = gyro.read_if_new()  # type: ignore[attr-defined]
@@ -180,9 +194,6 @@ class I2CBoard(ImuSource):
         if g is None:
             return None
         t_ns = self.bus.now_ns()
-        overruns = getattr(gyro, "overruns", 0)
-        if overruns:
-            self.diagnostics.extra["gyr_overruns"] = overruns
         try:
             a = acc.read_counts()  # type: ignore[attr-defined]
         except I2CDeviceError as exc:
@@ -191,13 +202,7 @@ class I2CBoard(ImuSource):
         gyr, accel = gyro.to_si(g), acc.to_si(a)
         flags = self._check(gyr, gyro.is_saturated(g), GYR_VALID, GYR_SATURATED) \
             | self._check(accel, acc.is_saturated(a), ACC_VALID, ACC_SATURATED)
-        m, mag, mflags = self._read_mag(t_ns)
-        raw = {"gyr": g, "acc": a}
-        if m is not None:
-            raw["mag"] = m
-        self.diagnostics.samples += 1
-        return ImuSample(t_ns, gyr, accel, mag, flags | mflags, raw,
-                         self._truth_q() if self.bus.simulated else None)
+        return t_ns, gyr, accel, flags, {"gyr": g, "acc": a}, None
 
     # ------------------------------------------------------------------ simulation
     @classmethod
@@ -283,13 +288,8 @@ class MPU9250Board(I2CBoard):
         self.parts = {"gyro": self.mpu,
                       "mag": AK8963(bus, mag_address, rate_hz=mag_rate_hz, **self._kw())}
 
-    def read(self) -> ImuSample | None:
-        if not self._opened:
-            raise RuntimeError(f"{self.NAME} on {self.bus.name}: read() before open()")
-        if self.lost:
-            self._recover()
-            if "gyro" in self.lost:
-                return None
+    def _read_inertial(self) -> _Inertial | None:
+        """Gyro, accelerometer and temperature come in one burst from the MPU-9250."""
         mpu = self.mpu
         try:
             frame = mpu.read_if_new()
@@ -303,14 +303,7 @@ class MPU9250Board(I2CBoard):
         gyr, acc = mpu.gyr_si(g), mpu.acc_si(a)
         flags = self._check(gyr, mpu.gyr_saturated(g), GYR_VALID, GYR_SATURATED) \
             | self._check(acc, mpu.acc_saturated(a), ACC_VALID, ACC_SATURATED)
-        m, mag, mflags = self._read_mag(t_ns)
-        raw = {"gyr": g, "acc": a, "temp": temp}
-        if m is not None:
-            raw["mag"] = m
-        self.diagnostics.samples += 1
-        return ImuSample(t_ns, gyr, acc, mag, flags | mflags, raw,
-                         self._truth_q() if self.bus.simulated else None,
-                         temperature_c=mpu.temperature_c(temp))
+        return t_ns, gyr, acc, flags, {"gyr": g, "acc": a, "temp": temp}, mpu.temperature_c(temp)
 
     @classmethod
     def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, *, address: int = 0x68,

@@ -83,10 +83,12 @@ class L3G4200D(I2CDevice):
         self.write_u8(CTRL_REG1, (self.RATES_HZ[self.rate_hz] << 6) | PD_XYZ)
 
     def data_ready(self) -> bool:
-        """STATUS_REG.ZYXDA: a new X/Y/Z set not read yet (overruns are counted)."""
+        """STATUS_REG.ZYXDA: a new X/Y/Z set not read yet (overruns are counted, also in the
+        shared diagnostics as ``extra["gyr_overruns"]``)."""
         status = self.read_u8(STATUS_REG)
         if status & ZYXOR:
             self.overruns += 1
+            self.diagnostics.extra["gyr_overruns"] = self.overruns
         return bool(status & ZYXDA)
 
     def read_counts(self) -> tuple[int, int, int]:
