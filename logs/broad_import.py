@@ -21,14 +21,10 @@ import h5py
 import numpy as np
 
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID
+from ahrs_service.evaluation.broad import CITATION
 from ahrs_service.logs.schemas import raw_message, truth_message
 from ahrs_service.logs.writer import McapLogFile
 from ahrs_service.quaternion import Q_NED_TO_ENU, quat_conj_array, quat_mul_array
-
-CITATION = (
-    'D. Laidig, M. Caruso, A. Cereatti, T. Seel, "BROAD — A Benchmark for Robust Inertial '
-    'Orientation Estimation", Data 6(7), 2021, doi:10.3390/data6070072. Licence: CC BY 4.0.'
-)
 
 
 @dataclass
@@ -78,16 +74,11 @@ def load_broad(path: str | os.PathLike, start_s: float | None = None, duration_s
     return BroadSlice(path.stem, rate, rows, t_ns, index, enu_to_ned(ref), movement)
 
 
-def sample_flags(row: np.ndarray) -> int:
-    """Validity bits of one recorded row: a reading is valid when all its values are finite."""
-    flags = 0
-    if np.all(np.isfinite(row[0:3])):
-        flags |= GYR_VALID
-    if np.all(np.isfinite(row[3:6])):
-        flags |= ACC_VALID
-    if np.all(np.isfinite(row[6:9])):
-        flags |= MAG_VALID | MAG_NEW
-    return flags
+def sample_flags(rows: np.ndarray) -> np.ndarray:
+    """(N,) int64 validity bits of (N, 10) recorded rows: a reading is valid when all its values are finite."""
+    ok = np.isfinite(np.asarray(rows)[..., 0:9])
+    gyr, acc, mag = ok[..., 0:3].all(axis=-1), ok[..., 3:6].all(axis=-1), ok[..., 6:9].all(axis=-1)
+    return np.where(gyr, GYR_VALID, 0) | np.where(acc, ACC_VALID, 0) | np.where(mag, MAG_VALID | MAG_NEW, 0)
 
 
 def import_broad(
@@ -99,6 +90,7 @@ def import_broad(
     """Writes a BROAD trial (or a slice of it) as an MCAP flight log; returns a short summary."""
     s = load_broad(path, start_s, duration_s)
     truth_ok = np.all(np.isfinite(s.truth), axis=1)
+    flags = sample_flags(s.rows).tolist()
     t0 = int(s.t_ns[0])
     config = {
         "source": {"kind": "broad", "trial": s.name, "rate_hz": s.rate_hz, "first_sample": int(s.index[0])},
@@ -111,7 +103,7 @@ def import_broad(
         for i in range(len(s.t_ns)):
             t = int(s.t_ns[i])
             row = s.rows[i].tolist()
-            f.write("/imu/raw", t, raw_message(t, row, sample_flags(s.rows[i]), index=int(s.index[i])))
+            f.write("/imu/raw", t, raw_message(t, row, flags[i], index=int(s.index[i])))
             if truth_ok[i]:
                 f.write("/attitude/truth", t, truth_message(t, s.truth[i].tolist(), bool(s.movement[i]), "BROAD opt_quat"))
     return {

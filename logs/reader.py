@@ -174,7 +174,8 @@ def _read(source: MessageSource) -> RecordedLog:
             t_ns.append(int(m["t_ns"]))
             rows.append(_vec(m["gyr"], 3) + _vec(m["acc"], 3) + _vec(m["mag"], 3) + _vec([m["dt"]], 1))
             flags.append(int(m["flags"]))
-            index.append(int(m.get("index", len(index))))
+            i = m.get("index")  # null or absent (schema allows both): the row number in this file
+            index.append(len(index) if i is None else int(i))
         elif topic in ("/attitude", "/attitude/original"):
             m = json.loads(data)
             (att_t if topic == "/attitude" else orig_t).append(int(m["t_ns"]))

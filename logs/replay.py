@@ -19,10 +19,10 @@ from typing import Any, Mapping
 import numpy as np
 
 from ahrs_service import estimators
+from ahrs_service.evaluation.metrics import error_angles, rmse
 from ahrs_service.logs.reader import MessageSource, RecordedLog
 from ahrs_service.logs.schemas import attitude_message, jsonable, tf_message
 from ahrs_service.logs.writer import McapLogFile
-from ahrs_service.quaternion import quat_conj_array, quat_mul_array
 
 
 def _effective_start(log: RecordedLog, name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
@@ -82,25 +82,8 @@ def replay(
 
 
 def _rms_deg(values: np.ndarray, mask: np.ndarray) -> float | None:
-    v = values[mask]
-    return float(np.degrees(np.sqrt(np.mean(v * v)))) if v.size else None
-
-
-def error_angles(q_est: np.ndarray, q_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-sample (total, heading, inclination) error angles in rad (BROAD's definitions).
-
-    q_err = q_est ⊗ q_ref⁻¹ (earth frame); total 2·atan2(|v|, |w|), heading 2·atan|z/w|,
-    inclination 2·acos√(w² + z²). Both inputs against the same earth frame with vertical z
-    (NED here). NaN rows give NaN.
-    """
-    e = quat_mul_array(q_est, quat_conj_array(q_ref))
-    e = e / np.linalg.norm(e, axis=-1, keepdims=True)
-    w, z = np.abs(e[:, 0]), e[:, 3]
-    # atan2 form: exact near zero, where 2·acos(w) loses half the digits
-    total = 2.0 * np.arctan2(np.linalg.norm(e[:, 1:], axis=-1), w)
-    heading = 2.0 * np.arctan2(np.abs(z), w)
-    inclination = 2.0 * np.arccos(np.clip(np.sqrt(e[:, 0] ** 2 + z * z), 0.0, 1.0))
-    return total, heading, inclination
+    r = rmse(values, mask)
+    return None if np.isnan(r) else float(np.degrees(r))
 
 
 def compare(log: RecordedLog, q: np.ndarray) -> dict[str, Any]:

@@ -262,6 +262,11 @@ def nums_or_null(values: Iterable[float]) -> list[float | None]:
 
 def jsonable(value: Any) -> Any:
     """``value`` with NumPy scalars/arrays turned into Python ones and non-finite floats into None."""
+    t = type(value)  # the common plain values first: the Mapping ABC check is slow
+    if t is str or t is int or t is bool or value is None:
+        return value
+    if t is float:
+        return num_or_null(value)
     if isinstance(value, collections.abc.Mapping):
         return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -404,8 +409,32 @@ def _int_or_null(x: int | None) -> str:
     return _int_repr(x) if type(x) is int else _dumps(x)
 
 
-def _dumps(value: Any) -> str:
-    return json.dumps(value, allow_nan=False, separators=(",", ":"))
+#: json.dumps(value, allow_nan=False, separators=(",", ":")) without building an encoder per call
+_dumps = json.JSONEncoder(allow_nan=False, separators=(",", ":")).encode
+
+
+def _str_keys(value: Any) -> bool:
+    """Whether every dict in ``value`` (dicts, lists, tuples) has str keys only.
+
+    Other keys json.dumps writes unlike jsonable's str(key): True as "true", not "True"; and
+    {1: …, "1": …} as two keys, where jsonable keeps one.
+    """
+    if isinstance(value, dict):
+        return all(type(k) is str for k in value) and all(map(_str_keys, value.values()))
+    if isinstance(value, (list, tuple)):
+        return all(map(_str_keys, value))
+    return True
+
+
+def _jsonable_dumps(value: Any) -> str:
+    """``_dumps(jsonable(value))``, without jsonable's walk when json.dumps writes the same text:
+    plain Python values (tuples are lists to both); NumPy values, NaN … make it raise."""
+    if _str_keys(value):
+        try:
+            return _dumps(value)
+        except (TypeError, ValueError):
+            pass
+    return _dumps(jsonable(value))
 
 
 _VALID_BITS = GYR_VALID | ACC_VALID | MAG_VALID | GYR_SATURATED | ACC_SATURATED | MAG_SATURATED | MAG_NEW
@@ -441,7 +470,7 @@ def encode_raw(
         f'"dt":{_num(dt)},"gyr":[{_num(gx)},{_num(gy)},{_num(gz)}],'
         f'"acc":[{_num(ax)},{_num(ay)},{_num(az)}],"mag":{mag},'
         f'"flags":{flags},"valid":{_valid_json(flags)},'
-        f'"raw":{"null" if raw is None else _dumps(jsonable(raw))},'
+        f'"raw":{"null" if raw is None else _jsonable_dumps(raw)},'
         f'"temperature":{"null" if temperature is None else _num(float(temperature))}}}'
     ).encode()
 
@@ -464,7 +493,7 @@ def encode_attitude(
     return (
         f'{{"t_ns":{int(t_ns)},"q":[{_num(w)},{_num(x)},{_num(y)},{_num(z)}],{_euler_json(q)},'
         f'"estimator":{_json_str(str(estimator))},"gyro_bias":{gyro_bias},'
-        f'"diagnostics":{_dumps(jsonable(diagnostics)) if diagnostics else "{}"}}}'
+        f'"diagnostics":{_jsonable_dumps(diagnostics) if diagnostics else "{}"}}}'
     ).encode()
 
 

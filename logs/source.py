@@ -46,7 +46,7 @@ class RecordedSource(ImuSource):
         catch_up: bool = True,
     ) -> None:
         super().__init__()
-        self.may_have_backlog = self.catch_up = catch_up
+        self.catch_up = catch_up
         self.path = Path(path)
         self.realtime = realtime
         self.rebase_time = realtime if rebase_time is None else rebase_time
@@ -57,13 +57,17 @@ class RecordedSource(ImuSource):
         self._i = 0
         self._t0_host: int | None = None
 
+    @property
+    def may_have_backlog(self) -> bool:  # type: ignore[override]
+        return self.catch_up
+
     def open(self) -> None:
         if self.path.suffix.lower() in (".hdf5", ".h5"):
             from ahrs_service.logs.broad_import import sample_flags, load_broad
 
             s = load_broad(self.path, self.start_s, self.duration_s)
             self.rows, self.t_ns, self.truth = s.rows, s.t_ns, s.truth
-            self.flags = np.array([sample_flags(r) for r in s.rows], dtype=np.int64)
+            self.flags = sample_flags(s.rows)
             self.calibrated = False
         else:
             from ahrs_service.logs.reader import read_log

@@ -89,10 +89,7 @@ class McapLogFile:
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._seq: dict[int, int] = {}
-        self.messages = 0
         self.unflushed = 0  # messages written since the last flush (lost if the process dies now)
-        self.first_t_ns: int | None = None
-        self.last_t_ns: int | None = None
         self.closed = False
 
     def _channel(self, topic: str) -> int:
@@ -116,15 +113,10 @@ class McapLogFile:
     def write_encoded(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None) -> None:
         cid = self._channel(topic)
         seq = self._seq[cid] = self._seq[cid] + 1
-        log_time_ns = int(log_time_ns)
         self._w.add_message(
-            cid, log_time_ns, data, time.time_ns() if publish_time_ns is None else int(publish_time_ns), seq
+            cid, int(log_time_ns), data, time.time_ns() if publish_time_ns is None else int(publish_time_ns), seq
         )
-        self.messages += 1
         self.unflushed += 1
-        if self.first_t_ns is None:
-            self.first_t_ns = log_time_ns
-        self.last_t_ns = log_time_ns
 
     def add_metadata(self, name: str, data: Mapping[str, Any]) -> None:
         self._w.add_metadata(name, {str(k): str(v) for k, v in data.items()})
@@ -260,8 +252,10 @@ class FlightLogWriter:
         self._last_tf_ns: int | None = None
         self._state_seen = False  # the caller passes its estimator state to write_attitude
         # rotation handshake: 0 none, 1 due (writer thread asks for a state snapshot),
-        # 2 snapshot queued (write_attitude answered; the writer thread rotates when it gets it)
+        # 2 snapshot queued (write_attitude answered; the writer thread rotates when it gets it).
+        # The lock makes write_attitude's 1 -> 2 and the writer thread's cancelling (-> 0) exclusive.
         self._rotation = 0
+        self._rotation_lock = threading.Lock()
         self._rotation_since = 0.0
         self._thread = threading.Thread(target=self._run, name="flight-log-writer", daemon=True)
         self._thread.start()
@@ -272,11 +266,6 @@ class FlightLogWriter:
     def dropped(self) -> int:
         """Messages lost: queue full, or not written because of an I/O error."""
         return self._dropped_full + self._dropped_io
-
-    @property
-    def current_path(self) -> Path | None:
-        f = self._file
-        return f.path if f is not None else None
 
     def _put(self, item: tuple) -> bool:
         # one producer (the service loop): len() then append() cannot overshoot by more than one
@@ -313,10 +302,12 @@ class FlightLogWriter:
         if state is not None:
             self._state_seen = True
             if self._rotation == 1:
-                # the file ends after this sample; the next starts from this very state
-                self._rotation = 2
-                if not self._put((_STATE, t_ns, state.tolist(), estimator, self.samples)):
-                    self._rotation = 1  # queue full: ask again with a later sample
+                with self._rotation_lock:
+                    if self._rotation == 1:
+                        # the file ends after this sample; the next starts from this very state
+                        self._rotation = 2
+                        if not self._put((_STATE, t_ns, state.tolist(), estimator, self.samples)):
+                            self._rotation = 1  # queue full: ask again with a later sample
 
     def write_truth(self, t_ns: int, q: Any, movement: bool | None = None, source: str = "") -> None:
         """Ground-truth q_earth←body [w, x, y, z] (NED) for the sample at ``t_ns``."""
@@ -516,6 +507,7 @@ class FlightLogWriter:
     def _handle(self, item: tuple) -> None:
         kind, t_ns = item[0], item[1]
         if kind == _NEW_FILE:
+            self._cancel_rotation()  # the new file replaces a pending rotation
             if self._file is not None:
                 self._finish_for_rotation()
             return
@@ -524,13 +516,14 @@ class FlightLogWriter:
         elif kind == _PARAM:
             self._fold_param(item[3], item[5])
         if kind == _STATE:
-            self._rotate_with_state(item)
+            if self._rotation:  # else stale: new_file() or a rotation without it already made a new file
+                self._rotate_with_state(item)
             return
         if self._file is not None and kind == _RAW and self._should_rotate():
             now = time.monotonic()
             if not self._state_seen or (self._rotation == 1 and now - self._rotation_since > 2.0):
                 # no state snapshot coming (or it stopped coming): rotate here, without one
-                self._rotation = 0
+                self._cancel_rotation()
                 self._finish_for_rotation()
             elif self._rotation == 0:
                 self._rotation, self._rotation_since = 1, now
@@ -569,9 +562,14 @@ class FlightLogWriter:
         elif kind == _MAV:
             self._write("/mavlink", t_ns, {"t_ns": int(t_ns), "counters": jsonable(item[2])})
 
+    def _cancel_rotation(self) -> None:
+        # a snapshot write_attitude queues after this finds no rotation pending and is ignored
+        with self._rotation_lock:
+            self._rotation = 0
+
     def _rotate_with_state(self, item: tuple) -> None:
         _, t_ns, state, estimator, next_index = item
-        self._rotation = 0
+        self._cancel_rotation()
         if self._file is not None:
             self._finish_for_rotation()
         if not self._open():

@@ -6,16 +6,18 @@ import errno
 import json
 import math
 import re
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 
 from ahrs_service.drivers.base import ACC_VALID, GYR_SATURATED, GYR_VALID, MAG_NEW, MAG_VALID
 from ahrs_service.logs import schemas, writer as writer_mod
 from ahrs_service.logs.reader import read_log
-from ahrs_service.logs.writer import FlightLogWriter
+from ahrs_service.logs.writer import FlightLogWriter, McapLogFile
 
 RNG = np.random.default_rng(3)
 
@@ -263,3 +265,83 @@ def test_new_file_on_estimator_rebuild_and_sample_numbering(tmp_path):
     assert first.param_changes[0]["sample_index"] == 1005 and first.local_index(1005) == 5
     assert second.estimator == "mahony_passive" and second.configs[0]["reason"] == "reload"
     assert second.index.tolist() == [1005, 1006, 1007] and len(second.configs) == 1
+
+
+def test_raw_index_null_reads_as_the_row_number(tmp_path):
+    path = tmp_path / "null-index.mcap"
+    with McapLogFile(path) as f:
+        for i in range(3):
+            msg = schemas.raw_message(i + 1, [0.0] * 9 + [0.001], GYR_VALID, index=None)
+            assert msg["index"] is None and schemas.validate(msg, schemas.IMU_RAW) == []
+            f.write("/imu/raw", i + 1, msg)
+    log = read_log(path)
+    assert log.damage is None and log.index.tolist() == [0, 1, 2] and log.t_ns.tolist() == [1, 2, 3]
+
+
+@pytest.mark.parametrize("snapshot_before_new_file", [True, False], ids=["snapshot-late", "snapshot-none"])
+def test_new_file_during_a_pending_rotation_leaves_no_one_sample_file(tmp_path, monkeypatch, snapshot_before_new_file):
+    # a rotation (by duration) is due and waits for the loop's state snapshot when the service
+    # calls new_file(): the new file must not be rotated again by that snapshot after one sample
+    gate = threading.Event()
+    handle = FlightLogWriter._handle
+
+    def gated_handle(self, item):
+        if item[0] == writer_mod._NEW_FILE:
+            gate.wait(10.0)
+        handle(self, item)
+
+    monkeypatch.setattr(FlightLogWriter, "_handle", gated_handle)
+    w = FlightLogWriter(tmp_path, rotate_seconds=3600.0, tf_rate_hz=None)
+    state = np.arange(4.0)
+
+    def sample(i: int, with_state: bool = True) -> None:
+        w.write_raw(i, np.full(10, float(i)), 0)
+        w.write_attitude(i, [1.0, 0.0, 0.0, 0.0], "madgwick", state=state if with_state else None)
+
+    w.write_config(0, {"estimator": {"name": "madgwick", "params": {"beta": 0.1}}})
+    for i in range(5):
+        sample(i)
+    assert _wait_for(lambda: not w._q)  # the last item may be in hand: an attitude, not a sample
+    w.rotate_seconds = 0.0
+    w.write_raw(5, np.full(10, 5.0), 0)
+    assert _wait_for(lambda: w._rotation == 1)  # due: the writer asks for a snapshot
+    w.rotate_seconds = 3600.0
+    w.write_attitude(5, [1.0, 0.0, 0.0, 0.0], "madgwick")  # the loop answers with a later sample
+    w.new_file()  # the service rebuilt its estimator
+    if not snapshot_before_new_file:
+        gate.set()
+        assert _wait_for(lambda: w._file is None)  # new_file() handled before the next sample
+    w.write_config(6, {"estimator": {"name": "madgwick", "params": {"beta": 0.2}}}, reason="reload")
+    for i in range(6, 10):
+        sample(i)  # with the gate closed, sample 6 answers the request: a snapshot is queued
+    gate.set()
+    w.close()
+    logs = [read_log(p) for p in w.files]
+    assert [len(log) for log in logs] == [6, 4]
+    assert np.array_equal(np.concatenate([log.index for log in logs]), np.arange(10))
+    assert logs[1].configs[0]["reason"] == "reload" and logs[1].params == {"beta": 0.2}
+    assert logs[1].initial_state is None and logs[1].counts.get("/estimator/state", 0) == 0  # a fresh estimator
+    assert w._rotation == 0 and w.dropped == 0
+
+
+_TRICKY_RAW = [
+    {"gyr": (12, -3, 40), "acc": [1000, (2, 3)], "t": ()},
+    ({"a": 1}, [2, (3.5, None)], "x"),
+    {"nested": {"a": (1, 2.5), "b": [{"c": (True, False)}]}},
+    {True: 1, None: 2, "x": {False: (3,)}},  # json.dumps writes "true"/"null", jsonable "True"/"None"
+    {1: "int key", "1": "str key"},  # jsonable keeps one of the two
+    {"a": (1.0, np.float64(0.5), np.int16(3), np.nan)},
+]
+
+
+@pytest.mark.parametrize("raw", _TRICKY_RAW, ids=range(len(_TRICKY_RAW)))
+def test_fast_encoding_of_raw_and_diagnostics_stays_byte_identical(raw):
+    def dumps(message):
+        return json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+
+    row = [0.1, -0.2, 0.3, 1.0, 2.0, 9.81, math.nan, math.nan, math.nan, 0.001]
+    args = (7, row, GYR_VALID | ACC_VALID, raw, 21.5, 3)
+    assert schemas.encode_raw(*args) == dumps(schemas.raw_message(*args))
+    if isinstance(raw, dict):
+        args = (7, [1.0, 0.0, 0.0, 0.0], "madgwick", [0.0, 0.0, 0.0], raw)
+        assert schemas.encode_attitude(*args) == dumps(schemas.attitude_message(*args))

@@ -31,17 +31,18 @@ def error_angles(q_est: np.ndarray, q_ref: np.ndarray) -> tuple[np.ndarray, np.n
     Both must be against the same earth frame (z vertical). NaN rows give NaN errors.
     """
     e = quat_mul_array(np.asarray(q_est, dtype=float), quat_conj_array(q_ref))
-    # normalise: both inputs are unit up to rounding, and acos is steep near 1
+    # normalise: both inputs are unit up to rounding
     e = e / np.linalg.norm(e, axis=-1, keepdims=True)
-    w, z = e[..., 0], e[..., 3]
+    w, x, y, z = e[..., 0], e[..., 1], e[..., 2], e[..., 3]
     aw = np.abs(w)
-    total = 2.0 * np.arccos(np.clip(aw, 0.0, 1.0))
+    # atan2 forms of 2·acos|w| and 2·acos√(w² + z²): exact near zero error, where acos is not
+    total = 2.0 * np.arctan2(np.sqrt(x * x + y * y + z * z), aw)
     with np.errstate(divide="ignore", invalid="ignore"):
         # |z/w| → ∞ as w → 0: a 180° heading error; arctan handles inf, not 0/0
         ratio = np.where(aw > 0.0, np.abs(z) / np.where(aw > 0.0, aw, 1.0), np.where(np.abs(z) > 0.0, np.inf, 0.0))
     ratio = np.where(np.isnan(w) | np.isnan(z), np.nan, ratio)
     heading = 2.0 * np.arctan(ratio)
-    inclination = 2.0 * np.arccos(np.clip(np.sqrt(w * w + z * z), 0.0, 1.0))
+    inclination = 2.0 * np.arctan2(np.sqrt(x * x + y * y), np.sqrt(w * w + z * z))
     return total, heading, inclination
 
 
