@@ -60,7 +60,6 @@ def test_mounting_and_calibration_recover_body_truth():
     imu = _distorted_imu(clock)
     src = SimulatedSource(imu, rate_hz=50.0)
     cal = _hand_calibration()
-    checked = 0
     for _ in range(200):
         s = src.read()
         ph = imu.physics(s.t_ns * 1e-9)
@@ -72,9 +71,7 @@ def test_mounting_and_calibration_recover_body_truth():
         np.testing.assert_allclose(body.gyr, truth.omega_body, atol=1e-12)
         np.testing.assert_allclose(body.acc, truth.specific_force_body, atol=1e-12)
         np.testing.assert_allclose(body.mag, truth.mag_body, atol=1e-11)
-        checked += 1
         clock.advance(0.02)
-    assert checked == 200
 
 
 def test_simulator_ideal_calibration_matches_hand_inverse():

@@ -270,14 +270,25 @@ def _floats(node):
         yield node
 
 
-def test_evaluate_command_end_to_end(broad_dir, tmp_path):
-    peer_arg = "vqf" if peers.PEERS["vqf"].available() else "none"
-    fast = "07_undisturbed_fast_rotation_B"
-    out = tmp_path / "eval"
+FAST = "07_undisturbed_fast_rotation_B"
+
+
+@pytest.fixture(scope="module")
+def evaluated(broad_dir, tmp_path_factory):
+    """One `evaluate` run on two BROAD trials (with the vqf peer when it is installed):
+    (exit code, output folder, whether vqf ran)."""
+    with_vqf = peers.PEERS["vqf"].available()
+    out = tmp_path_factory.mktemp("evaluate") / "eval"
     code = _evaluate(
-        ["--data", str(broad_dir), "--estimators", "madgwick", "--peers", peer_arg,
+        ["--data", str(broad_dir), "--estimators", "madgwick", "--peers", "vqf" if with_vqf else "none",
          "--trials", "0[27]_undisturbed", "--out", str(out), "--param", "madgwick.beta=0.1", "--quiet"]
     )
+    return code, out, with_vqf
+
+
+def test_evaluate_command_end_to_end(evaluated):
+    code, out, _ = evaluated
+    fast = FAST
     assert code == 0
     md = (out / "results.md").read_text(encoding="utf-8")
     assert "doi:10.3390/data6070072" in md and "Laidig" in md
@@ -296,12 +307,20 @@ def test_evaluate_command_end_to_end(broad_dir, tmp_path):
     assert groups["rotation"]["total"] == pytest.approx((mad[TRIAL]["total_rmse"] + mad[fast]["total_rmse"]) / 2)
     assert groups["slow"]["inclination"] == pytest.approx(mad[TRIAL]["inclination_rmse"])
     assert "translation" not in groups
-    if peer_arg == "vqf":
-        assert results["per_trial"]["vqf"][TRIAL]["total_rmse"] < 1.6  # measured 1.38°
     for trial in (TRIAL, fast):
         assert (out / f"error_{trial}.png").stat().st_size > 1000
     assert (out / "group_rotation.png").is_file()
     assert sorted(results["plots"]) == sorted(p.name for p in out.glob("*.png"))
+
+
+def test_evaluate_command_runs_the_vqf_peer(evaluated):
+    pytest.importorskip("vqf", reason="the vqf peer (the 'peers' extra) is not installed")
+    code, out, with_vqf = evaluated
+    assert code == 0 and with_vqf
+    results = json.loads((out / "results.json").read_text(encoding="utf-8"))
+    vqf = results["per_trial"]["vqf"]
+    assert set(vqf) == {TRIAL, FAST}
+    assert vqf[TRIAL]["total_rmse"] < 1.6  # measured 1.38°
 
 
 def test_evaluate_command_reports_missing_data(tmp_path, capsys):

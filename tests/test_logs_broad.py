@@ -102,27 +102,41 @@ def test_recorded_source_plays_hdf5_as_fast_as_possible(broad_dir):
     assert np.all(np.diff([s.t_ns for s in samples]) > 0)
 
 
-def test_recorded_source_paces_a_log_in_real_time(imported):
+def test_recorded_source_paces_a_log_in_real_time(imported, monkeypatch):
+    """Paced on a fake monotonic clock: a sample is handed out exactly when its recorded
+    offset from the first one has elapsed, never before."""
+    import types
+
+    from ahrs_service.logs import source as source_mod
+
+    now = {"ns": 5_000_000_000}
+    monkeypatch.setattr(source_mod, "time", types.SimpleNamespace(monotonic_ns=lambda: now["ns"]))
     out, _, _, rate, _ = imported
     src = RecordedSource(out, realtime=True)
     src.open()
-    t_start = time.monotonic()
+    offsets = np.asarray(src.t_ns - src.t_ns[0], dtype=np.int64)
+    assert offsets[1] == pytest.approx(1e9 / rate, abs=1)  # 3.5 ms at 285.714 Hz
+    t0 = now["ns"]
     first = src.read()
-    assert first is not None and first.t_ns >= time.monotonic_ns() - 10**9  # rebased on the host clock
+    assert first is not None and first.t_ns == t0  # rebased on the host clock
     # right after the first sample the next one is not due yet: a live sensor has nothing new
-    assert src.read() is None or time.monotonic() - t_start >= 1.0 / rate
-    got = 1
-    deadline = time.monotonic() + 0.3
-    while time.monotonic() < deadline:  # bounded by time: 0.3 s of playback
+    assert src.read() is None
+    now["ns"] = t0 + int(offsets[1]) - 1
+    assert src.read() is None  # 1 ns early
+    now["ns"] = t0 + int(offsets[1])
+    second = src.read()
+    assert second is not None and second.t_ns == t0 + offsets[1] and src.read() is None
+    # 0.3 s of playback in 0.5 ms steps: every due sample, in order, none early, none dropped
+    got = [first.t_ns, second.t_ns]
+    while now["ns"] < t0 + 300_000_000:
+        now["ns"] += 500_000
         s = src.read()
         if s is not None:
-            got += 1
-            assert s.t_ns - first.t_ns <= (time.monotonic() - t_start) * 1e9 + 1e6
-        time.sleep(0.0005)
-    elapsed = time.monotonic() - t_start
-    # never ahead of the recording's clock
-    assert got + src.diagnostics.dropped_frames <= elapsed * rate + 2
-    assert got > 1 and not src.finished
+            assert s.t_ns <= now["ns"]  # never ahead of the recording's clock
+            got.append(s.t_ns)
+    due = int(np.searchsorted(offsets, now["ns"] - t0, side="right"))
+    assert np.array_equal(np.asarray(got) - t0, offsets[:due])
+    assert src.diagnostics.dropped_frames == 0 and not src.finished
 
 
 def test_recorded_source_catches_up_in_order_after_a_late_read():

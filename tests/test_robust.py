@@ -5,6 +5,10 @@ Simulated motions are generated here in the style of tests/analytic.py (earth NE
 the true attitude is integrated from the true rate with the same convention the estimators
 use (the gyro sample k is the rate over (t_{k-1}, t_k]), then sensor errors and disturbances
 are added with a fixed seed.
+
+Error bounds commented "measured X; other seeds up to Y" are about three times the error
+measured with the test's seed (X), and at least 1.5 times the largest error measured with
+six other seeds (Y), so that they follow the result without depending on the seed.
 """
 
 from __future__ import annotations
@@ -144,10 +148,11 @@ def test_gyro_bias_step_is_learned_at_rest_and_in_motion():
     bias = np.where((t >= 10)[:, None], np.array([0.4, -0.3, 0.5]) * DEG, 0.0)
     gyr, acc, mag = sense(q, omega, seed=2, gyro_bias=bias)
     est, q_est = run_robust(gyr, acc, mag, 1 / rate)
-    assert np.all(np.abs(est.gyro_bias - bias[-1]) < 0.05 * DEG)
+    # measured 0.0013°/s; other seeds up to 0.005°/s
+    assert np.all(np.abs(est.gyro_bias - bias[-1]) < 0.01 * DEG)
     total, _, incl = error_deg(q_est, q)
     tail = t > 120
-    assert rms(total[tail]) < 1.0
+    assert rms(total[tail]) < 0.5  # measured 0.154°; other seeds up to 0.179°
     assert rms(incl[t > 60]) < 0.5
     # without the bias the gyro would have turned the estimate by 0.7 °/s × 140 s; it must not
     assert total.max() < 5.0
@@ -200,7 +205,7 @@ def test_passing_magnet_is_rejected_and_heading_recovers():
     _, heading, _ = error_deg(q_est, q)
     during = (t > 49) & (t < 66)
     assert heading[during].max() < 2.0
-    assert rms(heading[t > 90]) < 1.0
+    assert rms(heading[t > 90]) < 0.3  # measured 0.100°; other seeds up to 0.186°
     # the same disturbance seen by a filter without rejection
     q_mad = estimators.run("madgwick", gyr, acc, mag, rate_hz=rate)
     assert error_deg(q_mad, q)[1][during].max() > 10.0
@@ -221,15 +226,15 @@ def test_attached_magnet_hard_iron_is_learned_used_and_forgotten():
     q_on = est.run(gyr[:n_on], acc[:n_on], mag[:n_on], dt=1 / rate)
     diag = est.diagnostics
     assert diag["hard_iron_trusted"]
-    assert np.linalg.norm(diag["hard_iron_ut"] - h) < 2.0
+    assert np.linalg.norm(diag["hard_iron_ut"] - h) < 0.1  # µT; measured 0.034; other seeds up to 0.030
     assert diag["mag_used"] == 2  # the corrected field feeds the heading
     q_off = est.run(gyr[n_on:], acc[n_on:], mag[n_on:], dt=1 / rate)
     diag = est.diagnostics
     assert np.linalg.norm(diag["hard_iron_ut"]) < 1.0
     assert diag["mag_used"] == 1  # magnet gone: the raw field again
     _, heading, _ = error_deg(np.vstack([q_on, q_off]), q)
-    assert rms(heading[(t > 100) & (t < 140)]) < 1.0
-    assert rms(heading[t > 170]) < 1.0
+    assert rms(heading[(t > 100) & (t < 140)]) < 0.15  # measured 0.029°; other seeds up to 0.076°
+    assert rms(heading[t > 170]) < 0.15  # measured 0.032°; other seeds up to 0.072°
     assert heading.max() < 5.0
     # learning switched off: the offset field is rejected, then accepted as a "new field"
     # after mag_new_time, which turns the heading away
@@ -271,7 +276,7 @@ def test_jittering_time_steps():
     gyr, acc, mag = sense(q, omega, seed=9)
     _, q_est = run_robust(gyr, acc, mag, dt)
     total, _, _ = error_deg(q_est, q)
-    assert rms(total[t > 20]) < 1.0
+    assert rms(total[t > 20]) < 0.45  # measured 0.142°; other seeds up to 0.225°
     # pretending the rate were constant is clearly worse: the estimator needs each dt
     _, q_const = run_robust(gyr, acc, mag, dt0)
     assert rms(error_deg(q_const, q)[0][t > 20]) > 2 * rms(total[t > 20])
@@ -321,7 +326,7 @@ def test_bad_samples_are_skipped_and_counted():
     assert np.all(np.isfinite(q_est))
     assert np.allclose(np.linalg.norm(q_est, axis=1), 1.0)
     total, _, _ = error_deg(q_est, q)
-    assert rms(total[t > 30]) < 1.5
+    assert rms(total[t > 30]) < 0.65  # measured 0.213°; other seeds up to 0.315°
 
 
 def test_per_sample_updates_equal_batch_bit_for_bit():

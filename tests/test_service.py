@@ -171,14 +171,25 @@ def test_unwritable_log_directory_is_reported_and_publishing_goes_on(tmp_path, g
     blocker = tmp_path / "not-a-directory"
     blocker.write_text("a file where the log directory should be")
     run = RunningService(service_config(tmp_path, port, log={"directory": str(blocker / "logs")}))
+    seen = {"report": False, "attitude": 0}
+
+    def enough(m) -> bool:
+        seen["report"] |= m.get_type() == "STATUSTEXT" and m.text.startswith("flight log:")
+        seen["attitude"] += m.get_type() == "ATTITUDE"
+        return seen["report"] and seen["attitude"] >= 10
+
     try:
-        msgs = collect(conn, 3.0)
+        msgs = collect(conn, 30.0, until=enough)  # a generous bound: stops as soon as both came
     finally:
         run.stop()
     texts = [m.text for m in msgs if m.get_type() == "STATUSTEXT"]
     assert any(t.startswith("flight log:") for t in texts), texts
-    assert sum(m.get_type() == "ATTITUDE" for m in msgs) > 30
-    assert run.service.pipeline.samples > 300
+    # publishing goes on at the configured 20 Hz, judged by the messages' own timestamps
+    t_ms = np.array([m.time_boot_ms for m in msgs if m.get_type() == "ATTITUDE"])
+    assert len(t_ms) >= 10 and np.all(np.diff(t_ms) > 0)
+    assert np.median(np.diff(t_ms)) == pytest.approx(50, abs=5)
+    # each ATTITUDE is the estimate of a distinct sample
+    assert run.service.pipeline.samples >= len(t_ms)
 
 
 def _ack(conn, command, seconds=3.0):
@@ -287,3 +298,33 @@ def test_declination_from_the_world_magnetic_model(tmp_path, gcs):
     yaw_magnetic = quat_to_euler(tuple(pipeline.estimator.state[:4]))[2]
     diff = (pipeline.published_euler()[2] - yaw_magnetic + math.pi) % (2 * math.pi) - math.pi
     assert math.degrees(diff) == pytest.approx(pipeline.declination_deg, abs=1e-6)
+
+
+def test_reload_to_another_estimator_rebuilds_its_parameters_and_keeps_command_line_overrides(tmp_path, gcs):
+    conn, port = gcs
+    cfg_file = tmp_path / "ahrs.toml"
+
+    def write(estimator: str) -> None:
+        cfg_file.write_text(
+            f'[source]\ntype = "simulated_i2c"\nboard = "gy80"\nsensor_errors = false\n\n'
+            f'[estimator]\nname = "{estimator}"\n\n[mavlink]\nendpoints = ["udpout:127.0.0.1:{port}"]\n'
+        )
+
+    write("madgwick")
+    # as `ahrs-service run --config ahrs.toml --no-log` does
+    run = RunningService(config_mod.load(cfg_file, {"log": {"enabled": False}}))
+    try:
+        collect(conn, 1.0, until=lambda m: m.get_type() == "HEARTBEAT")
+        write("mahony_passive")
+        run.service.request_reload()
+        deadline = time.monotonic() + 10.0
+        while run.service.estimator.name != "mahony_passive" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert run.service.estimator.name == "mahony_passive"
+        assert run.service.log_writer is None  # --no-log survives the reload
+        collect(conn, 1.0, until=lambda m: m.get_type() == "HEARTBEAT")
+        conn.mav.param_request_list_send(1, 1)
+        names = {m.param_id for m in collect(conn, 3.0) if m.get_type() == "PARAM_VALUE"}
+        assert "EST_KP" in names and "EST_BETA" not in names
+    finally:
+        run.stop()
