@@ -8,7 +8,6 @@ log is read up to the damage, and the damage is reported in ``RecordedLog.damage
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +18,7 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata
 
 from ahrs_service.logs.recover import Damage, RecordScanner
+from ahrs_service.logs.schemas import decode
 
 
 class MessageSource:
@@ -170,30 +170,30 @@ def _read(source: MessageSource) -> RecordedLog:
     for topic, log_time, _, data in source:
         counts[topic] = counts.get(topic, 0) + 1
         if topic == "/imu/raw":
-            m = json.loads(data)
+            m = decode(data)
             t_ns.append(int(m["t_ns"]))
             rows.append(_vec(m["gyr"], 3) + _vec(m["acc"], 3) + _vec(m["mag"], 3) + _vec([m["dt"]], 1))
             flags.append(int(m["flags"]))
             i = m.get("index")  # null or absent (schema allows both): the row number in this file
             index.append(len(index) if i is None else int(i))
         elif topic in ("/attitude", "/attitude/original"):
-            m = json.loads(data)
+            m = decode(data)
             (att_t if topic == "/attitude" else orig_t).append(int(m["t_ns"]))
             (att_q if topic == "/attitude" else orig_q).append(_vec(m["q"], 4))
             if topic == "/attitude" and att_estimator is None:
                 att_estimator = m.get("estimator")
         elif topic == "/attitude/truth":
-            m = json.loads(data)
+            m = decode(data)
             tru_t.append(int(m["t_ns"]))
             tru_q.append(_vec(m["q"], 4))
             mv = m.get("movement")
             tru_m.append(np.nan if mv is None else float(bool(mv)))
         elif topic == "/config":
-            configs.append(json.loads(data))
+            configs.append(decode(data))
         elif topic == "/params":
-            changes.append(json.loads(data))
+            changes.append(decode(data))
         elif topic == "/estimator/state":
-            states.append(json.loads(data))
+            states.append(decode(data))
     t = np.asarray(t_ns, dtype=np.int64)
     config = configs[0]["config"] if configs else {}
     est_cfg = config.get("estimator") if isinstance(config.get("estimator"), dict) else {}

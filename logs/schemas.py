@@ -6,10 +6,11 @@ Every channel is JSON-encoded (MCAP message encoding ``"json"``) and carries a J
 Conventions (../shared/DESIGN.md): earth NED, body FRD, quaternions Hamilton [w, x, y, z]
 q_earth←body, gyroscope rad/s, specific force m/s², field µT, times in ns. Numbers that are
 not finite (NaN: "no magnetometer", an invalid reading) are written as ``null`` because JSON
-has no NaN; readers turn ``null`` back into NaN. Floats are written with Python's ``repr``
-(shortest round-trip form), so every float64 reads back bit-exact.
+has no NaN; readers turn ``null`` back into NaN. Floats are written in their shortest
+round-trip form, so every float64 reads back bit-exact.
 
-The ``*_message`` functions build the messages of the main channels from plain values.
+The ``*_message`` functions build the messages of the main channels from plain values;
+:func:`encode` turns any message into its bytes (orjson) and :func:`decode` back.
 
 The one exception to our quaternion order is ``/tf``: it uses Foxglove's own
 ``foxglove.FrameTransform`` schema, whose rotation is {x, y, z, w}.
@@ -27,6 +28,7 @@ import math
 from typing import Any, Iterable
 
 import numpy as np
+import orjson
 
 from ahrs_service.drivers.base import (
     ACC_SATURATED,
@@ -51,7 +53,7 @@ def _vec(n: int, item: dict[str, Any], description: str) -> dict[str, Any]:
 
 
 _T_NS = {"type": "integer", "description": "sample timestamp, ns, monotonic clock of the host"}
-_QUAT = _vec(4, _NUM, "q_earth←body [w, x, y, z], Hamilton, earth NED, body FRD")
+_QUAT = _vec(4, _NUM_OR_NULL, "q_earth←body [w, x, y, z], Hamilton, earth NED, body FRD")
 
 IMU_RAW = {
     "title": "ahrs.ImuRaw",
@@ -98,9 +100,9 @@ ATTITUDE = {
     "properties": {
         "t_ns": _T_NS,
         "q": _QUAT,
-        "roll": {"type": "number", "description": "rad, ZYX Euler"},
-        "pitch": {"type": "number", "description": "rad, ZYX Euler"},
-        "yaw": {"type": "number", "description": "rad, ZYX Euler, (−π, π]"},
+        "roll": {"type": ["number", "null"], "description": "rad, ZYX Euler (null: q not finite)"},
+        "pitch": {"type": ["number", "null"], "description": "rad, ZYX Euler"},
+        "yaw": {"type": ["number", "null"], "description": "rad, ZYX Euler, (−π, π]"},
         "estimator": {"type": "string"},
         "gyro_bias": _vec(3, _NUM_OR_NULL, "gyro-bias estimate, rad/s, body FRD"),
         "diagnostics": {"type": "object", "description": "estimator counters (initialised, *_skipped …)"},
@@ -115,9 +117,9 @@ TRUTH = {
     "properties": {
         "t_ns": _T_NS,
         "q": _QUAT,
-        "roll": {"type": "number"},
-        "pitch": {"type": "number"},
-        "yaw": {"type": "number"},
+        "roll": _NUM_OR_NULL,
+        "pitch": _NUM_OR_NULL,
+        "yaw": _NUM_OR_NULL,
         "movement": {"type": ["boolean", "null"], "description": "BROAD: sample is scored"},
         "source": {"type": "string"},
     },
@@ -288,22 +290,35 @@ def euler(q: list[float]) -> tuple[float, float, float]:
     """ZYX (roll, pitch, yaw) in rad of [w, x, y, z]; yaw in (−π, π]."""
     w, x, y, z = q
     roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    pitch = math.asin(min(1.0, max(-1.0, 2.0 * (w * y - z * x))))
+    s = 2.0 * (w * y - z * x)
+    pitch = math.asin(1.0 if s > 1.0 else -1.0 if s < -1.0 else s)  # rounding clamped, NaN kept
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
     return roll, pitch, (math.pi if yaw == -math.pi else yaw)
 
 
+_VALID_BITS = GYR_VALID | ACC_VALID | MAG_VALID | GYR_SATURATED | ACC_SATURATED | MAG_SATURATED | MAG_NEW
+_valid_cache: dict[int, dict[str, bool]] = {}
+
+
 def _valid(flags: int) -> dict[str, bool]:
-    """The /imu/raw "valid" object: the flag bits decoded."""
-    return {
-        "gyr": bool(flags & GYR_VALID),
-        "acc": bool(flags & ACC_VALID),
-        "mag": bool(flags & MAG_VALID),
-        "gyr_saturated": bool(flags & GYR_SATURATED),
-        "acc_saturated": bool(flags & ACC_SATURATED),
-        "mag_saturated": bool(flags & MAG_SATURATED),
-        "mag_new": bool(flags & MAG_NEW),
-    }
+    """The /imu/raw "valid" object: the flag bits decoded (one shared dict per bit pattern)."""
+    bits = int(flags) & _VALID_BITS
+    valid = _valid_cache.get(bits)
+    if valid is None:
+        valid = _valid_cache[bits] = {
+            "gyr": bool(bits & GYR_VALID),
+            "acc": bool(bits & ACC_VALID),
+            "mag": bool(bits & MAG_VALID),
+            "gyr_saturated": bool(bits & GYR_SATURATED),
+            "acc_saturated": bool(bits & ACC_SATURATED),
+            "mag_saturated": bool(bits & MAG_SATURATED),
+            "mag_new": bool(bits & MAG_NEW),
+        }
+    return valid
+
+
+# The builders below return the message as :func:`encode` writes it. Floats may be NaN or ±inf
+# in the dict: encode writes them as null, which readers turn back into NaN.
 
 
 def raw_message(
@@ -318,18 +333,18 @@ def raw_message(
 
     index: the sample's number since the writer started (what /params sample_index counts).
     """
-    mag = row[6:9]
+    mx, my, mz = mag = row[6:9]
     return {
         "t_ns": int(t_ns),
         "index": index,
-        "dt": num_or_null(row[9]),
-        "gyr": nums_or_null(row[0:3]),
-        "acc": nums_or_null(row[3:6]),
-        "mag": None if all(math.isnan(v) for v in mag) else nums_or_null(mag),
+        "dt": row[9],
+        "gyr": row[0:3],
+        "acc": row[3:6],
+        "mag": None if (mx != mx and my != my and mz != mz) else mag,  # all NaN: no reading
         "flags": int(flags),
         "valid": _valid(flags),
-        "raw": jsonable(raw),
-        "temperature": None if temperature is None else num_or_null(float(temperature)),
+        "raw": raw,
+        "temperature": temperature,
     }
 
 
@@ -340,13 +355,13 @@ def attitude_message(
     roll, pitch, yaw = euler(q)
     return {
         "t_ns": int(t_ns),
-        "q": nums_or_null(q),
+        "q": q,
         "roll": roll,
         "pitch": pitch,
         "yaw": yaw,
         "estimator": str(estimator),
-        "gyro_bias": nums_or_null(bias) if bias is not None else [0.0, 0.0, 0.0],
-        "diagnostics": jsonable(diagnostics or {}),
+        "gyro_bias": bias if bias is not None else [0.0, 0.0, 0.0],
+        "diagnostics": diagnostics or {},
     }
 
 
@@ -355,7 +370,7 @@ def truth_message(t_ns: int, q: list[float], movement: bool | None = None, sourc
     roll, pitch, yaw = euler(q)
     return {
         "t_ns": int(t_ns),
-        "q": nums_or_null(q),
+        "q": q,
         "roll": roll,
         "pitch": pitch,
         "yaw": yaw,
@@ -375,147 +390,33 @@ def tf_message(t_ns: int, q: list[float]) -> dict[str, Any]:
     }
 
 
-# --------------------------------------------------------------------------- fast encoding
+# --------------------------------------------------------------------------- encoding
 #
-# The writer thread encodes /imu/raw and /attitude at the sample rate (1 kHz). Building the dict
-# and handing it to json.dumps costs about twice as much as formatting the JSON text directly,
-# which leaves mostly the float formatting itself (repr, ~1 µs a float). These encoders write
-# exactly the bytes of ``json.dumps(<the *_message dict>, allow_nan=False, separators=(",", ":"))``
-# for the values the writer passes (Python floats and ints); tests/test_logs_fast_encoding.py
-# checks that. On anything else they raise TypeError/ValueError (as json.dumps would), and the writer
-# then takes the dict path, so an unusual value is never encoded differently.
+# The writer thread encodes /imu/raw, /attitude and /attitude/truth at the sample rate (1 kHz),
+# some thirty floats a sample. Python's float repr costs about a microsecond here, which made
+# json.dumps the largest single cost of the service; orjson formats the same shortest
+# round-trip text (ryu) about ten times faster and writes non-finite floats as null, our
+# convention. Values orjson does not take (non-str keys, Paths, integers beyond 64 bits,
+# non-contiguous arrays) go through jsonable and json instead, so no message is lost.
 
-_float_repr = float.__repr__  # what json writes for a float; TypeError on a non-float (the int/bool case)
-_int_repr = int.__repr__  # what json writes for an int; TypeError on a non-int (NumPy integers)
-_json_str = json.encoder.encode_basestring_ascii  # json.dumps' string encoder (ensure_ascii=True)
-_NOT_FINITE = "Out of range float values are not JSON compliant"
+_ORJSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
 
 
-def _num(x: float) -> str:
-    """A float as JSON, null when not finite (num_or_null)."""
-    # x - x is 0.0 exactly for finite x, NaN for NaN and ±inf: cheaper than math.isfinite
-    return _float_repr(x) if x - x == 0.0 else "null"
+def encode(message: Any) -> bytes:
+    """A message as compact UTF-8 JSON: floats in shortest round-trip form (they read back bit
+    for bit), NaN and ±inf as null, NumPy arrays and scalars as plain numbers and lists."""
+    try:
+        return orjson.dumps(message, option=_ORJSON_OPTIONS)
+    except TypeError:
+        return json.dumps(jsonable(message), allow_nan=False, separators=(",", ":"), ensure_ascii=False).encode()
 
 
-def _finite(x: float) -> str:
-    """A float that the dict path writes as it is: json.dumps(allow_nan=False) refuses NaN/inf."""
-    if x - x == 0.0:
-        return _float_repr(x)
-    raise ValueError(_NOT_FINITE)
-
-
-def _int_or_null(x: int | None) -> str:
-    """An int (or None) written as given, as the dict path does (bool and others via json)."""
-    return _int_repr(x) if type(x) is int else _dumps(x)
-
-
-#: json.dumps(value, allow_nan=False, separators=(",", ":")) without building an encoder per call
-_dumps = json.JSONEncoder(allow_nan=False, separators=(",", ":")).encode
-
-
-def _str_keys(value: Any) -> bool:
-    """Whether every dict in ``value`` (dicts, lists, tuples) has str keys only.
-
-    Other keys json.dumps writes unlike jsonable's str(key): True as "true", not "True"; and
-    {1: …, "1": …} as two keys, where jsonable keeps one.
-    """
-    if isinstance(value, dict):
-        return all(type(k) is str for k in value) and all(map(_str_keys, value.values()))
-    if isinstance(value, (list, tuple)):
-        return all(map(_str_keys, value))
-    return True
-
-
-def _jsonable_dumps(value: Any) -> str:
-    """``_dumps(jsonable(value))``, without jsonable's walk when json.dumps writes the same text:
-    plain Python values (tuples are lists to both); NumPy values, NaN … make it raise."""
-    if _str_keys(value):
-        try:
-            return _dumps(value)
-        except (TypeError, ValueError):
-            pass
-    return _dumps(jsonable(value))
-
-
-_VALID_BITS = GYR_VALID | ACC_VALID | MAG_VALID | GYR_SATURATED | ACC_SATURATED | MAG_SATURATED | MAG_NEW
-_valid_json_cache: dict[int, str] = {}
-
-
-def _valid_json(flags: int) -> str:
-    """The "valid" object of ``flags`` as JSON, produced by json.dumps once per bit pattern."""
-    bits = flags & _VALID_BITS
-    text = _valid_json_cache.get(bits)
-    if text is None:
-        text = _valid_json_cache[bits] = _dumps(_valid(bits))
-    return text
-
-
-def encode_raw(
-    t_ns: int,
-    row: list[float],
-    flags: int,
-    raw: Any = None,
-    temperature: float | None = None,
-    index: int | None = None,
-) -> bytes:
-    """``raw_message(...)`` as JSON bytes, without building the dict (same arguments)."""
-    gx, gy, gz, ax, ay, az, mx, my, mz, dt = row
-    flags = int(flags)
-    if mx != mx and my != my and mz != mz:  # all NaN: no reading (raw_message's test)
-        mag = "null"
-    else:
-        mag = f"[{_num(mx)},{_num(my)},{_num(mz)}]"
-    return (
-        f'{{"t_ns":{int(t_ns)},"index":{_int_or_null(index)},'
-        f'"dt":{_num(dt)},"gyr":[{_num(gx)},{_num(gy)},{_num(gz)}],'
-        f'"acc":[{_num(ax)},{_num(ay)},{_num(az)}],"mag":{mag},'
-        f'"flags":{flags},"valid":{_valid_json(flags)},'
-        f'"raw":{"null" if raw is None else _jsonable_dumps(raw)},'
-        f'"temperature":{"null" if temperature is None else _num(float(temperature))}}}'
-    ).encode()
-
-
-def _euler_json(q: list[float]) -> str:
-    roll, pitch, yaw = euler(q)
-    return f'"roll":{_finite(roll)},"pitch":{_finite(pitch)},"yaw":{_finite(yaw)}'
-
-
-def encode_attitude(
-    t_ns: int, q: list[float], estimator: str, bias: list[float] | None = None, diagnostics: Any = None
-) -> bytes:
-    """``attitude_message(...)`` as JSON bytes, without building the dict (same arguments)."""
-    w, x, y, z = q
-    if bias is None:
-        gyro_bias = "[0.0,0.0,0.0]"
-    else:
-        bx, by, bz = bias
-        gyro_bias = f"[{_num(bx)},{_num(by)},{_num(bz)}]"
-    return (
-        f'{{"t_ns":{int(t_ns)},"q":[{_num(w)},{_num(x)},{_num(y)},{_num(z)}],{_euler_json(q)},'
-        f'"estimator":{_json_str(str(estimator))},"gyro_bias":{gyro_bias},'
-        f'"diagnostics":{_jsonable_dumps(diagnostics) if diagnostics else "{}"}}}'
-    ).encode()
-
-
-def encode_truth(t_ns: int, q: list[float], movement: bool | None = None, source: str = "") -> bytes:
-    """``truth_message(...)`` as JSON bytes, without building the dict (same arguments)."""
-    w, x, y, z = q
-    return (
-        f'{{"t_ns":{int(t_ns)},"q":[{_num(w)},{_num(x)},{_num(y)},{_num(z)}],{_euler_json(q)},'
-        f'"movement":{"null" if movement is None else _dumps(movement)},"source":{_dumps(source)}}}'
-    ).encode()
-
-
-def encode_tf(t_ns: int, q: list[float]) -> bytes:
-    """``tf_message(...)`` as JSON bytes, without building the dict (same arguments)."""
-    t_ns = int(t_ns)
-    w, x, y, z = q
-    return (
-        f'{{"timestamp":{{"sec":{t_ns // 1_000_000_000},"nsec":{t_ns % 1_000_000_000}}},'
-        f'"parent_frame_id":"ned","child_frame_id":"body",'
-        f'"translation":{{"x":0.0,"y":0.0,"z":0.0}},'
-        f'"rotation":{{"x":{_finite(x)},"y":{_finite(y)},"z":{_finite(z)},"w":{_finite(w)}}}}}'
-    ).encode()
+def decode(data: bytes) -> Any:
+    """A JSON message back into Python values (null stays None)."""
+    try:
+        return orjson.loads(data)
+    except ValueError:  # what only json reads (NaN literals of foreign files), or the same error again
+        return json.loads(data)
 
 
 # --------------------------------------------------------------------------- validation

@@ -22,6 +22,8 @@ Example (the service's estimation loop)::
     q = est.update_row(row)                       # row: the (10,) sample row fed to it
     log.write_raw(t_ns, row, sample.flags, sample.raw, sample.temperature_c)
     log.write_attitude(t_ns, q, est.name, est.state[8:11], est.diagnostics, state=est.state)
+    # or both in one call (and one queue entry), as the service does at its rate:
+    log.write_sample(t_ns, row, sample.flags, q, est.name, est.state[8:11], est.state, sample.raw)
     ...
     log.write_param_change(t_ns, None, "beta", old, new, "mavlink")  # after est.set_params
     ...
@@ -34,24 +36,24 @@ import atexit
 import collections
 import datetime as _dt
 import json
+import math
 import os
+import struct
 import threading
 import time
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+from mcap.opcode import Opcode
+from mcap.records import MessageIndex
 from mcap.writer import CompressionType, Writer
 
 from ahrs_service.logs import schemas
 from ahrs_service.logs.schemas import (
     attitude_message,
-    encode_attitude,
-    encode_raw,
-    encode_tf,
-    encode_truth,
+    encode,
     jsonable,
-    nums_or_null,
     raw_message,
     tf_message,
     truth_message,
@@ -60,6 +62,58 @@ from ahrs_service.logs.schemas import (
 LIBRARY = "ahrs-service"
 
 # --------------------------------------------------------------------------- synchronous file
+
+_MESSAGE_HEADER = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, log and publish time
+
+
+class _ChunkedWriter(Writer):
+    """``mcap.Writer`` whose ``add_message`` writes the Message record with one ``struct`` call.
+
+    The library builds a ``Message`` object and writes its six fields one by one, about 10 µs
+    a message on the reference machine; the service writes three messages a sample at 1 kHz.
+    This does the same bookkeeping (statistics, chunk times, message index) on the library's
+    own objects and appends the same bytes — tests/test_logs_writer.py checks that whole files
+    come out byte-identical — and falls back to the library's method should a later ``mcap``
+    release lay its internals out differently.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        chunk = getattr(self, "_Writer__chunk_builder", None)
+        buffer = getattr(getattr(chunk, "record_writer", None), "_buffer", None)
+        self._fast = (
+            chunk is not None
+            and hasattr(buffer, "write")
+            and hasattr(self, "_Writer__statistics")
+            and hasattr(self, "_Writer__maybe_finalize_chunk")
+            and isinstance(getattr(chunk, "message_indices", None), dict)
+        )
+
+    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
+        if not self._fast:
+            super().add_message(channel_id, log_time, data, publish_time, sequence)
+            return
+        stats = self._Writer__statistics  # type: ignore[attr-defined]
+        if stats.message_count == 0 or log_time < stats.message_start_time:
+            stats.message_start_time = log_time
+        if log_time > stats.message_end_time:
+            stats.message_end_time = log_time
+        stats.channel_message_counts[channel_id] += 1
+        stats.message_count += 1
+        chunk = self._Writer__chunk_builder  # type: ignore[attr-defined]
+        if chunk.num_messages == 0 or log_time < chunk.message_start_time:
+            chunk.message_start_time = log_time
+        if log_time > chunk.message_end_time:
+            chunk.message_end_time = log_time
+        index = chunk.message_indices.get(channel_id)
+        if not index:
+            index = chunk.message_indices[channel_id] = MessageIndex(channel_id=channel_id, records=[])
+        buffer = chunk.record_writer._buffer
+        index.records.append((log_time, buffer.tell()))
+        chunk.num_messages += 1
+        buffer.write(_MESSAGE_HEADER.pack(Opcode.MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time))
+        buffer.write(data)
+        self._Writer__maybe_finalize_chunk()  # type: ignore[attr-defined]
 
 
 class McapLogFile:
@@ -79,7 +133,7 @@ class McapLogFile:
         self.path = Path(path)
         self._f = open(self.path, "xb" if exclusive else "wb")
         try:
-            self._w = Writer(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+            self._w = _ChunkedWriter(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
             self._w.start(profile="", library=LIBRARY)
             if metadata:
                 self._w.add_metadata("ahrs-service", {str(k): str(v) for k, v in metadata.items()})
@@ -107,8 +161,7 @@ class McapLogFile:
 
     def write(self, topic: str, log_time_ns: int, message: Mapping[str, Any], publish_time_ns: int | None = None) -> None:
         """Writes one message; ``log_time_ns`` is the sample time, publish time the wall clock now."""
-        data = json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
-        self.write_encoded(topic, log_time_ns, data, publish_time_ns)
+        self.write_encoded(topic, log_time_ns, encode(message), publish_time_ns)
 
     def write_encoded(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None) -> None:
         cid = self._channel(topic)
@@ -165,7 +218,7 @@ class McapLogFile:
 
 # --------------------------------------------------------------------------- threaded writer
 
-_RAW, _ATT, _TRUTH, _LOOP, _CONFIG, _PARAM, _MAV, _CLOSE, _NEW_FILE, _STATE = range(10)
+_RAW, _ATT, _TRUTH, _LOOP, _CONFIG, _PARAM, _MAV, _CLOSE, _NEW_FILE, _STATE, _SAMPLE = range(11)
 
 
 def _tolist(x: Any) -> list[float]:
@@ -300,14 +353,52 @@ class FlightLogWriter:
         diag = None if diagnostics is None else dict(diagnostics)
         self._put((_ATT, t_ns, _tolist(q), estimator, None if bias is None else _tolist(bias), diag))
         if state is not None:
-            self._state_seen = True
-            if self._rotation == 1:
-                with self._rotation_lock:
-                    if self._rotation == 1:
-                        # the file ends after this sample; the next starts from this very state
-                        self._rotation = 2
-                        if not self._put((_STATE, t_ns, state.tolist(), estimator, self.samples)):
-                            self._rotation = 1  # queue full: ask again with a later sample
+            self._offer_state(t_ns, state, estimator)
+
+    def write_sample(
+        self,
+        t_ns: int,
+        row: np.ndarray,
+        flags: int,
+        q: np.ndarray,
+        estimator: str,
+        bias: np.ndarray | None = None,
+        state: np.ndarray | None = None,
+        raw: Mapping[str, Any] | None = None,
+        temperature: float | None = None,
+        truth_q: np.ndarray | None = None,
+    ) -> None:
+        """``write_raw`` + ``write_attitude`` (+ ``write_truth`` when ``truth_q`` is given) of one
+        sample as one queue entry: the service's per-sample call, a third of the caller's cost.
+        Same arguments and units as those three; the file holds the same messages."""
+        self._put(
+            (
+                _SAMPLE,
+                t_ns,
+                row.tolist(),
+                flags,
+                raw,
+                temperature,
+                self.samples,
+                _tolist(q),
+                estimator,
+                None if bias is None else _tolist(bias),
+                None if truth_q is None else _tolist(truth_q),
+            )
+        )
+        self.samples += 1
+        if state is not None:
+            self._offer_state(t_ns, state, estimator)
+
+    def _offer_state(self, t_ns: int, state: np.ndarray, estimator: str) -> None:
+        self._state_seen = True
+        if self._rotation == 1:
+            with self._rotation_lock:
+                if self._rotation == 1:
+                    # the file ends after this sample; the next starts from this very state
+                    self._rotation = 2
+                    if not self._put((_STATE, t_ns, state.tolist(), estimator, self.samples)):
+                        self._rotation = 1  # queue full: ask again with a later sample
 
     def write_truth(self, t_ns: int, q: Any, movement: bool | None = None, source: str = "") -> None:
         """Ground-truth q_earth←body [w, x, y, z] (NED) for the sample at ``t_ns``."""
@@ -474,26 +565,12 @@ class FlightLogWriter:
 
     def _write(self, topic: str, t_ns: int, message: dict[str, Any]) -> None:
         try:
-            data = json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+            data = encode(message)
         except (TypeError, ValueError) as exc:
             # a message the caller filled with something JSON cannot hold: lose it, not the file
             self._dropped_io += 1
             self._error(exc)
             self.status = "ok"
-            return
-        self._write_data(topic, t_ns, data)
-
-    def _write_fast(self, topic: str, t_ns: int, encode: Any, build: Any, *args: Any) -> None:
-        """Writes ``build(*args)`` as ``encode(*args)`` produces it: the same bytes, half the CPU.
-
-        The fast encoders raise on values they do not format themselves (a NumPy integer, a
-        non-finite Euler angle …); the dict path then encodes the message, or drops and reports
-        it, exactly as it always did.
-        """
-        try:
-            data = encode(*args)
-        except (TypeError, ValueError):
-            self._write(topic, t_ns, build(*args))
             return
         self._write_data(topic, t_ns, data)
 
@@ -519,7 +596,7 @@ class FlightLogWriter:
             if self._rotation:  # else stale: new_file() or a rotation without it already made a new file
                 self._rotate_with_state(item)
             return
-        if self._file is not None and kind == _RAW and self._should_rotate():
+        if self._file is not None and (kind == _RAW or kind == _SAMPLE) and self._should_rotate():
             now = time.monotonic()
             if not self._state_seen or (self._rotation == 1 and now - self._rotation_since > 2.0):
                 # no state snapshot coming (or it stopped coming): rotate here, without one
@@ -529,22 +606,25 @@ class FlightLogWriter:
                 self._rotation, self._rotation_since = 1, now
         if self._file is None:
             if not self._open(self._config["reason"] if kind == _CONFIG else None):
-                self._dropped_io += 1
+                self._dropped_io += 1 if kind != _SAMPLE else 2 + (item[10] is not None)
                 return
             if kind == _CONFIG:
                 return  # _open just wrote this configuration as the file's first message
-        if kind == _RAW:
-            self._write_fast("/imu/raw", t_ns, encode_raw, raw_message, t_ns, *item[2:7])
+        if kind == _SAMPLE:
+            # (_SAMPLE, t_ns, row, flags, raw, temperature, index, q, estimator, bias, truth_q)
+            self._write("/imu/raw", t_ns, raw_message(t_ns, *item[2:7]))
+            self._write_attitude(t_ns, item[7], item[8], item[9], None)
+            if item[10] is not None:
+                if self._file is None:  # a write before failed: _fail counted what the file held
+                    self._dropped_io += 1
+                else:
+                    self._write("/attitude/truth", t_ns, truth_message(t_ns, item[10]))
+        elif kind == _RAW:
+            self._write("/imu/raw", t_ns, raw_message(t_ns, *item[2:7]))
         elif kind == _ATT:
-            q = item[2]
-            self._write_fast("/attitude", t_ns, encode_attitude, attitude_message, t_ns, q, *item[3:6])
-            if self._file is not None and (
-                self._last_tf_ns is None or t_ns - self._last_tf_ns >= self.tf_period_ns
-            ):
-                self._last_tf_ns = t_ns
-                self._write_fast("/tf", t_ns, encode_tf, tf_message, t_ns, q)
+            self._write_attitude(t_ns, *item[2:6])
         elif kind == _TRUTH:
-            self._write_fast("/attitude/truth", t_ns, encode_truth, truth_message, t_ns, *item[2:5])
+            self._write("/attitude/truth", t_ns, truth_message(t_ns, *item[2:5]))
         elif kind == _LOOP:
             self._write("/loop", t_ns, {"t_ns": int(t_ns), **jsonable(item[2])})
         elif kind == _CONFIG:
@@ -562,6 +642,19 @@ class FlightLogWriter:
         elif kind == _MAV:
             self._write("/mavlink", t_ns, {"t_ns": int(t_ns), "counters": jsonable(item[2])})
 
+    def _write_attitude(self, t_ns: int, q: list[float], estimator: str, bias: Any, diagnostics: Any) -> None:
+        if self._file is None:  # the write before this one failed: _fail counted it, retry later
+            self._dropped_io += 1
+            return
+        self._write("/attitude", t_ns, attitude_message(t_ns, q, estimator, bias, diagnostics))
+        if (
+            self._file is not None
+            and (self._last_tf_ns is None or t_ns - self._last_tf_ns >= self.tf_period_ns)
+            and all(map(math.isfinite, q))  # a transform with null rotation would break the 3-D panel
+        ):
+            self._last_tf_ns = t_ns
+            self._write("/tf", t_ns, tf_message(t_ns, q))
+
     def _cancel_rotation(self) -> None:
         # a snapshot write_attitude queues after this finds no rotation pending and is ignored
         with self._rotation_lock:
@@ -575,7 +668,7 @@ class FlightLogWriter:
         if not self._open():
             self._dropped_io += 1
             return
-        msg = {"t_ns": int(t_ns), "sample_index": int(next_index), "estimator": str(estimator), "state": nums_or_null(state)}
+        msg = {"t_ns": int(t_ns), "sample_index": int(next_index), "estimator": str(estimator), "state": state}
         self._write("/estimator/state", t_ns, msg)
 
     def _fold_param(self, name: str, new: Any) -> None:
