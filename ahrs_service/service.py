@@ -5,6 +5,12 @@ hand the sample to the log writer's queue (the writer encodes on its own thread)
 ``IO_PERIOD_NS`` publish what MAVLink has due and handle what came in. Parameter changes and
 commands are therefore applied between two samples, at a sample index the log records, so a
 replay reproduces every published attitude.
+
+The one computation too long for a tick, the fit at the end of a live calibration (tens of
+milliseconds), runs on a daemon thread ("live-calibration",
+:meth:`~ahrs_service.calibration.live.LiveCalibrator.finish_async`); the loop keeps
+estimating with the old calibration and, once the fit is done, swaps the calibration, reports
+and records it itself — between two samples like any other change.
 """
 
 from __future__ import annotations
@@ -14,13 +20,14 @@ import logging
 import signal
 import sys
 import time
+from concurrent.futures import Future, wait
 from typing import Any
 
 from ahrs_service import config as config_mod
 from ahrs_service import estimators
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID, ImuSource
 from ahrs_service.drivers.calibration import SensorCalibration
-from ahrs_service.calibration.live import LiveCalibrator
+from ahrs_service.calibration.live import LiveCalibrationResult, LiveCalibrator
 from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
 from ahrs_service.pipeline import EstimationPipeline
 from ahrs_service.scheduler import FixedRateScheduler, LoopStats
@@ -32,6 +39,9 @@ log = logging.getLogger("ahrs_service")
 IO_PERIOD_NS = 5_000_000  # MAVLink publish/poll granularity: 200 Hz
 HOUSEKEEPING_NS = 1_000_000_000  # loop statistics, STATUS=, health reports
 MAX_SAMPLES_PER_TICK = 16  # a source with a backlog catches up at most this fast
+# how long close() waits for a running live-calibration fit, s: fits take tens of ms, and
+# the whole stop must stay well within 2 s (systemd's TimeoutStopSec is 5 s)
+LIVE_FIT_CLOSE_WAIT_S = 0.5
 
 
 def _freeze_heap() -> None:
@@ -56,6 +66,9 @@ class Service:
         self.mavlink = None
         self.log_writer = None
         self.live_calibration = LiveCalibrator(max_rate_hz=cfg.rates["estimation_hz"])
+        # the running fit of a live calibration (see apply_live_calibration) and its kind
+        self._live_fit: Future[LiveCalibrationResult] | None = None
+        self._live_fit_kind = ""
 
     # ------------------------------------------------------------------ set-up
     def start(self) -> None:
@@ -171,15 +184,17 @@ class Service:
                 if sample is None:
                     break
                 if self.live_calibration.active and self.live_calibration.add(sample):
-                    self.finish_live_calibration()
-                    pipeline = self.pipeline
+                    self.start_live_fit()
                 cal = pipeline.process(sample)
                 if cal is not None and writer is not None:
-                    est = pipeline.estimator
-                    writer.write_raw(cal.t_ns, pipeline.row, cal.flags, raw=sample.raw, temperature=cal.temperature_c)
-                    writer.write_attitude(cal.t_ns, est.state[:4], est.name, est.state[8:11], None, state=est.state)
-                    if cal.truth_q is not None:
-                        writer.write_truth(cal.t_ns, cal.truth_q)
+                    state = pipeline.estimator.state
+                    writer.write_sample(
+                        cal.t_ns, pipeline.row, cal.flags, state[:4], pipeline.estimator.name, state[8:11], state,
+                        sample.raw, cal.temperature_c, cal.truth_q,
+                    )
+            # one attribute test per tick while no fit runs; done() takes a lock only during one
+            if self._live_fit is not None and self._live_fit.done():
+                self.apply_live_calibration()
             if now >= next_io:
                 next_io += IO_PERIOD_NS
                 if now > next_io:
@@ -226,7 +241,7 @@ class Service:
         st = self.scheduler.stats()
         self.last_load_percent = st.load_percent
         self.notifier.status(self.status_line(st))
-        if self.live_calibration.active:
+        if self.live_calibration.state != "idle":  # collecting, or "<kind> cal: fitting"
             self.report(self.live_calibration.status_text(), 6)
         diag = self.source.diagnostics.as_dict()
         if self._last_overruns is not None and st.overruns > self._last_overruns:
@@ -270,18 +285,65 @@ class Service:
             self.log_writer.write_config(time.monotonic_ns(), self.effective_config(), reason=f"calibration:{kind}")
 
     def start_live_calibration(self, kind: str) -> tuple[bool, str]:
-        """Starts collecting samples for a magnetometer or accelerometer calibration."""
+        """Starts collecting samples for a magnetometer or accelerometer calibration.
+
+        Returns (started, text for the operator); refused while a collection runs or the
+        previous one is still being fitted."""
         try:
             return True, self.live_calibration.start(kind)
-        except RuntimeError as exc:  # one is already running
+        except RuntimeError as exc:  # one is already running, or its fit
             return False, str(exc)
 
-    def finish_live_calibration(self) -> None:
-        result = self.live_calibration.finish(self.pipeline.calibration)
+    def start_live_fit(self) -> None:
+        """The collection is done: hands its data to the fit thread (loop thread, O(1)). The
+        loop goes on with the calibration in force; :meth:`apply_live_calibration` swaps it
+        when the fit is done."""
+        kind = self.live_calibration.kind or ""
+        try:
+            self._live_fit = self.live_calibration.finish_async(self.pipeline.calibration)
+            self._live_fit_kind = kind
+        except RuntimeError as exc:  # no thread could be started: the collection is lost
+            self.report(f"{kind} cal failed: {exc}", 4)
+
+    def apply_live_calibration(self) -> None:
+        """Applies the finished fit of a live calibration — on the loop thread, between two
+        samples, so the log records the change at a known sample index: STATUSTEXT of the
+        outcome, and when accepted the new calibration in the pipeline, the configuration
+        file and the log (:meth:`record_calibration`). A fit that raised is reported
+        (STATUSTEXT warning, log with traceback) and changes nothing."""
+        future, self._live_fit = self._live_fit, None
+        if future is None or not future.done():
+            return
+        exc = future.exception(timeout=0)  # any exception, even a BaseException, stays here
+        if exc is not None:
+            log.error("live %s calibration: the fit raised", self._live_fit_kind, exc_info=exc)
+            self.report(f"{self._live_fit_kind} cal failed: {type(exc).__name__}: {exc}", 4)
+            return
+        result = future.result(timeout=0)
+        if result.accepted:
+            # onto the calibration in force now: a gyro calibration or a reload during the
+            # fit may have changed it, and only the calibrated sensor's terms are the fit's
+            self.pipeline.calibration = result.apply_to(self.pipeline.calibration)
+        # after the swap: a ground station that reads "done" finds the new calibration in use
         self.report(result.text, 6 if result.accepted else 4)
         if result.accepted:
-            self.pipeline.calibration = result.calibration
             self.record_calibration(result.kind)
+
+    def _settle_live_fit(self, timeout_s: float) -> None:
+        """At shutdown, after the loop has ended: waits at most ``timeout_s`` s for a running
+        fit and applies it (reported, saved, logged after the last sample); a fit still
+        running then is abandoned — nothing is applied or saved, and its daemon thread ends
+        with the process."""
+        future = self._live_fit
+        if future is None:
+            return
+        wait([future], timeout=timeout_s)
+        if future.done():
+            self.apply_live_calibration()
+        else:
+            self._live_fit = None
+            log.warning("live %s calibration: the fit was still running at shutdown; abandoned, "
+                        "calibration not changed", self._live_fit_kind)
 
     def health(self) -> dict[str, bool]:
         """Present/healthy bits for gyro, accelerometer and magnetometer (SYS_STATUS)."""
@@ -350,7 +412,13 @@ class Service:
 
     # ------------------------------------------------------------------ shutdown
     def close(self) -> None:
+        """Stops everything after :meth:`run` has returned. A live-calibration fit still
+        running gets at most ``LIVE_FIT_CLOSE_WAIT_S`` to finish (see :meth:`_settle_live_fit`)."""
         self.notifier.stopping()
+        try:
+            self._settle_live_fit(LIVE_FIT_CLOSE_WAIT_S)
+        except Exception as exc:  # applying it must not keep the parts below open
+            log.warning("live calibration at shutdown: %s", exc)
         for part in (self.mavlink, self.log_writer, self.source):
             if part is None:
                 continue

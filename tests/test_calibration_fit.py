@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,8 @@ from ahrs_service import config as config_mod
 from ahrs_service.calibration.accelerometer import G0, find_static_segments, fit_accelerometer
 from ahrs_service.calibration.declination import declination_deg, field_at
 from ahrs_service.calibration.gyro import gyro_bias_at_rest
-from ahrs_service.calibration.live import LiveCalibrator
+from ahrs_service.calibration import live as live_mod
+from ahrs_service.calibration.live import FIT_THREAD_NAME, LiveCalibrator
 from ahrs_service.calibration.magnetometer import fit_magnetometer, sphere_coverage
 from ahrs_service.calibration.storage import calibration_from_config_dict, save_calibration
 from ahrs_service.cli import main as cli_main
@@ -519,6 +521,84 @@ def test_live_calibrator_misuse():
     res = cal.finish(current)
     assert not res.accepted and "magnetometer" in res.reason and res.calibration is current
     assert not cal.add(ImuSample(1, np.zeros(3), np.zeros(3), None))  # idle: ignored
+
+
+def _gyro_collection(cal: LiveCalibrator, bias: np.ndarray, rng: np.random.Generator, rate: float = 500.0) -> None:
+    """Starts a 2 s gyro collection and feeds it until done (samples at rest, gyro = bias + noise)."""
+    n = int(3 * rate)
+    gyr = bias + rng.normal(0.0, 0.005, (n, 3))
+    acc = np.array([0.0, 0.0, -G0]) + rng.normal(0.0, 0.05, (n, 3))
+    cal.start("gyro", 2.0)
+    for s in _stream(gyr, acc, None, rate):
+        if cal.add(s):
+            break
+    assert cal.state == "done"
+
+
+def test_live_finish_async_fits_a_snapshot_on_its_own_thread(monkeypatch):
+    rng = np.random.default_rng(20)
+    entered, release = threading.Event(), threading.Event()
+    seen: dict = {}
+
+    def blocking_fit(gyr, acc, mag=None, **options):
+        seen.update(ident=threading.get_ident(), name=threading.current_thread().name, gyr=gyr, gyr_copy=gyr.copy())
+        entered.set()
+        assert release.wait(10.0), "the test never released the fit"
+        return gyro_bias_at_rest(gyr, acc, mag, **options)
+
+    monkeypatch.setattr(live_mod, "gyro_bias_at_rest", blocking_fit)
+    cal = LiveCalibrator(max_rate_hz=500.0)
+    bias = np.array([0.03, -0.02, 0.01])
+    _gyro_collection(cal, bias, rng)
+    current = _current()
+    future = cal.finish_async(current)
+    try:
+        assert entered.wait(10.0)
+        assert seen["ident"] != threading.get_ident() and seen["name"] == FIT_THREAD_NAME
+        # while the fit runs: "fitting", samples ignored, a new start refused with the reason
+        assert cal.state == "fitting" and not cal.active and not future.done()
+        assert "fitting" in cal.status_text()
+        assert not cal.add(ImuSample(9_000_000_000, np.zeros(3), np.zeros(3), None, GYR_VALID | ACC_VALID))
+        with pytest.raises(RuntimeError, match="gyro calibration is still being fitted"):
+            cal.start("mag", 10.0)
+    finally:
+        release.set()
+    res = future.result(timeout=10.0)
+    assert res.accepted and res.kind == "gyro" and res.samples == 1000, res.reason
+    assert np.abs(res.calibration.gyro_bias - bias).max() < 4 * 0.005 / math.sqrt(1000)
+    assert cal.state == "idle"
+    # reusable at once, and a new collection does not write into the data the fit was given
+    _gyro_collection(cal, -bias, rng)
+    assert np.array_equal(seen["gyr"], seen["gyr_copy"])
+    assert cal.finish(current).calibration.gyro_bias[0] < 0
+
+
+def test_live_finish_async_hands_an_exception_to_the_future_and_goes_idle(monkeypatch):
+    def failing_fit(*args, **kwargs):
+        raise np.linalg.LinAlgError("singular matrix")
+
+    monkeypatch.setattr(live_mod, "gyro_bias_at_rest", failing_fit)
+    cal = LiveCalibrator(max_rate_hz=500.0)
+    _gyro_collection(cal, np.zeros(3), np.random.default_rng(21))
+    future = cal.finish_async(SensorCalibration())
+    assert isinstance(future.exception(timeout=10.0), np.linalg.LinAlgError)
+    assert cal.state == "idle"
+    assert "still" in cal.start("gyro", 2.0)  # usable again
+
+
+def test_live_result_apply_to_keeps_terms_changed_during_the_fit():
+    cal = LiveCalibrator(max_rate_hz=500.0)
+    bias = np.array([0.03, -0.02, 0.01])
+    _gyro_collection(cal, bias, np.random.default_rng(22))
+    res = cal.finish(_current())
+    # meanwhile (an asynchronous fit) the accelerometer terms in force changed
+    now = dataclasses.replace(_current(), acc_bias=np.array([0.7, 0.0, 0.0]))
+    applied = res.apply_to(now)
+    assert np.array_equal(applied.gyro_bias, res.calibration.gyro_bias)
+    assert np.array_equal(applied.acc_bias, [0.7, 0.0, 0.0])
+    assert np.array_equal(applied.mounting, now.mounting)
+    refused = dataclasses.replace(res, accepted=False)
+    assert refused.apply_to(now) is now
 
 
 # ------------------------------------------------------------------------------- command line

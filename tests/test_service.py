@@ -20,6 +20,9 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from ahrs_service import config as config_mod  # noqa: E402
+from ahrs_service.calibration import live as live_mod  # noqa: E402
+from ahrs_service.calibration.magnetometer import MagCalibrationResult  # noqa: E402
+from ahrs_service.calibration.storage import calibration_from_config_dict  # noqa: E402
 from ahrs_service.logs.reader import read_log  # noqa: E402
 from ahrs_service.quaternion import quat_conj_array, quat_mul_array  # noqa: E402
 from ahrs_service.service import Service  # noqa: E402
@@ -326,5 +329,203 @@ def test_reload_to_another_estimator_rebuilds_its_parameters_and_keeps_command_l
         conn.mav.param_request_list_send(1, 1)
         names = {m.param_id for m in collect(conn, 3.0) if m.get_type() == "PARAM_VALUE"}
         assert "EST_KP" in names and "EST_BETA" not in names
+    finally:
+        run.stop()
+
+
+# ------------------------------------------------------------------ live calibration: the fit off the loop
+FITTED_HARD_IRON = np.array([1.0, 2.0, 3.0])  # µT, what the replaced fit "finds"
+MAG_CAL = (mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 1, 0, 0, 0, 0, 0)  # param2 = 1: magnetometer
+ACCEL_CAL = (mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 0, 0, 0, 1, 0, 0)  # param5 = 1: accelerometer
+
+
+class BlockingMagFit:
+    """Stands in for ``fit_magnetometer``: records the thread it runs on, blocks until
+    ``release`` is set, then raises ``error`` or returns an accepted fit."""
+
+    def __init__(self) -> None:
+        self.entered = threading.Event()
+        self.release = threading.Event()
+        self.threads: list[tuple[int, str]] = []
+        self.error: BaseException | None = None
+
+    def __call__(self, mag: np.ndarray, **options) -> MagCalibrationResult:
+        self.threads.append((threading.get_ident(), threading.current_thread().name))
+        self.entered.set()
+        if not self.release.wait(15.0):
+            raise AssertionError("the test never released the fit")
+        if self.error is not None:
+            raise self.error
+        return MagCalibrationResult(FITTED_HARD_IRON, np.eye(3), 49.3, 0.1, 0.002, 0.9, 1.0, len(mag), True, "ok")
+
+
+@pytest.fixture
+def blocking_mag_fit(monkeypatch):
+    fit = BlockingMagFit()
+    monkeypatch.setattr(live_mod, "fit_magnetometer", fit)
+    monkeypatch.setitem(live_mod.DEFAULT_DURATION_S, "mag", 0.5)  # s of samples instead of a minute
+    yield fit
+    fit.release.set()  # a failed test must not leave the fit thread waiting
+
+
+def _wait_until(condition, seconds: float = 10.0) -> bool:
+    """Polls ``condition()`` until true or ``seconds`` pass (the bound only matters on failure)."""
+    end = time.monotonic() + seconds
+    while not condition():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def _statustext(conn, fragment: str, seconds: float = 10.0):
+    return _first(conn, lambda m: m.get_type() == "STATUSTEXT" and fragment in m.text, seconds)
+
+
+def _config_file(tmp_path, port: int) -> tuple:
+    """A configuration loaded from a file (so that accepted calibrations are saved into it)."""
+    path = tmp_path / "ahrs.toml"
+    path.write_text(config_mod.to_toml(service_config(tmp_path, port, source={"profile": "figure8"}).raw))
+    return path, config_mod.load(path)
+
+
+def _start_mag_fit(conn, run: RunningService, fit: BlockingMagFit) -> None:
+    """Sends the magnetometer calibration command and waits until its (blocked) fit runs."""
+    conn.mav.command_long_send(1, 1, *MAG_CAL)
+    assert _ack(conn, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION).result == mavlink2.MAV_RESULT_ACCEPTED
+    assert fit.entered.wait(10.0), "the collection did not end in a fit"
+
+
+def test_live_calibration_fit_runs_off_the_loop_thread_and_is_applied_on_it(tmp_path, gcs, blocking_mag_fit):
+    conn, port = gcs
+    fit = blocking_mag_fit
+    cfg_path, cfg = _config_file(tmp_path, port)
+    run = RunningService(cfg)
+    svc = run.service
+    applied_on: list[int] = []
+    record = svc.record_calibration
+
+    def recording(kind: str) -> None:  # called right after the pipeline's calibration is swapped
+        applied_on.append(threading.get_ident())
+        record(kind)
+
+    svc.record_calibration = recording
+    try:
+        collect(conn, 1.0)
+        _start_mag_fit(conn, run, fit)
+        [(fit_thread, fit_name)] = fit.threads
+        assert fit_thread != run.thread.ident and fit_name == live_mod.FIT_THREAD_NAME
+        # the fit is blocked: the loop goes on estimating, with the old calibration
+        assert svc.live_calibration.state == "fitting"
+        n0 = svc.pipeline.samples
+        assert _wait_until(lambda: svc.pipeline.samples >= n0 + 100), "the loop stalled during the fit"
+        assert np.array_equal(svc.pipeline.calibration.mag_hard_iron, np.zeros(3))
+        assert _statustext(conn, "mag cal: fitting") is not None  # housekeeping says why nothing happens yet
+
+        fit.release.set()
+        done = _statustext(conn, "mag cal done")
+        assert done is not None and done.severity == mavlink2.MAV_SEVERITY_INFO
+        assert np.array_equal(svc.pipeline.calibration.mag_hard_iron, FITTED_HARD_IRON)  # swapped before the text
+        assert _wait_until(lambda: applied_on) and applied_on == [run.thread.ident]
+        assert svc.live_calibration.state == "idle"
+        n1 = svc.pipeline.samples
+        assert _wait_until(lambda: svc.pipeline.samples > n1)
+    finally:
+        run.stop()
+    # saved and logged as before
+    assert np.array_equal(calibration_from_config_dict(config_mod.load(cfg_path).raw).mag_hard_iron, FITTED_HARD_IRON)
+    logged = [c for c in read_log(svc.log_writer.files[-1]).configs if c.get("reason") == "calibration:mag"]
+    assert len(logged) == 1
+    assert calibration_from_config_dict(logged[0]["config"]).mag_hard_iron.tolist() == FITTED_HARD_IRON.tolist()
+
+
+def test_live_calibration_fit_that_raises_is_reported_and_the_service_goes_on(tmp_path, gcs, blocking_mag_fit):
+    conn, port = gcs
+    fit = blocking_mag_fit
+    fit.error = np.linalg.LinAlgError("singular matrix")
+    fit.release.set()
+    run = RunningService(service_config(tmp_path, port, source={"profile": "figure8"}))
+    svc = run.service
+    try:
+        collect(conn, 1.0)
+        _start_mag_fit(conn, run, fit)
+        failed = _statustext(conn, "mag cal failed")
+        assert failed is not None and "LinAlgError" in failed.text
+        assert failed.severity == mavlink2.MAV_SEVERITY_WARNING
+        assert run.thread.is_alive()
+        n0 = svc.pipeline.samples
+        assert _wait_until(lambda: svc.pipeline.samples >= n0 + 100)
+        assert np.array_equal(svc.pipeline.calibration.mag_hard_iron, np.zeros(3))
+        # the calibrator is idle again: a new calibration is accepted
+        assert svc.live_calibration.state == "idle"
+        conn.mav.command_long_send(1, 1, *MAG_CAL)
+        assert _ack(conn, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION).result == mavlink2.MAV_RESULT_ACCEPTED
+    finally:
+        run.stop()
+
+
+def test_live_calibration_command_during_a_running_fit_is_refused(tmp_path, gcs, blocking_mag_fit):
+    conn, port = gcs
+    fit = blocking_mag_fit
+    run = RunningService(service_config(tmp_path, port, source={"profile": "figure8"}))
+    svc = run.service
+    try:
+        collect(conn, 1.0)
+        _start_mag_fit(conn, run, fit)
+        for command in (MAG_CAL, ACCEL_CAL):
+            conn.mav.command_long_send(1, 1, *command)
+            assert _ack(conn, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION).result == mavlink2.MAV_RESULT_TEMPORARILY_REJECTED
+        assert _statustext(conn, "still being fitted") is not None  # the reason, sent with the ACK
+        assert svc.live_calibration.state == "fitting" and not svc.live_calibration.active
+
+        fit.release.set()
+        assert _statustext(conn, "mag cal done") is not None
+        conn.mav.command_long_send(1, 1, *ACCEL_CAL)
+        assert _ack(conn, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION).result == mavlink2.MAV_RESULT_ACCEPTED
+    finally:
+        run.stop()
+
+
+def test_stop_during_a_running_fit_abandons_it_without_waiting_for_it(tmp_path, gcs, blocking_mag_fit, caplog):
+    conn, port = gcs
+    fit = blocking_mag_fit
+    cfg_path, cfg = _config_file(tmp_path, port)
+    run = RunningService(cfg)
+    collect(conn, 1.0)
+    try:
+        _start_mag_fit(conn, run, fit)
+    except BaseException:
+        run.stop()
+        raise
+    stopper = threading.Thread(target=run.stop, daemon=True)
+    with caplog.at_level("WARNING", logger="ahrs_service"):
+        stopper.start()
+        stopper.join(10.0)  # close() waits LIVE_FIT_CLOSE_WAIT_S for the fit, not for the release
+        assert not stopper.is_alive(), "stopping waited for the blocked fit"
+    assert not fit.release.is_set()
+    assert any("still running at shutdown" in r.getMessage() for r in caplog.records)
+    assert np.array_equal(run.service.pipeline.calibration.mag_hard_iron, np.zeros(3))
+    assert np.array_equal(calibration_from_config_dict(config_mod.load(cfg_path).raw).mag_hard_iron, np.zeros(3))
+
+
+def test_gyro_calibration_during_a_running_fit_is_kept_when_the_fit_is_applied(tmp_path, gcs, blocking_mag_fit):
+    conn, port = gcs
+    fit = blocking_mag_fit
+    # at rest, with the simulated gyro's zero-rate offset: the gyro command is accepted
+    run = RunningService(service_config(tmp_path, port, source={"profile": "static", "sensor_errors": True}))
+    svc = run.service
+    try:
+        collect(conn, 1.5)
+        _start_mag_fit(conn, run, fit)
+        conn.mav.command_long_send(1, 1, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 1, 0, 0, 0, 0, 0, 0)
+        assert _ack(conn, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION).result == mavlink2.MAV_RESULT_ACCEPTED
+        gyro_bias = svc.pipeline.calibration.gyro_bias.copy()
+        assert np.linalg.norm(gyro_bias) > 0
+
+        fit.release.set()
+        assert _statustext(conn, "mag cal done") is not None
+        # the fit started from the calibration before the gyro command; only its mag terms are applied
+        assert np.array_equal(svc.pipeline.calibration.mag_hard_iron, FITTED_HARD_IRON)
+        assert np.array_equal(svc.pipeline.calibration.gyro_bias, gyro_bias)
     finally:
         run.stop()
