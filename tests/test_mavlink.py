@@ -654,6 +654,30 @@ def test_garbage_and_truncated_input_is_counted_and_survived(comp, gcs):
     assert len(of(got, "ATTITUDE")) == 25  # publishing carries on
 
 
+def test_streams_due_together_share_one_datagram(params):
+    """What is due in one publish goes out as one UDP datagram per endpoint (as autopilots
+    send), frames back to back with consecutive sequence numbers, and pymavlink splits it."""
+    import socket
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(2.0)
+    try:
+        with MavlinkComponent([f"udpout:127.0.0.1:{sock.getsockname()[1]}"], params=params) as c:
+            built = c.publish(0, telemetry(0))  # every stream is due at the start
+            datagram = sock.recv(65536)
+            parser = mavlink2.MAVLink(None)
+            frames = parser.parse_buffer(datagram)
+            names = [m.get_type() for m in frames]
+            assert {"HEARTBEAT", "ATTITUDE", "ATTITUDE_QUATERNION"} <= set(names)
+            assert len(names) == built >= 3
+            seqs = [m.get_seq() for m in frames]
+            assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+            assert sum(len(m.get_msgbuf()) for m in frames) == len(datagram)  # nothing else in it
+    finally:
+        sock.close()
+
+
 def test_two_endpoints_and_a_failing_one(params, store):
     g1, p1 = make_gcs()
     g2, p2 = make_gcs(254, 191)

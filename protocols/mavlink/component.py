@@ -187,11 +187,17 @@ class MavlinkComponent:
 
     # ================================================================== sending
     def _send_all(self, msg: Any, only: Endpoint | None = None) -> None:
-        name = msg.get_type()
+        self._send_batch([msg], only)
+
+    def _send_batch(self, msgs: list[Any], only: Endpoint | None = None) -> None:
+        """Sends ``msgs`` on every endpoint (or ``only``) in one write each: on UDP one
+        datagram carrying them back to back, as autopilots send their streams."""
+        sent = self.stats.sent
         for ep in (only,) if only is not None else self._endpoints:
-            ok = ep.send(msg)
-            if ok:
-                self.stats.sent[name] = self.stats.sent.get(name, 0) + 1
+            if ep.send_many(msgs):
+                for msg in msgs:
+                    name = msg.get_type()
+                    sent[name] = sent.get(name, 0) + 1
             else:
                 self.stats.send_errors[ep.url] = ep.send_errors
                 self.stats.last_error = f"{ep.url}: {ep.last_send_error}"
@@ -219,7 +225,7 @@ class MavlinkComponent:
         """
         if telemetry is not None:
             self._last = telemetry
-        built = 0
+        due = []
         for s in self._streams.values():
             if s.hz <= 0.0:
                 continue
@@ -229,16 +235,17 @@ class MavlinkComponent:
                 continue
             msg = self._encode(s.name, telemetry)
             if msg is not None:
-                self._send_all(msg)
-                built += 1
+                due.append(msg)
             # next slot strictly after now; slots missed while the loop was late are skipped
             k = max(s.k + 1, int((now_ns - s.anchor_ns) * s.hz / 1e9))
             while s.due_ns(k) <= now_ns:
                 k += 1
             s.k = k
+        if due:
+            self._send_batch(due)
         active = [s.due_ns(s.k) for s in self._streams.values() if s.hz > 0.0 and s.anchor_ns is not None]
         self._next_due_ns = min(active) if active else now_ns + 1_000_000_000
-        return built
+        return len(due)
 
     def send_now(self, name: str, telemetry: Telemetry | None = None) -> bool:
         """Sends message ``name`` once now on every endpoint (``telemetry`` None uses the last

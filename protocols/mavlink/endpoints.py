@@ -19,7 +19,7 @@ nothing is sent before a peer has spoken), ``tcp:HOST:PORT``, ``tcpin:HOST:PORT`
 from __future__ import annotations
 
 import hashlib
-from typing import Any
+from typing import Any, Sequence
 
 from pymavlink import mavutil
 
@@ -112,19 +112,32 @@ class Endpoint:
 
     def send(self, msg: Any) -> bool:
         """Packs and writes ``msg``; False (and counted) on any error — never raises."""
+        return self.send_many((msg,))
+
+    def send_many(self, msgs: Sequence[Any]) -> bool:
+        """Packs ``msgs`` (each its own sequence number) and writes them back to back in one
+        write — on UDP one datagram, which MAVLink parsers (pymavlink, QGroundControl,
+        autopilots) split like a stream; False on any error — never raises. ``send_errors``
+        counts the messages lost, every message of a failed write."""
         before = self.send_errors
         try:
             self._tap_port()
-            buf = msg.pack(self.conn.mav)
-            self.conn.mav.seq = (self.conn.mav.seq + 1) % 256
-            result = self.conn.write(buf)
+            mav = self.conn.mav
+            packed = []
+            for msg in msgs:
+                packed.append(msg.pack(mav))
+                mav.seq = (mav.seq + 1) % 256
+            result = self.conn.write(packed[0] if len(packed) == 1 else b"".join(packed))
         except Exception as exc:
             if self.send_errors == before:
                 self.note_send_error(exc)
-            return False
+            result = -1
         if result == -1 and self.send_errors == before:  # mavserial's way of saying "failed"
             self.note_send_error(OSError("write failed"))
-        return self.send_errors == before
+        if self.send_errors == before:
+            return True
+        self.send_errors = before + len(msgs)
+        return False
 
     # ------------------------------------------------------------------ receiving
     def read(self) -> bytes:
