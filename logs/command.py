@@ -47,6 +47,18 @@ def add_subcommands(subparsers: Any) -> None:
     p.add_argument("--param", type=_param, action="append", default=[], metavar="NAME=VALUE")
     p.add_argument("--no-param-changes", action="store_true", help="ignore recorded live parameter changes")
     p.add_argument("--out", type=Path, default=None, help="write a new log with the new estimate")
+    p.add_argument(
+        "--offline",
+        action="store_true",
+        help="non-causal estimate: the estimator run forward and backward over the log and fused",
+    )
+    p.add_argument(
+        "--offline-blend",
+        type=float,
+        default=None,
+        metavar="S",
+        help="with --offline: time constant of the fusion weights 1 - exp(-t/S), seconds (default 10)",
+    )
     p.add_argument("--json", action="store_true", help="print the comparison as JSON")
     p.set_defaults(func=_replay)
 
@@ -107,7 +119,7 @@ def _import_broad(args: argparse.Namespace) -> int:
 
 def _replay(args: argparse.Namespace) -> int:
     from ahrs_service.logs.reader import read_log
-    from ahrs_service.logs.replay import compare, replay, write_replay
+    from ahrs_service.logs.replay import compare, replay, replay_offline, write_replay
 
     log = read_log(args.log)
     params = dict(args.param)
@@ -115,16 +127,30 @@ def _replay(args: argparse.Namespace) -> int:
     if not name:
         print("error: the log names no estimator; give --estimator NAME")
         return 2
-    q = replay(log, name, params, follow_param_changes=not args.no_param_changes)
+    follow = not args.no_param_changes
+    blend: float | None = None
+    if args.offline:
+        from ahrs_service.estimators.offline import DEFAULT_BLEND_TIME_S
+
+        blend = DEFAULT_BLEND_TIME_S if args.offline_blend is None else args.offline_blend
+        if not blend > 0:
+            print(f"error: --offline-blend must be positive, got {blend}")
+            return 2
+        q = replay_offline(log, name, params, follow, blend_time_s=blend).q
+    else:
+        q = replay(log, name, params, follow_param_changes=follow)
     result = {"log": str(log.path), "estimator": name, "params": params, **compare(log, q)}
+    if blend is not None:
+        result["offline"] = {"blend_time_s": blend}
     if log.damage:
         result["damage"] = log.damage.as_dict()
     if args.out:
-        result["output"] = str(write_replay(log, q, args.out, name, params, not args.no_param_changes))
+        result["output"] = str(write_replay(log, q, args.out, name, params, follow, offline_blend_s=blend))
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    print(f"replayed {result['samples']} samples of {log.path.name} with {name} {params or ''}")
+    mode = " (offline, forward-backward)" if blend is not None else ""
+    print(f"replayed {result['samples']} samples of {log.path.name} with {name} {params or ''}{mode}")
     rec = result["vs_recorded"]
     if rec:
         same = "bit-exact" if rec["identical"] else f"max component difference {rec['max_abs_diff']:.3g}"

@@ -7,6 +7,10 @@ attitudes bit for bit (same compiled step, same inputs, same order).
 
 Parameter-change semantics: a /params message with ``sample_index`` k means the samples
 0 … k−1 were processed with the old value and k onwards with the new one.
+
+:func:`replay_offline` gives the best attitude after the fact instead (non-causal): the same
+estimator run forward and backward over the log and fused (``estimators.offline``); the
+backward pass applies the same parameter in force at each sample.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ahrs_service import estimators
+from ahrs_service.estimators import offline
 from ahrs_service.evaluation.metrics import error_angles, rmse
 from ahrs_service.logs.reader import MessageSource, RecordedLog
 from ahrs_service.logs.schemas import attitude_message, jsonable, tf_message
@@ -58,11 +63,56 @@ def replay(
         if snap["state"].shape != est.state.shape:
             raise ValueError(f"recorded state has {snap['state'].shape[0]} values, {name} needs {est.state.shape[0]}")
         est.state[:] = snap["state"]
+    cuts = _param_cuts(log, name, est, params, follow_param_changes)
+    return _run_with_cuts(est, log.rows, cuts)
+
+
+def replay_offline(
+    log: RecordedLog,
+    estimator: str | None = None,
+    params: Mapping[str, Any] | None = None,
+    follow_param_changes: bool = True,
+    use_recorded_state: bool = True,
+    blend_time_s: float = offline.DEFAULT_BLEND_TIME_S,
+) -> offline.OfflineResult:
+    """Offline (forward-backward) estimate over the log's rows: ``.q`` is (N, 4) q_earth←body (NED).
+
+    The forward pass is exactly :func:`replay` with the same arguments. The backward pass is a
+    fresh instance over the reversed rows (``offline.reverse_rows``) that applies, at each
+    sample, the parameter values the forward pass used there; it starts from nothing (a
+    recorded state snapshot belongs to the file's start). ``blend_time_s``: time constant (s)
+    of the fusion weights. Heading is aligned onto the forward pass's when the estimator or the
+    log gives none (see ``estimators.offline``).
+    """
+    name = estimator or log.estimator
+    q_forward = replay(log, name, params, follow_param_changes, use_recorded_state)
     rows = log.rows
+    est = estimators.create(name, **_effective_start(log, name, params))
+    cuts = _param_cuts(log, name, est, params, follow_param_changes)
     n = rows.shape[0]
-    out = np.empty((n, 4))
+    # going backwards, a change made at sample k is undone when the pass steps from k to k − 1,
+    # i.e. at backward row n − k; the pass starts with every change applied
+    start = est.get_params()
+    undo: list[tuple[int, str, Any]] = []
+    for k, pname, value in cuts:
+        undo.append((n - k, pname, start[pname]))
+        start[pname] = value
+    est.set_params(**start)
+    # in backward row order; changes made at one sample are undone last-first (stable sort)
+    undo_in_order = sorted(reversed(undo), key=lambda c: c[0])
+    q_backward = _run_with_cuts(est, offline.reverse_rows(rows), undo_in_order)[::-1]
+    cls = estimators.get(name)
+    observed = offline.heading_observed(cls.observes_heading and cls.uses_mag, rows)
+    return offline.combine(q_forward, q_backward, rows, blend_time_s=blend_time_s, align=not observed)
+
+
+def _param_cuts(
+    log: RecordedLog, name: str, est: Any, params: Mapping[str, Any] | None, follow: bool
+) -> list[tuple[int, str, Any]]:
+    """The recorded live changes to apply: (local sample index, name, new value), in order."""
     cuts: list[tuple[int, str, Any]] = []
-    if follow_param_changes and name == log.estimator:
+    if follow and name == log.estimator:
+        n = log.rows.shape[0]
         known = set(est.param_names())
         pinned = set(params or {})
         for change in log.param_changes:
@@ -70,6 +120,13 @@ def replay(
             if change["name"] in known and change["name"] not in pinned and 0 <= k <= n:
                 cuts.append((k, change["name"], change["new"]))
         cuts.sort(key=lambda c: c[0])
+    return cuts
+
+
+def _run_with_cuts(est: Any, rows: np.ndarray, cuts: list[tuple[int, str, Any]]) -> np.ndarray:
+    """Runs ``est`` over ``rows``, setting each cut's parameter before the row it names."""
+    n = rows.shape[0]
+    out = np.empty((n, 4))
     start = 0
     for k, pname, value in cuts + [(n, "", None)]:
         if k > start:
@@ -133,28 +190,36 @@ def write_replay(
     params: Mapping[str, Any] | None = None,
     follow_param_changes: bool = True,
     tf_rate_hz: float = 50.0,
+    offline_blend_s: float | None = None,
 ) -> Path:
     """A new log: every channel of ``log`` copied, the new estimate on /attitude (and /tf),
     the recorded /attitude moved to /attitude/original, /config naming the new estimator.
 
     Only the /params changes that :func:`replay` applied with the same arguments are copied,
-    so replaying the new log reproduces ``q``.
+    so replaying the new log reproduces ``q``. ``offline_blend_s``: ``q`` is the offline
+    estimate of :func:`replay_offline` with that blend time (s); /config then carries
+    ``estimator.offline = {"blend_time_s": …}`` and each /attitude names "<estimator>+offline",
+    so it is not taken for what the causal estimator published (a causal replay of the new log
+    does not reproduce it).
     """
     out_path = Path(out_path)
     if out_path.resolve() == Path(log.path).resolve():
         raise ValueError("the replay must not overwrite its input")
     config = json.loads(json.dumps(log.config)) if log.config else {}
     config["estimator"] = {"name": estimator, "params": _effective_start(log, estimator, params)}
+    label = estimator if offline_blend_s is None else estimator + "+offline"
     same = estimator == log.estimator
     tf_period = int(1e9 / tf_rate_hz)
     row_of = {int(t): i for i, t in enumerate(log.t_ns.tolist())}
     est_obj = estimators.create(estimator, **config["estimator"]["params"])
     config["estimator"]["params"] = jsonable(est_obj.get_params())
+    if offline_blend_s is not None:
+        config["estimator"]["offline"] = {"blend_time_s": float(offline_blend_s)}
     known, pinned = set(est_obj.param_names()), set(params or {})
     last_tf: int | None = None
     source = MessageSource(log.path)
     t0 = int(log.t_ns[0]) if len(log) else 0
-    with McapLogFile(out_path, metadata={"replay_of": Path(log.path).name, "estimator": estimator}) as f:
+    with McapLogFile(out_path, metadata={"replay_of": Path(log.path).name, "estimator": label}) as f:
         f.write("/config", t0, {"t_ns": t0, "reason": "replay", "config": config})
         for topic, log_time, publish_time, data in source:
             if topic in ("/config", "/tf", "/attitude/original") or (topic == "/estimator/state" and not same):
@@ -172,7 +237,7 @@ def write_replay(
                 if i is None or not np.all(np.isfinite(q[i])):
                     continue
                 qi = q[i].tolist()
-                f.write("/attitude", log_time, attitude_message(log_time, qi, estimator))
+                f.write("/attitude", log_time, attitude_message(log_time, qi, label))
                 if last_tf is None or log_time - last_tf >= tf_period:
                     last_tf = log_time
                     f.write("/tf", log_time, tf_message(log_time, qi))

@@ -11,6 +11,7 @@ every other one is off by 50° or more. What was found:
 peer            inputs given                  output, and how it becomes q_ned←sensor
 ==============  ============================  ============================================
 vqf             as ours (specific force)      q_enu←sensor; q_ned = q_ned←enu ⊗ q
+vqf.offline     as ours (specific force)      as vqf (the library's own offline mode)
 imufusion       deg/s, g; convention NWU      q_nwu←sensor; q_ned = q_ned←nwu ⊗ q
                 (library default);
                 ``IMUFUSION_SETTINGS``
@@ -61,6 +62,7 @@ class Peer:
     observes_heading: bool
     func: Callable[..., np.ndarray]
     description: str
+    causal: bool = True  # False: the peer is itself an offline (forward-backward) method
 
     def available(self) -> bool:
         return importlib.util.find_spec(self.package) is not None
@@ -105,6 +107,15 @@ def _vqf(gyr, acc, mag, rate_hz, **params):
 
     est = VQF(1.0 / rate_hz, **params)
     q_enu = est.updateBatch(gyr, acc, mag)["quat9D"]
+    return quat_mul_array(Q_NED_TO_ENU, q_enu)
+
+
+def _vqf_offline(gyr, acc, mag, rate_hz, **params):
+    # VQF's non-causal mode: forward and backward passes inside the library (bias, rest and
+    # magnetic disturbance detection from both sides), the reference for our generic offline mode
+    from vqf import offlineVQF
+
+    q_enu = offlineVQF(gyr, acc, mag, 1.0 / rate_hz, **params)["quat9D"]
     return quat_mul_array(Q_NED_TO_ENU, q_enu)
 
 
@@ -186,6 +197,7 @@ PEERS: dict[str, Peer] = {
     p.name: p
     for p in (
         Peer("vqf", "vqf", True, _vqf, "VQF (Laidig & Seel 2023), defaults, 9D output, updateBatch"),
+        Peer("vqf.offline", "vqf", True, _vqf_offline, "VQF's own offline (non-causal) mode, offlineVQF, defaults", False),
         Peer("imufusion", "imufusion", True, _imufusion, "Fusion AHRS (x-io), its README's example settings, per-sample"),
         Peer("ahrs.madgwick", "ahrs", True, _ahrs_madgwick, "ahrs package: Madgwick, MARG"),
         Peer("ahrs.mahony", "ahrs", True, _ahrs_mahony, "ahrs package: Mahony, MARG"),

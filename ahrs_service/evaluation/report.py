@@ -5,6 +5,10 @@ index, the mean error ("mean value", third paper) and the cost of an update, mea
 batch run. Per group: the mean of its trials' RMSEs. Across trials: Friedman + Nemenyi
 (``stats``). Written as ``results.json``, ``results.md`` and PNG plots, each carrying the
 BROAD citation.
+
+With ``--offline`` every selected column X gets a twin column "X+offline": the same estimator
+(or peer) run forward and backward over the recording and fused
+(``ahrs_service.estimators.offline``), scored alike, beside the causal X.
 """
 
 from __future__ import annotations
@@ -22,19 +26,32 @@ from typing import Any, Callable
 import numpy as np
 
 from ahrs_service import estimators
+from ahrs_service.estimators import offline as offline_mode
+from ahrs_service.estimators.base import stack_rows, time_steps
 from ahrs_service.evaluation import broad, metrics, peers, stats
 from ahrs_service.quaternion import ned_to_enu_array
 
 
 @dataclass
 class Column:
-    """One column of the results: an estimator of ours or a peer library."""
+    """One column of the results: an estimator of ours or a peer library, causal or offline.
+
+    An offline column is named "<base>+offline" and runs ``base`` forward and backward
+    (``estimators.offline``) with fusion time constant ``blend_time_s``.
+    """
 
     name: str
     kind: str  # "estimator" | "peer"
     observes_heading: bool
     uses_mag: bool
     params: dict[str, Any] = field(default_factory=dict)
+    offline: bool = False
+    base: str = ""  # the estimator or peer run; "" means ``name``
+    blend_time_s: float = offline_mode.DEFAULT_BLEND_TIME_S
+
+    def __post_init__(self) -> None:
+        if not self.base:
+            self.base = self.name
 
     @property
     def scores_heading(self) -> bool:
@@ -92,8 +109,25 @@ def parse_params(items: list[str] | None, columns: list[str]) -> dict[str, dict[
     return out
 
 
-def make_columns(names: list[str], peer_names: list[str], params: dict[str, dict[str, Any]]) -> list[Column]:
-    """Columns for the chosen estimators and peers; estimator parameters are checked here."""
+#: Suffix of the offline twin of a column (``--offline``).
+OFFLINE_SUFFIX = "+offline"
+
+
+def make_columns(
+    names: list[str],
+    peer_names: list[str],
+    params: dict[str, dict[str, Any]],
+    *,
+    with_offline: bool = False,
+    blend_time_s: float = offline_mode.DEFAULT_BLEND_TIME_S,
+) -> list[Column]:
+    """Columns for the chosen estimators and peers; estimator parameters are checked here.
+
+    ``with_offline``: each column is followed by its offline twin "<name>+offline" (same
+    parameters), fused with time constant ``blend_time_s`` (s).
+    """
+    if with_offline and not blend_time_s > 0:
+        raise ValueError(f"--offline-blend must be positive, got {blend_time_s}")
     cols = []
     for name in names:
         cls = estimators.get(name)
@@ -103,15 +137,49 @@ def make_columns(names: list[str], peer_names: list[str], params: dict[str, dict
     for name in peer_names:
         peer = peers.PEERS[name]
         cols.append(Column(name, "peer", peer.observes_heading, True, params.get(name, {})))
-    return cols
+    if not with_offline:
+        return cols
+    out = []
+    for col in cols:
+        out.append(col)
+        if col.kind == "peer" and not peers.PEERS[col.name].causal:
+            continue  # already an offline method (vqf.offline): no twin
+        out.append(
+            Column(
+                col.name + OFFLINE_SUFFIX, col.kind, col.observes_heading, col.uses_mag, dict(col.params),
+                offline=True, base=col.name, blend_time_s=blend_time_s,
+            )
+        )
+    return out
 
 
 # ------------------------------------------------------------------------------ running
 
 
-def _run_column(col: Column, trial: broad.Trial) -> tuple[np.ndarray, float]:
-    """(N, 4) NED estimate and the wall time of the batch run in seconds."""
+def _run_offline(col: Column, trial: broad.Trial) -> np.ndarray:
+    """(N, 4) NED offline estimate of an offline column (both passes and the fusion)."""
     mag = trial.mag if col.uses_mag else None
+    if col.kind == "estimator":
+        return offline_mode.smooth(
+            col.base, trial.gyr, trial.acc, mag,
+            rate_hz=trial.rate_hz, params=col.params, blend_time_s=col.blend_time_s,
+        )
+    # a peer takes whole arrays at a fixed rate: the reversed rows' dt column is not needed
+    rows = stack_rows(trial.gyr, trial.acc, trial.mag, time_steps(len(trial), trial.rate_hz))
+
+    def run_rows(r: np.ndarray) -> np.ndarray:
+        return peers.run(col.base, r[:, 0:3], r[:, 3:6], r[:, 6:9], rate_hz=trial.rate_hz, **col.params)
+
+    return offline_mode.smooth_rows(run_rows, rows, blend_time_s=col.blend_time_s, align=not col.observes_heading).q
+
+
+def _run_column(col: Column, trial: broad.Trial) -> tuple[np.ndarray, float]:
+    """(N, 4) NED estimate and the wall time of the batch run (both passes when offline) in seconds."""
+    mag = trial.mag if col.uses_mag else None
+    if col.offline:
+        t0 = time.perf_counter()
+        q = _run_offline(col, trial)
+        return q, time.perf_counter() - t0
     if col.kind == "estimator":
         t0 = time.perf_counter()
         q = estimators.run(col.name, trial.gyr, trial.acc, mag, rate_hz=trial.rate_hz, **col.params)
@@ -126,7 +194,7 @@ def _warm_up(col: Column, trial: broad.Trial) -> None:
     if col.kind == "estimator":
         n = min(32, len(trial))
         mag = trial.mag[:n] if col.uses_mag else None
-        estimators.run(col.name, trial.gyr[:n], trial.acc[:n], mag, rate_hz=trial.rate_hz, **col.params)
+        estimators.run(col.base, trial.gyr[:n], trial.acc[:n], mag, rate_hz=trial.rate_hz, **col.params)
 
 
 def evaluate(
@@ -206,7 +274,8 @@ def evaluate(
         "groups": groups,
         "columns": [
             {"name": c.name, "kind": c.kind, "observes_heading": c.observes_heading, "uses_mag": c.uses_mag,
-             "scores_heading": c.scores_heading, "params": c.params}
+             "scores_heading": c.scores_heading, "params": c.params, "offline": c.offline, "base": c.base}
+            | ({"blend_time_s": c.blend_time_s} if c.offline else {})
             for c in columns
         ],
         "per_trial": per_trial,
@@ -261,9 +330,19 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
         "divided by the samples (after a warm-up call).",
         "",
     ]
-    params = {c: meta[c]["params"] for c in cols if meta[c]["params"]}
+    params = {c: meta[c]["params"] for c in cols if meta[c]["params"] and not meta[c].get("offline")}
     if params:
         out += ["Parameters: " + "; ".join(f"{c}: {p}" for c, p in params.items()), ""]
+    blends = sorted({meta[c]["blend_time_s"] for c in cols if meta[c].get("offline")})
+    if blends:
+        out += [
+            "Columns named `<name>+offline` are the offline (non-causal) mode of `<name>`: a forward "
+            "and a backward pass over the whole recording, fused per sample with weights "
+            f"1 − exp(−t/τ), τ = {', '.join(f'{b:g}' for b in blends)} s "
+            "(`ahrs_service.estimators.offline`); same parameters as `<name>`. Their µs/sample "
+            "covers both passes and the fusion.",
+            "",
+        ]
     out += ["## Summary (mean over the trials)", "",
             "| column | kind | total RMSE | heading RMSE | inclination RMSE | L2 | mean error | µs/sample |",
             "|---|---|---:|---:|---:|---:|---:|---:|"]
@@ -326,6 +405,10 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
 # ------------------------------------------------------------------------------ command
 
 
+def _blend_time(value: float | None) -> float:
+    return offline_mode.DEFAULT_BLEND_TIME_S if value is None else float(value)
+
+
 def main(args: Any) -> int:
     """Entry of ``ahrs-service evaluate`` (arguments from ``command.add_subcommands``)."""
     try:
@@ -336,7 +419,13 @@ def main(args: Any) -> int:
         est_names, skipped = select_estimators(args.estimators)
         peer_names = peers.select(args.peers)
         params = parse_params(args.param, est_names + peer_names)
-        columns = make_columns(est_names, peer_names, params)
+        columns = make_columns(
+            est_names,
+            peer_names,
+            params,
+            with_offline=bool(getattr(args, "offline", False)),
+            blend_time_s=_blend_time(getattr(args, "offline_blend", None)),
+        )
     except (FileNotFoundError, ValueError, ImportError) as exc:
         print(f"ahrs-service evaluate: error: {exc}", file=sys.stderr)
         return 2
