@@ -151,10 +151,13 @@ def _inclination_and_bias(s, p, x, dt, qg, rg):
     qa = (s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3])
     a_e = quat_rotate(qa, (lp0, lp1, lp2))
     n = math.sqrt(a_e[0] ** 2 + a_e[1] ** 2 + a_e[2] ** 2)
-    if not n > 0.0:
-        return
-    # down direction u = −f/|f| must become NED z: rotate u onto (0, 0, 1) (VQF eq. 9–10)
-    ux, uy, uz = -a_e[0] / n, -a_e[1] / n, -a_e[2] / n
+    # down direction u = −f/|f| must become NED z: rotate u onto (0, 0, 1) (VQF eq. 9–10).
+    # A zero (or NaN) filtered vector has no direction: no correction, and no early return
+    # either (it would cost a reference-count pair per sample, see the note on the step below)
+    if n > 0.0:
+        ux, uy, uz = -a_e[0] / n, -a_e[1] / n, -a_e[2] / n
+    else:
+        ux, uy, uz = 0.0, 0.0, 1.0
     qw = math.sqrt(max(0.0, 0.5 * (uz + 1.0)))
     if qw > 1e-6:
         corr = (qw, 0.5 * uy / qw, -0.5 * ux / qw, 0.0)
@@ -212,21 +215,36 @@ def _inclination_and_bias(s, p, x, dt, qg, rg):
     return q6
 
 
-@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def robust_step(s, p, x):
-    """Advances the robust estimator by one sample row (see ``_kernel``)."""
-    gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
-    phase = K.initialise_from_sample(s, x, acc_ok, mag_ok)
-    if phase == K.STARTED:
-        dt0 = x[K.DT] if gyro_ok else 0.01
-        _update_coefficients(s, p, dt0)
-        _start(s, x)
-        if mag_ok:
-            s[MAG_DT] = dt0
-            heading(s, p, x, (s[0], s[1], s[2], s[3]))  # q_a = 1: q_a ⊗ q_g = q_g = q
+# error_model="numpy": divisions by zero give inf/NaN instead of raising (every division is
+# guarded). No "nnan"/"reassoc" fast-math: the NaN checks of bad samples must hold.
+_step_jit = njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
+
+# The step is laid out for speed. numba counts references to arrays: each time an inlined
+# helper receives one, an atomic increment and decrement, which its pruning removes only where
+# the control flow is simple (no early return, no array used on one branch only). Left in,
+# they took half of the step's time. So the helpers get the parameters and the row as tuples
+# of floats and only the state as an array, and the batch loop, which holds the state for all
+# its rows, calls two compiled functions, start-up and update, each with a single exit.
+
+
+@_step_jit
+def _first_sample(s, params, x, gyro_ok, acc_ok, mag_ok):
+    """Until the start: waits for a usable accelerometer sample, then starts the filters."""
+    if K.initialise_from_sample(s, x, acc_ok, mag_ok) != K.STARTED:
         return
-    if phase or not gyro_ok:
-        return
+    p = B.load_tuple(params, N_PARAMS)
+    dt0 = x[K.DT] if gyro_ok else 0.01
+    _update_coefficients(s, p, dt0)
+    _start(s, x)
+    if mag_ok:
+        s[MAG_DT] = dt0
+        heading(s, p, x, (s[0], s[1], s[2], s[3]))  # q_a = 1: q_a ⊗ q_g = q_g = q
+
+
+@_step_jit
+def _update(s, params, x, acc_ok, mag_ok):
+    """One sample with a usable gyroscope after the start (VQF eq. 3: q = q_δ ⊗ q_a ⊗ q_g)."""
+    p = B.load_tuple(params, N_PARAMS)
     dt = x[K.DT]
     _update_coefficients(s, p, dt)
     s[MAG_DT] += dt
@@ -257,11 +275,28 @@ def robust_step(s, p, x):
     K.store_quat(s, q)
 
 
-@njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
-def robust_batch(s, p, rows, out):
+@_step_jit
+def robust_batch(s, params, rows, out):
+    """Advances over the sample rows (N, 10); each row's published q goes to ``out`` (N, 4),
+    unless ``out`` is None (``robust_step``)."""
     for i in range(rows.shape[0]):
-        robust_step(s, p, rows[i])
-        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = s[0], s[1], s[2], s[3]
+        # the row's values, not the view rows[i], which would cost a reference-count pair
+        x = (rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3], rows[i, 4],
+             rows[i, 5], rows[i, 6], rows[i, 7], rows[i, 8], rows[i, K.DT])  # fmt: skip
+        gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
+        if s[K.INITIALISED] == 0.0:
+            _first_sample(s, params, x, gyro_ok, acc_ok, mag_ok)
+        elif gyro_ok:
+            _update(s, params, x, acc_ok, mag_ok)
+        if out is not None:
+            out[i, 0], out[i, 1], out[i, 2], out[i, 3] = s[0], s[1], s[2], s[3]
+
+
+@_step_jit
+def robust_step(s, params, row):
+    """Advances the robust estimator by one sample row (see ``_kernel``): the batch over
+    this one row, so that the per-sample and the batch path run the same code."""
+    robust_batch(s, params, row[np.newaxis, :], None)
 
 
 class RobustEstimator(Estimator):

@@ -1,6 +1,6 @@
 """Compiled building blocks of the robust estimator (``robust.py``): low-pass filters that
-live inside the state array, the gyro-bias Kalman update, and the 3×3 inverse that the
-hard-iron least squares (``robust_mag``) uses.
+live inside the state array, the gyro-bias Kalman update, the 3×3 inverse that the
+hard-iron least squares (``robust_mag``) uses, and ``load_tuple`` for the parameter vector.
 
 Every function works on slots of the float64 state array ``s`` given by their first index,
 so the estimator step never allocates. Filters follow the state-space conventions of
@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 _jit = njit(cache=True, inline="always")
 
@@ -154,3 +156,32 @@ def quat_to_matrix(q):
         2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
         2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
     )  # fmt: skip
+
+
+@intrinsic
+def load_tuple(typingctx, array, length):
+    """The first ``length`` (a constant) entries of a 1-D array as a tuple, loaded one by one.
+
+    Helpers that take the tuple instead of the array cost no reference counting: numba
+    increfs an array on every inlined call and prunes the pair only in simple control flow
+    (see the note before ``robust._first_sample``). numba's own ``to_fixed_tuple`` rebuilds
+    the tuple on the stack for every entry, quadratic in ``length``. No bounds check:
+    ``length`` must not exceed the array's size.
+    """
+    if not isinstance(length, types.IntegerLiteral) or not isinstance(array, types.Array) or array.ndim != 1:
+        return None
+    n = length.literal_value
+    sig = types.UniTuple(array.dtype, n)(array, length)
+
+    def codegen(context, builder, sig, args):
+        arr = context.make_array(sig.args[0])(context, builder, args[0])
+        stride = cgutils.unpack_tuple(builder, arr.strides, 1)[0]
+        values = [
+            context.unpack_value(builder, array.dtype, cgutils.get_item_pointer2(
+                context, builder, arr.data, [arr.nitems], [stride], array.layout, [context.get_constant(types.intp, i)]
+            ))
+            for i in range(n)
+        ]
+        return context.make_tuple(builder, sig.return_type, values)
+
+    return sig, codegen

@@ -150,6 +150,7 @@ P_HI_TAU, P_HI_INFO, P_HI_MIN, P_HI_MAX, P_HI_HUBER = (
     _P["hard_iron_tau"], _P["hard_iron_min_info"], _P["hard_iron_min"], _P["hard_iron_max"], _P["hard_iron_huber"],
 )  # fmt: skip
 P_HI_RESET = _P["hard_iron_reset"]
+N_PARAMS = len(_P)  # length of the parameter vector
 
 # ------------------------------------------------------------------ state layout (after the header)
 GQ = K.HEADER  # 11..14 q_g, I←S
