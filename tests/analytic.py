@@ -6,7 +6,9 @@ import numpy as np
 
 from ahrs_service.quaternion import (
     quat_conj_array,
+    quat_from_euler,
     quat_from_euler_array,
+    quat_integrate,
     quat_from_rotvec_array,
     quat_mul_array,
     quat_rotate_array,
@@ -51,3 +53,20 @@ def error_deg(q_est: np.ndarray, q_true: np.ndarray):
     heading = 2 * np.arctan(np.abs(z / np.where(w == 0, 1e-300, w)))
     incl = 2 * np.arccos(np.clip(np.sqrt(e[:, 0] ** 2 + z**2), 0, 1))
     return np.degrees(total), np.degrees(heading), np.degrees(incl)
+
+
+def wobble(t: np.ndarray, amp_dps: float = 60.0) -> np.ndarray:
+    """A smooth body rate about all three axes (rad/s), enough rotation to observe hard iron."""
+    a = amp_dps * (np.pi / 180.0)
+    return np.stack([a * np.sin(0.9 * t), a * np.sin(0.65 * t + 1.0), 0.8 * a * np.sin(0.4 * t + 2.0)], axis=1)
+
+
+def simulate(t: np.ndarray, omega: np.ndarray, start=(0.1, -0.2, 1.0)) -> np.ndarray:
+    """True q_earth←body (N, 4) on timestamps t (s): omega[k] (rad/s) is the rate over (t_{k−1}, t_k]."""
+    q = np.empty((len(t), 4))
+    qk = quat_from_euler(*start)
+    q[0] = qk
+    for k in range(1, len(t)):
+        qk = quat_integrate(qk, omega[k, 0], omega[k, 1], omega[k, 2], t[k] - t[k - 1])
+        q[k] = qk
+    return q

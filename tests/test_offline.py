@@ -23,11 +23,10 @@ from ahrs_service.estimators.base import stack_rows, time_steps
 from ahrs_service.evaluation import broad, metrics
 from ahrs_service.quaternion import (
     quat_conj_array,
-    quat_from_euler,
     quat_integrate,
     quat_rotate_array,
 )
-from tests.analytic import FIELD_NED, G, error_deg
+from tests.analytic import FIELD_NED, G, error_deg, simulate, wobble
 
 DEG = math.pi / 180.0
 RATE = 100.0  # Hz
@@ -36,23 +35,6 @@ BIAS = np.array([0.004, -0.006, 0.005])  # rad/s, 0.2–0.35 °/s: a plain MEMS 
 
 
 # ----------------------------------------------------------------------------- simulation
-
-
-def wobble(t: np.ndarray, amp_dps: float = 60.0) -> np.ndarray:
-    """A smooth body rate about all three axes (rad/s), as in test_robust."""
-    a = amp_dps * DEG
-    return np.stack([a * np.sin(0.9 * t), a * np.sin(0.65 * t + 1.0), 0.8 * a * np.sin(0.4 * t + 2.0)], axis=1)
-
-
-def simulate(t: np.ndarray, omega: np.ndarray, start=(0.1, -0.2, 1.0)) -> np.ndarray:
-    """True q_earth←body (N, 4) on timestamps t (s): omega[k] is the rate over (t_{k−1}, t_k]."""
-    q = np.empty((len(t), 4))
-    qk = quat_from_euler(*start)
-    q[0] = qk
-    for k in range(1, len(t)):
-        qk = quat_integrate(qk, omega[k, 0], omega[k, 1], omega[k, 2], t[k] - t[k - 1])
-        q[k] = qk
-    return q
 
 
 @pytest.fixture(scope="module")

@@ -24,33 +24,14 @@ from ahrs_service.estimators.base import stack_rows
 from ahrs_service.quaternion import (
     ned_to_enu_array,
     quat_conj_array,
-    quat_from_euler,
-    quat_integrate,
     quat_mul_array,
     quat_rotate_array,
 )
-from tests.analytic import FIELD_NED, G, error_deg
+from tests.analytic import FIELD_NED, G, error_deg, simulate, wobble
 
 DEG = math.pi / 180.0
 
 # ----------------------------------------------------------------------------- simulation
-
-
-def wobble(t: np.ndarray, amp_dps: float = 60.0) -> np.ndarray:
-    """A smooth rate about all three axes (rad/s), enough rotation to observe hard iron."""
-    a = amp_dps * DEG
-    return np.stack([a * np.sin(0.9 * t), a * np.sin(0.65 * t + 1.0), 0.8 * a * np.sin(0.4 * t + 2.0)], axis=1)
-
-
-def simulate(t: np.ndarray, omega: np.ndarray, start=(0.1, -0.2, 1.0)):
-    """True attitudes (N, 4) on timestamps t (s) for body rates omega (N, 3), rad/s."""
-    q = np.empty((len(t), 4))
-    qk = quat_from_euler(*start)
-    q[0] = qk
-    for k in range(1, len(t)):
-        qk = quat_integrate(qk, omega[k, 0], omega[k, 1], omega[k, 2], t[k] - t[k - 1])
-        q[k] = qk
-    return q
 
 
 def sense(q, omega, seed=1, field_earth=None, hard_iron=None, gyro_bias=None):
