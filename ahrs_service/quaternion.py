@@ -227,6 +227,13 @@ def quat_mul_array(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     )
 
 
+def vecs_are_usable(v: np.ndarray) -> np.ndarray:
+    """(N,) :func:`vec_is_usable` of each row of ``v`` (N, 3)."""
+    v = np.asarray(v, dtype=np.float64)
+    n2 = np.sum(v * v, axis=1)
+    return np.isfinite(n2) & (n2 > 1e-12)
+
+
 def quat_conj_array(q: np.ndarray) -> np.ndarray:
     """Conjugate of (N, 4) quaternions."""
     return np.asarray(q, dtype=float) * np.array([1.0, -1.0, -1.0, -1.0])

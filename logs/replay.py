@@ -101,8 +101,7 @@ def replay_offline(
     # in backward row order; changes made at one sample are undone last-first (stable sort)
     undo_in_order = sorted(reversed(undo), key=lambda c: c[0])
     q_backward = _run_with_cuts(est, offline.reverse_rows(rows), undo_in_order)[::-1]
-    cls = estimators.get(name)
-    observed = offline.heading_observed(cls.observes_heading and cls.uses_mag, rows)
+    observed = offline.heading_observed(name, rows)
     return offline.combine(q_forward, q_backward, rows, blend_time_s=blend_time_s, align=not observed)
 
 

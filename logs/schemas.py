@@ -25,7 +25,7 @@ from __future__ import annotations
 import collections.abc
 import json
 import math
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import orjson
@@ -255,11 +255,6 @@ def schema_bytes(topic: str) -> bytes:
 def num_or_null(x: float) -> float | None:
     """x, or None (JSON null) when it is not finite."""
     return x if math.isfinite(x) else None
-
-
-def nums_or_null(values: Iterable[float]) -> list[float | None]:
-    """The values as a list, non-finite ones as None (JSON null)."""
-    return [v if math.isfinite(v) else None for v in values]
 
 
 def jsonable(value: Any) -> Any:

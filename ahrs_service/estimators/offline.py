@@ -121,7 +121,7 @@ import numpy as np
 from ahrs_service import estimators
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import stack_rows, time_steps
-from ahrs_service.quaternion import quat_conj_array, quat_mul_array
+from ahrs_service.quaternion import quat_conj_array, quat_mul_array, vecs_are_usable
 
 #: Default time constant (s) of the fusion weights w = 1 − exp(−t / τ).
 DEFAULT_BLEND_TIME_S = 10.0
@@ -152,29 +152,12 @@ class OfflineResult:
 # ------------------------------------------------------------------------------ public entry
 
 
-def smooth(
-    name: str,
-    gyr: Any,
-    acc: Any,
-    mag: Any = None,
-    *,
-    rate_hz: float | None = None,
-    timestamps: Any = None,
-    dt: Any = None,
-    params: Mapping[str, float] | None = None,
-    blend_time_s: float = DEFAULT_BLEND_TIME_S,
-) -> np.ndarray:
+def smooth(name: str, gyr: Any, acc: Any, mag: Any = None, **options: Any) -> np.ndarray:
     """Offline attitude of a whole recording: (N, 4) q_earth←body [w, x, y, z], NED.
 
-    Inputs as for ``estimators.run``: gyr rad/s, acc m/s² (specific force), mag µT or None,
-    each (N, 3) in the sensor's axes, NaN rows allowed. Time steps come from ``dt`` (s, scalar
-    or (N,)) when given, else from ``timestamps`` (s) or ``rate_hz``. ``params`` are the
-    estimator's tuning parameters (unknown names raise ``ValueError``); ``blend_time_s`` the
-    time constant (s) of the fusion weights. See the module notes for the method.
+    ``options`` as for :func:`smooth_passes`; this is its ``.q``.
     """
-    return smooth_passes(
-        name, gyr, acc, mag, rate_hz=rate_hz, timestamps=timestamps, dt=dt, params=params, blend_time_s=blend_time_s
-    ).q
+    return smooth_passes(name, gyr, acc, mag, **options).q
 
 
 def smooth_passes(
@@ -189,10 +172,15 @@ def smooth_passes(
     params: Mapping[str, float] | None = None,
     blend_time_s: float = DEFAULT_BLEND_TIME_S,
 ) -> OfflineResult:
-    """As :func:`smooth`, returning both passes and the weights as well (:class:`OfflineResult`)."""
-    _check_blend_time(blend_time_s)
+    """Offline attitude of a whole recording, with both passes and the weights (:class:`OfflineResult`).
+
+    Inputs as for ``estimators.run``: gyr rad/s, acc m/s² (specific force), mag µT or None,
+    each (N, 3) in the sensor's axes, NaN rows allowed. Time steps come from ``dt`` (s, scalar
+    or (N,)) when given, else from ``timestamps`` (s) or ``rate_hz``. ``params`` are the
+    estimator's tuning parameters (unknown names raise ``ValueError``); ``blend_time_s`` the
+    time constant (s) of the fusion weights. See the module notes for the method.
+    """
     params = dict(params or {})
-    cls = estimators.get(name)
     estimators.create(name, **params)  # unknown or bad parameters raise before any work
     n = np.shape(gyr)[0]
     steps = np.asarray(dt, dtype=np.float64) if dt is not None else time_steps(n, rate_hz, timestamps)
@@ -201,8 +189,7 @@ def smooth_passes(
     def run_rows(r: np.ndarray) -> np.ndarray:
         return estimators.create(name, **params).run(r[:, 0:3], r[:, 3:6], r[:, 6:9], dt=r[:, K.DT])
 
-    observed = heading_observed(cls.observes_heading and cls.uses_mag, rows)
-    return smooth_rows(run_rows, rows, blend_time_s=blend_time_s, align=not observed)
+    return smooth_rows(run_rows, rows, blend_time_s=blend_time_s, align=not heading_observed(name, rows))
 
 
 def smooth_rows(
@@ -239,6 +226,7 @@ def combine(
     For callers that run the passes themselves (a log replay applying recorded parameter
     changes, say); :func:`smooth_rows` is this plus the two runs.
     """
+    _check_blend_time(blend_time_s)
     q_forward = np.asarray(q_forward, dtype=np.float64)
     q_backward = np.asarray(q_backward, dtype=np.float64)
     rows = np.asarray(rows, dtype=np.float64)
@@ -294,9 +282,7 @@ def pass_times(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     dt = rows[:, K.DT]
     valid_dt = np.where(np.isfinite(dt) & (dt > 0.0) & (dt < 1e3), dt, 0.0)
     t = np.cumsum(valid_dt)
-    acc = rows[:, K.ACC : K.ACC + 3]
-    n2 = np.sum(acc * acc, axis=1)
-    usable = np.isfinite(n2) & (n2 > 1e-12)  # quaternion.vec_is_usable, row-wise
+    usable = vecs_are_usable(rows[:, K.ACC : K.ACC + 3])
     if not usable.any():
         return np.zeros(n), np.zeros(n)
     first, last = int(np.argmax(usable)), n - 1 - int(np.argmax(usable[::-1]))
@@ -309,7 +295,6 @@ def _check_blend_time(blend_time_s: float) -> None:
 
 
 def _weight(t: np.ndarray, blend_time_s: float) -> np.ndarray:
-    _check_blend_time(blend_time_s)
     return -np.expm1(-np.asarray(t, dtype=np.float64) / blend_time_s)  # 1 − exp(−t/τ), exact near 0
 
 
@@ -370,13 +355,13 @@ def align_heading(
     return quat_mul_array(turn, q_backward), delta
 
 
-def heading_observed(observes_heading: bool, rows: np.ndarray) -> bool:
-    """Whether a run observes heading: the estimator can, and some magnetometer row is usable."""
-    if not observes_heading:
+def heading_observed(name: str, rows: np.ndarray) -> bool:
+    """Whether estimator ``name`` observes heading over ``rows``: it can (a full form that
+    uses the magnetometer) and some magnetometer row is usable."""
+    cls = estimators.get(name)
+    if not (cls.observes_heading and cls.uses_mag):
         return False
-    mag = np.asarray(rows, dtype=np.float64)[:, K.MAG : K.MAG + 3]
-    n2 = np.sum(mag * mag, axis=1)
-    return bool(np.any(np.isfinite(n2) & (n2 > 1e-12)))
+    return bool(vecs_are_usable(np.asarray(rows, dtype=np.float64)[:, K.MAG : K.MAG + 3]).any())
 
 
 __all__ = [

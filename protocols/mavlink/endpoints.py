@@ -110,10 +110,6 @@ class Endpoint:
         if port is not None and not isinstance(port, _SendErrorTap):
             self.conn.port = _SendErrorTap(port, self)
 
-    def send(self, msg: Any) -> bool:
-        """Packs and writes ``msg``; False (and counted) on any error — never raises."""
-        return self.send_many((msg,))
-
     def send_many(self, msgs: Sequence[Any]) -> bool:
         """Packs ``msgs`` (each its own sequence number) and writes them back to back in one
         write — on UDP one datagram, which MAVLink parsers (pymavlink, QGroundControl,
