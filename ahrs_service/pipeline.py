@@ -137,7 +137,7 @@ class EstimationPipeline:
     # ------------------------------------------------------------------ outputs
     def published_quaternion(self) -> tuple[float, float, float, float]:
         """q_earth←body against true north: the estimate rotated by the declination."""
-        q = tuple(self.estimator.state[:4])
+        q = tuple(self.estimator.state[:4].tolist())
         if self.declination_deg == 0.0:
             return q  # type: ignore[return-value]
         return quat_mul(self._q_decl, q)
@@ -145,11 +145,11 @@ class EstimationPipeline:
     def published_euler(self) -> tuple[float, float, float]:
         return quat_to_euler(self.published_quaternion())
 
-    def body_rates(self) -> np.ndarray:
-        """Latest bias-corrected body angular rate, rad/s."""
+    def body_rates(self) -> list[float]:
+        """Latest bias-corrected body angular rate (p, q, r), rad/s."""
         if self.last_sample is None:
-            return np.zeros(3)
-        return np.asarray(self.last_sample.gyr) - self.estimator.state[8:11]
+            return [0.0, 0.0, 0.0]
+        return (np.asarray(self.last_sample.gyr) - self.estimator.state[8:11]).tolist()
 
     # ------------------------------------------------------------------ gyro calibration
     def recent_gyro_mean(self) -> np.ndarray:

@@ -143,6 +143,18 @@ def quat_to_euler(q):
     return (roll, pitch, yaw)
 
 
+def euler_of(q) -> tuple[float, float, float]:
+    """``quat_to_euler`` for callers in plain Python (telemetry, log messages): the same ZYX
+    formula in ``math`` without a compiled call, whose type check of a tuple argument costs
+    more than the formula. A NaN component gives NaN angles (no clamping of NaN)."""
+    w, x, y, z = q
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    s = 2.0 * (w * y - z * x)
+    pitch = math.asin(1.0 if s > 1.0 else -1.0 if s < -1.0 else s)  # rounding clamped, NaN kept
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return roll, pitch, (math.pi if yaw == -math.pi else yaw)
+
+
 @_jit
 def vec_norm(v):
     return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])

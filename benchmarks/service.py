@@ -12,8 +12,11 @@ Printed: start-up time to READY=1 (of this run, and of the embedded default), CP
 service process (one core = 100 %, from /proc after a 5 s warm-up), period jitter and overruns
 from the log's /loop channel (one message a second, each describing that second: the median
 second's p50, the median and the worst second's p99, the largest single deviation), the ATTITUDE/ATTITUDE_QUATERNION rates the ground
-station saw — and, as the reference measured in the same run, the same scheduler pacing an
-empty loop: the timing floor of the machine (on a shared VM its vCPU stalls dominate).
+station saw — and, as references measured in the same run: the service estimating only
+(same source and estimator, no log, no attitude streams), which separates what logging and
+publishing add from what waking 1000 times a second and estimating cost; and the same
+scheduler pacing an empty loop: the timing floor of the machine (on a shared VM its vCPU
+stalls dominate).
 """
 
 from __future__ import annotations
@@ -133,6 +136,47 @@ def bare_loop(seconds: float, rate_hz: float) -> dict[str, float]:
     return json.loads(out.strip().splitlines()[-1])
 
 
+def start_service(cfg: Path, tmp: Path) -> tuple[subprocess.Popen, float]:
+    """``ahrs-service run --config cfg`` under a fake systemd; returns it at READY=1 and the
+    seconds that took."""
+    notify_path = str(tmp / f"notify-{cfg.stem}.sock")
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(notify_path)
+    notify.settimeout(0.05)
+    exe = Path(sys.executable).with_name("ahrs-service")
+    t_start = time.monotonic()
+    with open(tmp / f"{cfg.stem}.log", "w") as service_log:
+        proc = subprocess.Popen([str(exe), "run", "--config", str(cfg)],
+                                env=dict(os.environ, NOTIFY_SOCKET=notify_path), stderr=service_log)
+    try:
+        while time.monotonic() - t_start < 120:
+            try:
+                if b"READY=1" in notify.recv(4096):
+                    return proc, time.monotonic() - t_start
+            except socket.timeout:
+                pass
+        proc.kill()
+        raise SystemExit("the service did not get READY within 120 s")
+    finally:
+        notify.close()
+
+
+def service_cpu(cfg: Path, tmp: Path, seconds: float) -> float:
+    """CPU (one core = 100 %) of the service run with ``cfg``, over ``seconds`` after a 5 s warm-up."""
+    proc, _ = start_service(cfg, tmp)
+    try:
+        time.sleep(5.0)
+        cpu0, wall0 = cpu_seconds(proc.pid), time.monotonic()
+        time.sleep(seconds)
+        return 100.0 * (cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - wall0)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
 def cpu_seconds(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
@@ -156,31 +200,18 @@ def main(argv: list[str] | None = None) -> int:
             source = f'type = "recorded"\nrecorded_path = "{recording_1khz(args.seconds + 30)}"\nrecorded_realtime = true'
         else:
             source = f'type = "{args.source}"\nprofile = "figure8"\nboard = "mpu9250"'
-        cfg = tmp / "bench.toml"
-        cfg.write_text(
-            f"[source]\n{source}\n\n[estimator]\nname = \"{args.estimator}\"\n\n"
-            f"[rates]\nestimation_hz = {args.rate}\nattitude_hz = {args.publish}\nattitude_quaternion_hz = {args.publish}\n\n"
-            f"[mavlink]\nendpoints = [\"udpout:127.0.0.1:{port}\"]\n\n[log]\ndirectory = \"{tmp / 'logs'}\"\n"
-        )
-        notify_path = str(tmp / "notify.sock")
-        notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        notify.bind(notify_path)
-        notify.settimeout(0.05)
-        exe = Path(sys.executable).with_name("ahrs-service")
-        env = dict(os.environ, NOTIFY_SOCKET=notify_path)
-        t_start = time.monotonic()
-        service_log = open(tmp / "service.log", "w")
-        proc = subprocess.Popen([str(exe), "run", "--config", str(cfg)], env=env, stderr=service_log)
-        ready_s = None
+        def config(name: str, publish_hz: float, log: str) -> Path:
+            path = tmp / name
+            path.write_text(
+                f"[source]\n{source}\n\n[estimator]\nname = \"{args.estimator}\"\n\n"
+                f"[rates]\nestimation_hz = {args.rate}\nattitude_hz = {publish_hz}\nattitude_quaternion_hz = {publish_hz}\n\n"
+                f"[mavlink]\nendpoints = [\"udpout:127.0.0.1:{port}\"]\n\n[log]\n{log}\n"
+            )
+            return path
+
+        cfg = config("bench.toml", args.publish, f"directory = \"{tmp / 'logs'}\"")
+        proc, ready_s = start_service(cfg, tmp)
         try:
-            while ready_s is None and time.monotonic() - t_start < 120:
-                try:
-                    if b"READY=1" in notify.recv(4096):
-                        ready_s = time.monotonic() - t_start
-                except socket.timeout:
-                    pass
-            if ready_s is None:
-                raise SystemExit("the service did not get READY within 120 s")
             counts: dict[str, list[int]] = {"ATTITUDE": [], "ATTITUDE_QUATERNION": []}
             warm_end = time.monotonic() + 5.0
             cpu0 = None
@@ -220,6 +251,8 @@ def main(argv: list[str] | None = None) -> int:
             k: (len(v) - 1) / ((v[-1] - v[0]) / 1e3) if len(v) > 1 else 0.0 for k, v in counts.items()
         }
         floor = bare_loop(min(args.seconds, 30.0), args.rate)
+        estimation_only = service_cpu(config("estimation-only.toml", 0.0, "enabled = false"), tmp,
+                                      min(args.seconds, 30.0))
         ready = startup_to_ready()
         rows = [
             ("source", args.source),
@@ -235,6 +268,8 @@ def main(argv: list[str] | None = None) -> int:
             ("period jitter p99, worst second", f"{p99:.0f} µs"),
             ("period jitter max", f"{jmax:.0f} µs"),
             ("overruns", str(overruns)),
+            ("same machine, the service estimating only (no log, no attitude streams): CPU",
+             f"{estimation_only:.1f} %"),
             ("same machine, empty loop: CPU", f"{floor['cpu']:.1f} %"),
             ("same machine, empty loop: jitter p50 / p99 median second / p99 worst second / max",
              f"{floor['period_jitter_p50_us']:.0f} / {floor['period_jitter_p99_median_us']:.0f} / "

@@ -39,6 +39,7 @@ from ahrs_service.drivers.base import (
     MAG_SATURATED,
     MAG_VALID,
 )
+from ahrs_service.quaternion import euler_of as euler
 
 SCHEMA_ENCODING = "jsonschema"
 MESSAGE_ENCODING = "json"
@@ -279,16 +280,6 @@ def jsonable(value: Any) -> Any:
     if value is None or isinstance(value, str):
         return value
     return str(value)  # paths, enums …: readable rather than a lost message
-
-
-def euler(q: list[float]) -> tuple[float, float, float]:
-    """ZYX (roll, pitch, yaw) in rad of [w, x, y, z]; yaw in (−π, π]."""
-    w, x, y, z = q
-    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    s = 2.0 * (w * y - z * x)
-    pitch = math.asin(1.0 if s > 1.0 else -1.0 if s < -1.0 else s)  # rounding clamped, NaN kept
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    return roll, pitch, (math.pi if yaw == -math.pi else yaw)
 
 
 _VALID_BITS = GYR_VALID | ACC_VALID | MAG_VALID | GYR_SATURATED | ACC_SATURATED | MAG_SATURATED | MAG_NEW

@@ -219,6 +219,7 @@ class McapLogFile:
 # --------------------------------------------------------------------------- threaded writer
 
 _RAW, _ATT, _TRUTH, _LOOP, _CONFIG, _PARAM, _MAV, _CLOSE, _NEW_FILE, _STATE, _SAMPLE = range(11)
+_IDLE_WAIT_S = 0.2  # longest sleep of an idle writer thread, s
 
 
 def _tolist(x: Any) -> list[float]:
@@ -296,6 +297,11 @@ class FlightLogWriter:
         self._dropped_full = 0  # caller thread only
         self._dropped_io = 0  # writer thread only
         self._q: collections.deque = collections.deque()
+        self._wake = threading.Event()
+        # an idle writer thread sleeps this long (close() wakes it): at 1 kHz it then writes
+        # ~200 samples per wake-up, and on a VM every wake-up starts with cold caches
+        self._idle_wait_s = min(_IDLE_WAIT_S, self.flush_interval_s / 5)
+        self._wake_at = max(1, self.queue_size // 8)
         self._closing = False
         self._file: McapLogFile | None = None
         self._opened_at = 0.0
@@ -322,9 +328,12 @@ class FlightLogWriter:
 
     def _put(self, item: tuple) -> bool:
         # one producer (the service loop): len() then append() cannot overshoot by more than one
-        if self._closing or len(self._q) >= self.queue_size:
+        n = len(self._q)
+        if self._closing or n >= self.queue_size:
             self._dropped_full += 1
             return False
+        if n == self._wake_at:  # a producer faster than real time: the thread must not sleep on
+            self._wake.set()
         self._q.append(item)
         return True
 
@@ -455,6 +464,7 @@ class FlightLogWriter:
             return
         self._closing = True
         self._q.append((_CLOSE,))
+        self._wake.set()
         self._thread.join(timeout)
         try:
             atexit.unregister(self.close)
@@ -481,9 +491,11 @@ class FlightLogWriter:
                     self._dropped_io += 1
                     self._error(exc)
             else:
-                time.sleep(0.02)
+                self._wake.wait(self._idle_wait_s)
+                self._wake.clear()
             now = time.monotonic()
-            if now - self._last_flush >= self.flush_interval_s:
+            # flushed now if the next look could come too late for flush_interval_s
+            if now - self._last_flush + self._idle_wait_s >= self.flush_interval_s:
                 self._last_flush = now
                 self._flush()
         self._finish()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import random
 import time
 
 import pytest
@@ -25,6 +26,12 @@ from ahrs_service.protocols.mavlink import (  # noqa: E402
     ParameterTable,
     SensorStatus,
     Telemetry,
+)
+from ahrs_service.protocols.mavlink.attitude import (  # noqa: E402
+    attitude_frame,
+    attitude_quaternion_frame,
+    encode_attitude,
+    encode_attitude_quaternion,
 )
 from ahrs_service.protocols.mavlink.health import split_statustext  # noqa: E402
 
@@ -224,6 +231,42 @@ def test_attitude_values_round_trip(comp, gcs):
     assert (aq.q1, aq.q2, aq.q3, aq.q4) == pytest.approx(q, abs=1e-6)
     assert (aq.rollspeed, aq.pitchspeed, aq.yawspeed) == pytest.approx((0.5, -0.25, 1.5), abs=1e-6)
     assert list(aq.repr_offset_q) == [1.0, 0.0, 0.0, 0.0]
+
+
+def test_streamed_attitude_frames_are_byte_identical_to_pymavlink():
+    """The pre-packed ATTITUDE/ATTITUDE_QUATERNION frames the streams send equal pymavlink's
+    own packing over values, sequence numbers, ids, clock wrap and trailing-zero trimming."""
+    rng = random.Random(20261122)
+    cases = [
+        telemetry(0, (1.0, 0.0, 0.0, 0.0), body_rate=(0.0, 0.0, 0.0)),  # ATTITUDE payload all zero: 1 byte kept
+        telemetry(2**32 + 5, (0.0, 0.0, 0.0, 1.0), body_rate=(0.0, 0.0, 1e-3)),  # time wraps; yaw = π
+        telemetry(7, (math.nan, 0.0, 0.0, 0.0), body_rate=(math.inf, -math.inf, 0.0)),
+    ]
+    for _ in range(200):
+        q = [rng.gauss(0, 1) for _ in range(4)]
+        n = math.sqrt(sum(c * c for c in q))
+        cases.append(telemetry(rng.randrange(2**32), [c / n for c in q],
+                               body_rate=[rng.uniform(-30, 30) for _ in range(3)]))
+    for i, tel in enumerate(cases):
+        mav = mavlink2.MAVLink(None, srcSystem=rng.randrange(1, 256), srcComponent=rng.randrange(256))
+        mav.seq = i % 256
+        assert attitude_frame(tel).pack(mav) == encode_attitude(tel).pack(mav), i
+        assert attitude_quaternion_frame(tel).pack(mav) == encode_attitude_quaternion(tel).pack(mav), i
+    assert len(attitude_frame(cases[0]).pack(mav)) == 10 + 1 + 2  # header, one payload byte, CRC
+    mav.signing.sign_outgoing = True
+    with pytest.raises(RuntimeError, match="signed"):
+        attitude_frame(cases[0]).pack(mav)
+
+
+def test_signed_component_signs_the_attitude_streams(gcs):
+    conn, port = gcs
+    conn.setup_signing(KEY, sign_outgoing=False)
+    with MavlinkComponent([f"udpout:127.0.0.1:{port}"], signing_key=KEY,
+                          rates={"ATTITUDE": 100.0, "ATTITUDE_QUATERNION": 100.0}) as c:
+        got = run(c, conn, 0.1)
+    streams = of(got, "ATTITUDE") + of(got, "ATTITUDE_QUATERNION")
+    assert len(streams) == 20
+    assert all(m.get_signed() for m in streams)  # verified with the key on the GCS side
 
 
 def test_highres_imu_units_and_update_bits(comp, gcs):

@@ -65,6 +65,7 @@ class _SendErrorTap:
                 self._endpoint.note_send_error(exc)
                 raise
 
+        object.__setattr__(self, name, counted)  # found directly from now on: one wrapper per name
         return counted
 
     def __setattr__(self, name: str, value: Any) -> None:

@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
+from ahrs_service.quaternion import euler_of
+
 
 @dataclass(slots=True)
 class SensorStatus:
@@ -78,9 +80,6 @@ class Telemetry:
     def from_quaternion(cls, time_boot_ms: int, q: Sequence[float], body_rate: Sequence[float] = (0.0, 0.0, 0.0),
                         **fields: object) -> "Telemetry":
         """Telemetry whose Euler angles are computed from ``q`` (ZYX, yaw in (−π, π])."""
-        from ahrs_service.quaternion import quat_to_euler
-
-        w, x, y, z = (float(c) for c in q)
-        roll, pitch, yaw = quat_to_euler((w, x, y, z))
-        rate = tuple(float(c) for c in body_rate)
-        return cls(int(time_boot_ms), (w, x, y, z), roll, pitch, yaw, rate, **fields)  # type: ignore[arg-type]
+        q = tuple(map(float, q))
+        roll, pitch, yaw = euler_of(q)
+        return cls(int(time_boot_ms), q, roll, pitch, yaw, tuple(map(float, body_rate)), **fields)  # type: ignore[arg-type]
