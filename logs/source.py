@@ -119,14 +119,14 @@ class RecordedSource(ImuSource):
                     self.diagnostics.dropped_frames += 1
         self._i = i + 1
         self.finished = self._i >= len(offsets)
-        row = self.rows[i]
+        row = self.rows[i].copy()  # one copy; the sample's vectors are views of it
         truth_ok = self._truth_ok is not None and self._truth_ok[i]
         self.diagnostics.samples += 1
         return ImuSample(
             t_ns=self._t0_host + offsets[i] if self.rebase_time else self._t_list[i],
-            gyr=row[0:3].copy(),
-            acc=row[3:6].copy(),
-            mag=row[6:9].copy() if self._mag_ok[i] else None,
+            gyr=row[0:3],
+            acc=row[3:6],
+            mag=row[6:9] if self._mag_ok[i] else None,
             flags=self._flags_list[i],
             truth_q=self.truth[i].copy() if truth_ok else None,
         )

@@ -325,8 +325,9 @@ def test_new_file_during_a_pending_rotation_leaves_no_one_sample_file(tmp_path, 
 
 
 def test_fast_message_path_writes_the_same_file_as_the_mcap_library():
-    """_ChunkedWriter.add_message against mcap's own Writer: byte-identical files over several
-    chunks, channels, out-of-order log times and a flush in the middle."""
+    """_ChunkedWriter (Message and MessageIndex records) against mcap's own Writer:
+    byte-identical files over several chunks, channels, out-of-order log times and a flush in
+    the middle."""
     import io
 
     from mcap.writer import CompressionType, Writer
