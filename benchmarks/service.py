@@ -14,9 +14,10 @@ from the log's /loop channel (one message a second, each describing that second:
 second's p50, the median and the worst second's p99, the largest single deviation), the ATTITUDE/ATTITUDE_QUATERNION rates the ground
 station saw — and, as references measured in the same run: the service estimating only
 (same source and estimator, no log, no attitude streams), which separates what logging and
-publishing add from what waking 1000 times a second and estimating cost; and the same
+publishing add from what waking 1000 times a second and estimating cost; the same
 scheduler pacing an empty loop: the timing floor of the machine (on a shared VM its vCPU
-stalls dominate).
+stalls dominate); and one estimator step timed back to back and right after a sleep, which
+shows how much dearer everything is at the start of a tick than in a micro-benchmark.
 """
 
 from __future__ import annotations
@@ -177,6 +178,25 @@ def service_cpu(cfg: Path, tmp: Path, seconds: float) -> float:
             proc.kill()
 
 
+def step_after_sleep_us(estimator: str, n: int = 300) -> tuple[float, float]:
+    """Median µs of one ``update_row`` of ``estimator`` called back to back, and called right
+    after a 0.8 ms sleep (as the service calls it): the cost of starting each tick cold."""
+    from ahrs_service import estimators
+
+    est = estimators.create(estimator)
+    row = np.array([0.01, 0.02, -0.01, 0.1, 0.2, -9.8, 20.0, 1.0, 45.0, 0.001])
+    for _ in range(1000):
+        est.update_row(row)
+    warm, cold = [], []
+    for i in range(2 * n):
+        if i % 2:
+            time.sleep(0.0008)
+        t0 = time.perf_counter_ns()
+        est.update_row(row)
+        (cold if i % 2 else warm).append(time.perf_counter_ns() - t0)
+    return float(np.median(warm)) / 1e3, float(np.median(cold)) / 1e3
+
+
 def cpu_seconds(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
@@ -254,6 +274,7 @@ def main(argv: list[str] | None = None) -> int:
         estimation_only = service_cpu(config("estimation-only.toml", 0.0, "enabled = false"), tmp,
                                       min(args.seconds, 30.0))
         ready = startup_to_ready()
+        step_warm, step_cold = step_after_sleep_us(args.estimator)
         rows = [
             ("source", args.source),
             ("estimator", args.estimator),
@@ -271,6 +292,8 @@ def main(argv: list[str] | None = None) -> int:
             ("same machine, the service estimating only (no log, no attitude streams): CPU",
              f"{estimation_only:.1f} %"),
             ("same machine, empty loop: CPU", f"{floor['cpu']:.1f} %"),
+            (f"same machine, one {args.estimator} step: back to back / right after a 0.8 ms sleep (median)",
+             f"{step_warm:.1f} / {step_cold:.1f} µs"),
             ("same machine, empty loop: jitter p50 / p99 median second / p99 worst second / max",
              f"{floor['period_jitter_p50_us']:.0f} / {floor['period_jitter_p99_median_us']:.0f} / "
              f"{floor['period_jitter_p99_us']:.0f} / {floor['period_jitter_max_us']:.0f} µs"),
