@@ -240,6 +240,36 @@ def test_full_queue_drops_and_counts_without_blocking(tmp_path, monkeypatch):
     assert log.index.tolist() == list(range(11))
 
 
+def test_idle_writer_thread_is_woken_by_a_filling_queue_and_by_close(tmp_path, monkeypatch):
+    """The writer thread sleeps up to 0.2 s when idle; a queue an eighth full and close()
+    wake it at once (counted on the event, so the test does not depend on timing)."""
+    release = threading.Event()
+    handle = FlightLogWriter._handle
+
+    def held_handle(self, item):
+        release.wait(10.0)  # keeps the queue where the test puts it
+        handle(self, item)
+
+    monkeypatch.setattr(FlightLogWriter, "_handle", held_handle)
+    w = FlightLogWriter(tmp_path, queue_size=64)
+    assert w._idle_wait_s == pytest.approx(0.2) and w._wake_at == 8
+    sets = []
+    wake_set = w._wake.set
+    monkeypatch.setattr(w._wake, "set", lambda: (sets.append(len(w._q)), wake_set()))
+    w.write_raw(0, np.zeros(10), 0)
+    assert _wait_for(lambda: len(w._q) == 0)  # the thread holds the first sample
+    for i in range(1, 20):
+        w.write_raw(i, np.zeros(10), 0)
+    assert sets == [8]  # once, when the ninth entry found eight waiting
+    release.set()
+    w.close()
+    assert len(sets) == 2  # close() woke it too
+    assert read_log(w.files[0]).index.tolist() == list(range(20))
+    fast_flush = FlightLogWriter(tmp_path / "fast", flush_interval_s=0.25)
+    assert fast_flush._idle_wait_s == pytest.approx(0.05)  # the next look still comes within the interval
+    fast_flush.close()
+
+
 def test_writer_default_directory_is_relative_to_working_directory(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     w = FlightLogWriter()
