@@ -1,12 +1,14 @@
 """Service benchmark: the real ``ahrs-service run`` process at a fixed rate, measured from outside.
 
-    python benchmarks/service.py [--seconds 60] [--rate 1000] [--estimator robust] [--source recorded]
+    python benchmarks/service.py [--seconds 60] [--rate 1000] [--estimator robust] [--source recorded] [--no-truth]
 
 What runs: the service as a subprocess (its scheduler, estimator, MAVLink over UDP to a
 pymavlink ground station in this process, MCAP logging to a temporary folder), started under
 a fake systemd NOTIFY_SOCKET. The default source replays a 1 kHz recording of the simulator
 (generated once into ``benchmarks/.cache``) in real time, so the figures are the service's own
-cost; ``--source simulated`` runs the live simulator instead (its physics cost included).
+cost. The recording carries the simulator's ground truth, which the service logs as a third
+message per sample; ``--no-truth`` replays one without it, the logging load of a real sensor;
+``--source simulated`` runs the live simulator instead (its physics cost included).
 
 Printed: start-up time to READY=1 (of this run, and of the embedded default), CPU use of the
 service process (one core = 100 %, from /proc after a 5 s warm-up), period jitter and overruns
@@ -42,9 +44,10 @@ HERE = Path(__file__).resolve().parent
 CACHE = HERE / ".cache"
 
 
-def recording_1khz(seconds: float) -> Path:
-    """A 1 kHz simulated flight (figure-eight, MPU-9250 error models) as an MCAP log."""
-    path = CACHE / f"sim-figure8-1khz-{int(seconds)}s.mcap"
+def recording_1khz(seconds: float, truth: bool = True) -> Path:
+    """A 1 kHz simulated flight (figure-eight, MPU-9250 error models) as an MCAP log, with the
+    simulator's ground truth or (``truth`` False) without it, as a real sensor's log is."""
+    path = CACHE / f"sim-figure8-1khz-{int(seconds)}s{'' if truth else '-notruth'}.mcap"
     if path.exists():
         return path
     from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID
@@ -74,7 +77,8 @@ def recording_1khz(seconds: float) -> Path:
             row = np.concatenate([p["gyr"], p["acc"], mag, [0.001]])
             t_ns = int(round(t * 1e9))
             f.write_raw(t_ns, row, flags)
-            f.write_truth(t_ns, p["truth"].q)
+            if truth:
+                f.write_truth(t_ns, p["truth"].q)
     next(tmp.glob("*.mcap")).rename(path)
     tmp.rmdir()
     return path
@@ -209,6 +213,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--publish", type=float, default=100.0, help="ATTITUDE and ATTITUDE_QUATERNION rate, Hz")
     ap.add_argument("--estimator", default="madgwick")
     ap.add_argument("--source", choices=("recorded", "simulated", "simulated_i2c"), default="recorded")
+    ap.add_argument("--no-truth", action="store_true",
+                    help="replay the recording without its ground truth, as a real sensor's log is "
+                         "(two log messages a sample instead of three)")
     ap.add_argument("--markdown", action="store_true")
     args = ap.parse_args(argv)
 
@@ -217,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0")
         port = gcs.port.getsockname()[1]
         if args.source == "recorded":
-            source = f'type = "recorded"\nrecorded_path = "{recording_1khz(args.seconds + 30)}"\nrecorded_realtime = true'
+            source = f'type = "recorded"\nrecorded_path = "{recording_1khz(args.seconds + 30, truth=not args.no_truth)}"\nrecorded_realtime = true'
         else:
             source = f'type = "{args.source}"\nprofile = "figure8"\nboard = "mpu9250"'
         def config(name: str, publish_hz: float, log: str) -> Path:
@@ -276,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
         ready = startup_to_ready()
         step_warm, step_cold = step_after_sleep_us(args.estimator)
         rows = [
-            ("source", args.source),
+            ("source", args.source + (" (no ground truth)" if args.no_truth and args.source == "recorded" else "")),
             ("estimator", args.estimator),
             ("estimation rate", f"{args.rate:.0f} Hz"),
             ("run", f"{args.seconds:.0f} s"),
