@@ -132,27 +132,22 @@ def quat_from_euler(roll, pitch, yaw):
 
 @_jit
 def quat_to_euler(q):
-    """ZYX Euler angles (roll, pitch, yaw) in rad of a unit quaternion; yaw in (−π, π]."""
+    """ZYX Euler angles (roll, pitch, yaw) in rad of a unit quaternion; yaw in (−π, π].
+    A NaN component gives NaN angles (the rounding clamp of the pitch keeps NaN)."""
     w, x, y, z = q
     roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
     sp = 2.0 * (w * y - z * x)
-    pitch = math.asin(min(1.0, max(-1.0, sp)))
+    pitch = math.asin(1.0 if sp > 1.0 else -1.0 if sp < -1.0 else sp)
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
     if yaw == -math.pi:
         yaw = math.pi
     return (roll, pitch, yaw)
 
 
-def euler_of(q) -> tuple[float, float, float]:
-    """``quat_to_euler`` for callers in plain Python (telemetry, log messages): the same ZYX
-    formula in ``math`` without a compiled call, whose type check of a tuple argument costs
-    more than the formula. A NaN component gives NaN angles (no clamping of NaN)."""
-    w, x, y, z = q
-    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    s = 2.0 * (w * y - z * x)
-    pitch = math.asin(1.0 if s > 1.0 else -1.0 if s < -1.0 else s)  # rounding clamped, NaN kept
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    return roll, pitch, (math.pi if yaw == -math.pi else yaw)
+#: ``quat_to_euler`` for callers in plain Python (telemetry, log messages): the same code,
+#: interpreted, because the compiled call's type check of a tuple argument costs more than
+#: the formula.
+euler_of = quat_to_euler.py_func
 
 
 @_jit

@@ -311,9 +311,10 @@ class Service:
         outcome, and when accepted the new calibration in the pipeline, the configuration
         file and the log (:meth:`record_calibration`). A fit that raised is reported
         (STATUSTEXT warning, log with traceback) and changes nothing."""
-        future, self._live_fit = self._live_fit, None
+        future = self._live_fit
         if future is None or not future.done():
-            return
+            return  # nothing to apply yet: a running fit is kept
+        self._live_fit = None
         exc = future.exception(timeout=0)  # any exception, even a BaseException, stays here
         if exc is not None:
             log.error("live %s calibration: the fit raised", self._live_fit_kind, exc_info=exc)

@@ -130,11 +130,12 @@ def _replay(args: argparse.Namespace) -> int:
     follow = not args.no_param_changes
     blend: float | None = None
     if args.offline:
-        from ahrs_service.estimators.offline import DEFAULT_BLEND_TIME_S
+        from ahrs_service.estimators.offline import blend_time
 
-        blend = DEFAULT_BLEND_TIME_S if args.offline_blend is None else args.offline_blend
-        if not blend > 0:
-            print(f"error: --offline-blend must be positive, got {blend}")
+        try:
+            blend = blend_time(args.offline_blend)
+        except ValueError as exc:
+            print(f"error: {exc}")
             return 2
         q = replay_offline(log, name, params, follow, blend_time_s=blend).q
     else:

@@ -129,8 +129,7 @@ def _run_with_cuts(est: Any, rows: np.ndarray, cuts: list[tuple[int, str, Any]])
     start = 0
     for k, pname, value in cuts + [(n, "", None)]:
         if k > start:
-            seg = rows[start:k]
-            out[start:k] = est.run(seg[:, 0:3], seg[:, 3:6], seg[:, 6:9], dt=seg[:, 9])
+            out[start:k] = est.run_rows(rows[start:k])
             start = k
         if pname:
             est.set_params(**{pname: value})

@@ -138,21 +138,21 @@ def _fit(data: _Collected, current: SensorCalibration) -> LiveCalibrationResult:
         mag = data.mag if np.isfinite(data.mag).any() else None
         fit = gyro_bias_at_rest(data.gyr, data.acc, mag, **options)
         accepted = bool(fit.at_rest)
-        terms = {"gyro_bias": fit.bias}
+        values = (fit.bias,)
         ok_text = f"gyro cal done: bias {np.linalg.norm(fit.bias):.4f} rad/s"
     elif kind == "mag":
         fit = fit_magnetometer(data.mag, **options)
         accepted = bool(fit.accepted)
-        terms = {"mag_hard_iron": fit.hard_iron, "mag_soft_iron": fit.soft_iron}
+        values = (fit.hard_iron, fit.soft_iron)
         ok_text = f"mag cal done: res {100 * fit.residual_rel:.1f}% cov {100 * fit.coverage:.0f}%"
     else:
         span_s = (data.t_ns[n - 1] - data.t_ns[0]) * 1e-9
         rate = (n - 1) / span_s if span_s > 0 else 1.0
         fit = fit_accelerometer(data.acc, data.gyr, sample_rate_hz=rate, **options)
         accepted = bool(fit.accepted)
-        terms = {"acc_bias": fit.bias, "acc_scale": fit.scale}
+        values = (fit.bias, fit.scale)
         ok_text = f"accel cal done: res {fit.residual_rms:.3f} m/s2"
-    new = dataclasses.replace(current, **terms) if accepted else current
+    new = dataclasses.replace(current, **dict(zip(_TERMS[kind], values, strict=True))) if accepted else current
     text = ok_text if accepted else f"{kind} cal refused: {fit.reason}"
     return LiveCalibrationResult(kind, accepted, fit.reason, new, fit, n, _short(text))
 

@@ -129,7 +129,14 @@ class Estimator:
 
         ``dt`` is a scalar or an (N,) array of time steps in seconds.
         """
-        rows = stack_rows(gyr, acc, mag, dt)
+        return self.run_rows(stack_rows(gyr, acc, mag, dt))
+
+    def run_rows(self, rows: np.ndarray) -> np.ndarray:
+        """Runs over (N, 10) filled sample rows (see ``_kernel``) from the current state;
+        returns (N, 4) quaternions. For callers that hold rows already (replay, offline)."""
+        rows = np.ascontiguousarray(rows, dtype=np.float64)
+        if rows.ndim != 2 or rows.shape[1] != K.ROW:
+            raise ValueError(f"rows must have shape (N, {K.ROW}), got {rows.shape}")
         out = np.empty((rows.shape[0], 4))
         self.batch(self.state, self._p, rows, out)
         return out

@@ -106,8 +106,9 @@ forward, 0.43° backward and 0.39° offline, against 0.68°, 0.57° and 0.56° a
 two different estimates: a filter tuned on forward runs of a data set may do worse backwards
 on it (see docs/evaluation.md, "Offline mode").
 
-Cost: two estimator runs and an O(N) fusion in NumPy; on BROAD 3.0 µs/sample for ``robust``
-against 0.7 µs/sample for its causal batch run.
+Cost: two estimator runs and an O(N) fusion in NumPy, about three times the causal batch run:
+on the 12 BROAD trials 1.7 µs/sample for ``robust`` against 0.5 µs/sample (development VM,
+2026-11-22; ``ahrs-service evaluate --offline`` prints the figure per column).
 """
 
 from __future__ import annotations
@@ -187,7 +188,7 @@ def smooth_passes(
     rows = stack_rows(gyr, acc, mag, steps)
 
     def run_rows(r: np.ndarray) -> np.ndarray:
-        return estimators.create(name, **params).run(r[:, 0:3], r[:, 3:6], r[:, 6:9], dt=r[:, K.DT])
+        return estimators.create(name, **params).run_rows(r)
 
     return smooth_rows(run_rows, rows, blend_time_s=blend_time_s, align=not heading_observed(name, rows))
 
@@ -206,7 +207,7 @@ def smooth_rows(
     ``align``: turn the backward pass's heading onto the forward pass's (for estimators or runs
     that do not observe heading, see :func:`heading_observed`).
     """
-    _check_blend_time(blend_time_s)
+    blend_time_s = blend_time(blend_time_s)
     rows = np.asarray(rows, dtype=np.float64)
     q_forward = np.asarray(run_rows(rows), dtype=np.float64)
     q_backward = np.asarray(run_rows(reverse_rows(rows)), dtype=np.float64)[::-1]
@@ -226,7 +227,7 @@ def combine(
     For callers that run the passes themselves (a log replay applying recorded parameter
     changes, say); :func:`smooth_rows` is this plus the two runs.
     """
-    _check_blend_time(blend_time_s)
+    blend_time_s = blend_time(blend_time_s)
     q_forward = np.asarray(q_forward, dtype=np.float64)
     q_backward = np.asarray(q_backward, dtype=np.float64)
     rows = np.asarray(rows, dtype=np.float64)
@@ -289,9 +290,14 @@ def pass_times(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.maximum(t - t[first], 0.0), np.maximum(t[last] - t, 0.0)
 
 
-def _check_blend_time(blend_time_s: float) -> None:
-    if not (blend_time_s > 0.0 and math.isfinite(blend_time_s)):
-        raise ValueError(f"blend_time_s must be a positive number of seconds, got {blend_time_s}")
+def blend_time(value: float | None) -> float:
+    """The fusion time constant to use (s): ``value``, or :data:`DEFAULT_BLEND_TIME_S` for None.
+    ValueError unless it is a positive finite number of seconds (the command lines' check too)."""
+    if value is None:
+        return DEFAULT_BLEND_TIME_S
+    if not (value > 0.0 and math.isfinite(value)):
+        raise ValueError(f"blend_time_s (--offline-blend) must be a positive number of seconds, got {value}")
+    return float(value)
 
 
 def _weight(t: np.ndarray, blend_time_s: float) -> np.ndarray:
@@ -368,6 +374,7 @@ __all__ = [
     "DEFAULT_BLEND_TIME_S",
     "OfflineResult",
     "align_heading",
+    "blend_time",
     "combine",
     "forward_share",
     "fuse",

@@ -119,15 +119,15 @@ def make_columns(
     params: dict[str, dict[str, Any]],
     *,
     with_offline: bool = False,
-    blend_time_s: float = offline_mode.DEFAULT_BLEND_TIME_S,
+    blend_time_s: float | None = None,
 ) -> list[Column]:
     """Columns for the chosen estimators and peers; estimator parameters are checked here.
 
     ``with_offline``: each column is followed by its offline twin "<name>+offline" (same
-    parameters), fused with time constant ``blend_time_s`` (s).
+    parameters), fused with time constant ``blend_time_s`` (s; None: the default).
     """
-    if with_offline and not blend_time_s > 0:
-        raise ValueError(f"--offline-blend must be positive, got {blend_time_s}")
+    if with_offline:
+        blend_time_s = offline_mode.blend_time(blend_time_s)
     cols = []
     for name in names:
         cls = estimators.get(name)
@@ -405,10 +405,6 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
 # ------------------------------------------------------------------------------ command
 
 
-def _blend_time(value: float | None) -> float:
-    return offline_mode.DEFAULT_BLEND_TIME_S if value is None else float(value)
-
-
 def main(args: Any) -> int:
     """Entry of ``ahrs-service evaluate`` (arguments from ``command.add_subcommands``)."""
     try:
@@ -424,7 +420,7 @@ def main(args: Any) -> int:
             peer_names,
             params,
             with_offline=bool(getattr(args, "offline", False)),
-            blend_time_s=_blend_time(getattr(args, "offline_blend", None)),
+            blend_time_s=getattr(args, "offline_blend", None),
         )
     except (FileNotFoundError, ValueError, ImportError) as exc:
         print(f"ahrs-service evaluate: error: {exc}", file=sys.stderr)
