@@ -252,6 +252,41 @@ def test_load_trial_and_groups(broad_dir):
     assert broad.list_trials(broad_dir, "magnet_?cm") == groups["attached_magnet"]
 
 
+# ------------------------------------------------------------------------------ timing
+
+
+def _rate_at(q_ref: np.ndarray, rate_hz: float, at: np.ndarray) -> np.ndarray:
+    w = metrics.reference_rate(q_ref, rate_hz)
+    t_ref = np.arange(len(w)) + 0.5
+    return np.stack([np.interp(at, t_ref, w[:, j]) for j in range(3)], axis=1)
+
+
+def test_reference_rate_of_a_constant_rotation():
+    rate_hz, w = 200.0, np.array([0.3, -1.2, 2.0])  # rad/s, body frame
+    q = quat_from_rotvec_array(np.outer(np.arange(400) / rate_hz, w))  # about a fixed axis: body = earth axis
+    np.testing.assert_allclose(metrics.reference_rate(q, rate_hz), np.tile(w, (399, 1)), atol=1e-9)
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.6, 2.3, -1.4])
+def test_imu_delay_recovers_a_known_delay(broad_dir, delay):
+    """Gyro samples made from a real recording's reference motion, late by ``delay`` samples,
+    with a bias and white noise: the delay comes back to within 1/30 sample."""
+    trial = broad.load_trial(broad_dir, FAST)
+    n = len(trial)
+    rng = np.random.default_rng(7)
+    gyr = _rate_at(trial.ref, trial.rate_hz, np.arange(n) - delay) + np.radians([0.5, -0.3, 0.2])
+    gyr += rng.normal(scale=np.radians(0.5), size=gyr.shape)
+    assert metrics.imu_delay(gyr, trial.ref, trial.rate_hz, trial.movement) == pytest.approx(delay, abs=1 / 30)
+
+
+def test_imu_delay_needs_motion_and_samples():
+    still = np.tile([1.0, 0.0, 0.0, 0.0], (500, 1))
+    gyr = np.tile(np.radians([0.5, -0.3, 0.2]), (500, 1))  # bias only
+    assert math.isnan(metrics.imu_delay(gyr, still, 100.0))
+    q = quat_from_rotvec_array(np.outer(np.arange(50) / 100.0, [0.0, 0.0, 1.0]))
+    assert math.isnan(metrics.imu_delay(np.tile([0.0, 0.0, 1.0], (50, 1)), q, 100.0))  # < 100 samples
+
+
 def _evaluate(argv: list[str]) -> int:
     parser = argparse.ArgumentParser()
     command.add_subcommands(parser.add_subparsers(dest="command"))
@@ -311,6 +346,10 @@ def test_evaluate_command_end_to_end(evaluated):
         assert (out / f"error_{trial}.png").stat().st_size > 1000
     assert (out / "group_rotation.png").is_file()
     assert sorted(results["plots"]) == sorted(p.name for p in out.glob("*.png"))
+    # the recordings' timing against their reference (measured 1.04 and 1.12 samples)
+    assert set(results["imu_delay_samples"]) == {TRIAL, fast}
+    assert all(0.95 < d < 1.2 for d in results["imu_delay_samples"].values())
+    assert "## Timing of the recordings" in md
 
 
 def test_evaluate_command_runs_the_vqf_peer(evaluated):

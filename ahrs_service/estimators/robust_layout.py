@@ -24,8 +24,9 @@ class RobustParams:
         forward by this time with the current bias-corrected rate, q ⊗ exp(ω̂ t_lead / 2),
         to make up for the delay of the sensor's own filters against the true motion. Off (0)
         by default: it is a property of the sensor, to be set to that IMU's filter delay.
-        On BROAD, half a sample period (1.75 ms) lowers every estimator's inclination error,
-        VQF's included (see the doc). Only the output is affected, never the filter state.
+        BROAD's IMU samples are about a sample late against its reference (the evaluate
+        report's timing table); 2.04 ms lowers every estimator's inclination error there, VQF's
+        included (see the doc). Only the output is affected, never the filter state.
 
     Inclination and bias (VQF's parameters, same meaning):
     tau_acc: time constant of the accelerometer low-pass in the gyro frame, s.

@@ -73,6 +73,71 @@ def l2_index(error: np.ndarray, dt: float | np.ndarray, mask: np.ndarray | None 
     return math.sqrt(float(np.sum(np.abs(e[keep]) * d[keep])) / span)
 
 
+def reference_rate(q_ref: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Body angular rate of a reference orientation, rad/s: (N − 1, 3), row k the mean rate
+    over samples k → k+1 (so it belongs to the instant k + ½), from q_k⁻¹ ⊗ q_k+1.
+
+    ``q_ref`` (N, 4) q_earth←body in any earth frame; NaN rows give NaN rates.
+    """
+    q = np.asarray(q_ref, dtype=float)
+    d = quat_mul_array(quat_conj_array(q[:-1]), q[1:])
+    d = d * np.where(d[:, :1] < 0.0, -1.0, 1.0)
+    v = d[:, 1:]
+    n = np.linalg.norm(v, axis=1)
+    # rotation vector 2·atan2(|v|, w)·v/|v|, with its limit 2·v/w for tiny angles
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(n > 1e-12, 2.0 * np.arctan2(n, d[:, 0]) / np.where(n > 1e-12, n, 1.0), 2.0 / d[:, 0])
+    return v * scale[:, None] * rate_hz
+
+
+def imu_delay(
+    gyr: np.ndarray,
+    q_ref: np.ndarray,
+    rate_hz: float,
+    movement: np.ndarray | None = None,
+    *,
+    max_samples: float = 5.0,
+) -> float:
+    """How late the IMU's samples are against the reference, in sample periods.
+
+    Gyro sample k is compared with the reference's body rate (``reference_rate``) at the
+    instant k − d, linearly interpolated; d is the delay that minimises the RMS difference
+    over the ``movement`` samples, searched over ±``max_samples`` in steps of ¼ sample, then of
+    1/50 sample around the best, refined by a parabola through the best step and its neighbours. Positive: the IMU data
+    lag the reference (a sensor's filter delay, or an offset left by the synchronisation).
+    The gyro bias adds the same offset at every d, so it does not move the minimum.
+    NaN when fewer than 100 samples can be compared or the reference does not move.
+    """
+    g = np.asarray(gyr, dtype=float)
+    w_ref = reference_rate(q_ref, rate_hz)
+    t_ref = np.arange(len(w_ref)) + 0.5
+    k = np.arange(len(g), dtype=float)
+    mask = np.ones(len(g), bool) if movement is None else np.asarray(movement, dtype=bool)
+    mask = mask & np.isfinite(g).all(axis=1)
+
+    def cost(d: float) -> float:
+        w = np.stack([np.interp(k - d, t_ref, w_ref[:, j], left=np.nan, right=np.nan) for j in range(3)], axis=1)
+        ok = mask & np.isfinite(w).all(axis=1)
+        return float(np.mean((g[ok] - w[ok]) ** 2)) if ok.sum() >= 100 else math.nan
+
+    # coarse steps of ¼ sample, then 1/50 sample around the best, then a parabola
+    best = math.nan
+    for step, half_width in ((0.25, max_samples), (0.02, 0.3)):
+        centre = 0.0 if math.isnan(best) else best
+        delays = centre + np.arange(-half_width, half_width + 1e-9, step)
+        costs = np.array([cost(d) for d in delays])
+        if np.isnan(costs).all() or np.nanmax(costs) - np.nanmin(costs) <= 1e-9 * np.nanmax(costs):
+            return math.nan  # nothing to compare, or no motion that would tell one shift from another
+        i = int(np.nanargmin(costs))
+        best = float(delays[i])
+    if 0 < i < len(delays) - 1 and np.isfinite(costs[i - 1 : i + 2]).all():
+        c0, c1, c2 = costs[i - 1 : i + 2]
+        curvature = c0 - 2.0 * c1 + c2
+        if curvature > 0.0:
+            best += step * 0.5 * (c0 - c2) / curvature
+    return best
+
+
 @dataclass
 class TrialScore:
     """Errors of one estimator on one trial, degrees.

@@ -2,8 +2,9 @@
 
 For every trial: BROAD's total/heading/inclination RMSE (``metrics``), the second paper's L2
 index, the mean error ("mean value", third paper) and the cost of an update, measured with the
-batch run. Per group: the mean of its trials' RMSEs. Across trials: Friedman + Nemenyi
-(``stats``). Written as ``results.json``, ``results.md`` and PNG plots, each carrying the
+batch run; and the recording's own timing, how late its IMU samples are against the
+reference (``metrics.imu_delay``). Per group: the mean of its trials' RMSEs. Across trials:
+Friedman + Nemenyi (``stats``). Written as ``results.json``, ``results.md`` and PNG plots, each carrying the
 BROAD citation.
 
 With ``--offline`` every selected column X gets a twin column "X+offline": the same estimator
@@ -215,6 +216,8 @@ def evaluate(
     if not columns:
         raise ValueError("nothing to evaluate: no estimator and no peer selected")
     per_trial: dict[str, dict[str, dict]] = {c.name: {} for c in columns}
+    imu_delays: dict[str, float] = {}
+    rates: dict[str, float] = {}
     bar = None
     if progress:
         from tqdm import tqdm
@@ -224,6 +227,8 @@ def evaluate(
     try:
         for tname in trial_names:
             trial = broad.load_trial(data_dir, tname)
+            imu_delays[tname] = metrics.imu_delay(trial.gyr, trial.ref, trial.rate_hz, trial.movement)
+            rates[tname] = trial.rate_hz
             errors: dict[str, dict[str, np.ndarray]] = {}
             for col in columns:
                 if bar is not None:
@@ -280,6 +285,8 @@ def evaluate(
         ],
         "per_trial": per_trial,
         "per_group": per_group,
+        "imu_delay_samples": imu_delays,
+        "rates_hz": rates,
         "cost_us_per_sample": {
             c.name: float(np.mean([per_trial[c.name][t]["us_per_sample"] for t in trial_names])) for c in columns
         },
@@ -379,6 +386,22 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
     for t in trials:
         out.append(f"| {t} | " + " | ".join(_fmt(pt[c][t]["l2"], 3) for c in cols) + " |")
     out.append("")
+
+    delays = results.get("imu_delay_samples") or {}
+    if delays:
+        out += ["## Timing of the recordings", "",
+                "How late each recording's IMU samples are against its reference, in sample periods "
+                "(`metrics.imu_delay`: the gyro against the reference's body rate, shifted until they "
+                "agree best). A causal estimator that integrates each gyro sample over the period "
+                "ending at it runs d − ½ sample behind the reference, which every column's error "
+                "carries alike; it is a property of the recording, not of a filter.", "",
+                "| trial | IMU delay (samples) | (ms) |", "|---|---:|---:|"]
+        for t in trials:
+            d = delays.get(t)
+            rate = results.get("rates_hz", {}).get(t)
+            ms = None if d is None or rate is None else d / rate * 1e3
+            out.append(f"| {t} | {_fmt(d)} | {_fmt(ms)} |")
+        out.append("")
 
     out += ["## Friedman and Nemenyi tests", "",
             "Blocks are the trials, treatments the columns, values the per-trial RMSEs.", ""]
