@@ -102,9 +102,10 @@ def imu_delay(
 
     Gyro sample k is compared with the reference's body rate (``reference_rate``) at the
     instant k − d, linearly interpolated; d is the delay that minimises the RMS difference
-    over the ``movement`` samples, searched over ±``max_samples`` in steps of ¼ sample, then of
-    1/50 sample around the best, refined by a parabola through the best step and its neighbours. Positive: the IMU data
-    lag the reference (a sensor's filter delay, or an offset left by the synchronisation).
+    over the ``movement`` samples, searched over ±``max_samples`` in steps of ¼ sample, then
+    of 1/50 sample around the best, refined by a parabola through the best step and its
+    neighbours. Positive: the IMU data lag the reference (a sensor's filter delay, or an
+    offset left by the synchronisation).
     The gyro bias adds the same offset at every d, so it does not move the minimum.
     NaN when fewer than 100 samples can be compared or the reference does not move.
     """

@@ -4,8 +4,8 @@ For every trial: BROAD's total/heading/inclination RMSE (``metrics``), the secon
 index, the mean error ("mean value", third paper) and the cost of an update, measured with the
 batch run; and the recording's own timing, how late its IMU samples are against the
 reference (``metrics.imu_delay``). Per group: the mean of its trials' RMSEs. Across trials:
-Friedman + Nemenyi (``stats``). Written as ``results.json``, ``results.md`` and PNG plots, each carrying the
-BROAD citation.
+Friedman + Nemenyi (``stats``). Written as ``results.json``, ``results.md`` and PNG plots,
+each carrying the BROAD citation.
 
 With ``--offline`` every selected column X gets a twin column "X+offline": the same estimator
 (or peer) run forward and backward over the recording and fused
