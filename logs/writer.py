@@ -94,11 +94,13 @@ class _ChunkedWriter(Writer):
         super().__init__(*args, **kwargs)
         chunk = getattr(self, "_Writer__chunk_builder", None)
         buffer = getattr(getattr(chunk, "record_writer", None), "_buffer", None)
+        self._chunk_limit = getattr(self, "_Writer__chunk_size", None)
         self._fast = (
             chunk is not None
             and hasattr(buffer, "write")
             and hasattr(self, "_Writer__statistics")
-            and hasattr(self, "_Writer__maybe_finalize_chunk")
+            and hasattr(self, "_Writer__finalize_chunk")
+            and isinstance(self._chunk_limit, int)
             and isinstance(getattr(chunk, "message_indices", None), dict)
         )
 
@@ -126,7 +128,9 @@ class _ChunkedWriter(Writer):
         chunk.num_messages += 1
         buffer.write(_MESSAGE_HEADER.pack(Opcode.MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time))
         buffer.write(data)
-        self._Writer__maybe_finalize_chunk()  # type: ignore[attr-defined]
+        # the library's __maybe_finalize_chunk, without its three property calls per message
+        if buffer.tell() > self._chunk_limit:
+            self._Writer__finalize_chunk()  # type: ignore[attr-defined]
 
 
 class McapLogFile:
@@ -177,7 +181,9 @@ class McapLogFile:
         self.write_encoded(topic, log_time_ns, encode(message), publish_time_ns)
 
     def write_encoded(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None) -> None:
-        cid = self._channel(topic)
+        cid = self._channels.get(topic)
+        if cid is None:
+            cid = self._channel(topic)
         seq = self._seq[cid] = self._seq[cid] + 1
         self._w.add_message(
             cid, int(log_time_ns), data, time.time_ns() if publish_time_ns is None else int(publish_time_ns), seq
@@ -597,9 +603,6 @@ class FlightLogWriter:
             self._error(exc)
             self.status = "ok"
             return
-        self._write_data(topic, t_ns, data)
-
-    def _write_data(self, topic: str, t_ns: int, data: bytes) -> None:
         try:
             self._file.write_encoded(topic, t_ns, data)
             self.written += 1
