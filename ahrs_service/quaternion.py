@@ -305,6 +305,19 @@ def quat_from_rotvec_array(r: np.ndarray) -> np.ndarray:
     return np.concatenate([np.cos(half), r * s], axis=-1)
 
 
+def quat_to_rotvec_array(q: np.ndarray) -> np.ndarray:
+    """(…, 3) rotation vectors (rad, the shortest way: angle ≤ π) of (…, 4) unit quaternions;
+    the inverse of :func:`quat_from_rotvec_array`. NaN quaternions give NaN vectors."""
+    q = np.asarray(q, dtype=float)
+    q = np.where(q[..., :1] < 0.0, -q, q)
+    v = q[..., 1:]
+    s = np.linalg.norm(v, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # 2·atan2(|v|, w)·v/|v|, with its limit 2·v/w for a vanishing angle (NaN w stays NaN)
+        scale = np.where(s > 1e-12, 2.0 * np.arctan2(s, q[..., :1]) / np.where(s > 1e-12, s, 1.0), 2.0 / q[..., :1])
+    return v * scale
+
+
 def quat_angle_array(q: np.ndarray) -> np.ndarray:
     """Rotation angle (rad, in [0, π]) of each (N, 4) unit quaternion."""
     w = np.abs(np.asarray(q, dtype=float)[..., 0])

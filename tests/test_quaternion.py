@@ -64,3 +64,15 @@ def test_gravity_and_field_initialiser():
     # upside down, no field: roll = π
     q = Q.quat_from_gravity_and_field(0.0, 0.0, 9.81, 0.0, 0.0, 0.0, False)
     assert abs(Q.quat_to_euler(q)[0]) == pytest.approx(math.pi)
+
+
+def test_rotation_vector_round_trip_shortest_way_and_nan():
+    q = random_quats(200, 4)
+    r = Q.quat_to_rotvec_array(q)
+    assert np.linalg.norm(r, axis=1).max() <= math.pi + 1e-12  # the shortest way
+    back = Q.quat_from_rotvec_array(r)
+    assert np.allclose(np.abs(np.sum(back * q, axis=1)), 1.0)  # the same rotation (q or −q)
+    np.testing.assert_allclose(Q.quat_to_rotvec_array(-q), r, atol=1e-12)
+    tiny = Q.quat_from_rotvec_array(np.array([[1e-14, -2e-14, 3e-14]]))
+    np.testing.assert_allclose(Q.quat_to_rotvec_array(tiny), [[1e-14, -2e-14, 3e-14]], rtol=1e-9)
+    assert np.isnan(Q.quat_to_rotvec_array([np.nan, 0.0, 0.0, 0.0])).all()

@@ -20,7 +20,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from ahrs_service.quaternion import ned_to_enu_array, quat_conj_array, quat_mul_array
+from ahrs_service.quaternion import ned_to_enu_array, quat_conj_array, quat_mul_array, quat_to_rotvec_array
 
 KINDS = ("total", "heading", "inclination")
 
@@ -80,14 +80,7 @@ def reference_rate(q_ref: np.ndarray, rate_hz: float) -> np.ndarray:
     ``q_ref`` (N, 4) q_earth←body in any earth frame; NaN rows give NaN rates.
     """
     q = np.asarray(q_ref, dtype=float)
-    d = quat_mul_array(quat_conj_array(q[:-1]), q[1:])
-    d = d * np.where(d[:, :1] < 0.0, -1.0, 1.0)
-    v = d[:, 1:]
-    n = np.linalg.norm(v, axis=1)
-    # rotation vector 2·atan2(|v|, w)·v/|v|, with its limit 2·v/w for tiny angles
-    with np.errstate(invalid="ignore", divide="ignore"):
-        scale = np.where(n > 1e-12, 2.0 * np.arctan2(n, d[:, 0]) / np.where(n > 1e-12, n, 1.0), 2.0 / d[:, 0])
-    return v * scale[:, None] * rate_hz
+    return quat_to_rotvec_array(quat_mul_array(quat_conj_array(q[:-1]), q[1:])) * rate_hz
 
 
 def imu_delay(

@@ -216,8 +216,7 @@ def evaluate(
     if not columns:
         raise ValueError("nothing to evaluate: no estimator and no peer selected")
     per_trial: dict[str, dict[str, dict]] = {c.name: {} for c in columns}
-    imu_delays: dict[str, float] = {}
-    rates: dict[str, float] = {}
+    imu_delays: dict[str, dict[str, float]] = {}
     bar = None
     if progress:
         from tqdm import tqdm
@@ -227,8 +226,8 @@ def evaluate(
     try:
         for tname in trial_names:
             trial = broad.load_trial(data_dir, tname)
-            imu_delays[tname] = metrics.imu_delay(trial.gyr, trial.ref, trial.rate_hz, trial.movement)
-            rates[tname] = trial.rate_hz
+            delay = metrics.imu_delay(trial.gyr, trial.ref, trial.rate_hz, trial.movement)
+            imu_delays[tname] = {"samples": delay, "ms": delay / trial.rate_hz * 1e3}
             errors: dict[str, dict[str, np.ndarray]] = {}
             for col in columns:
                 if bar is not None:
@@ -285,8 +284,7 @@ def evaluate(
         ],
         "per_trial": per_trial,
         "per_group": per_group,
-        "imu_delay_samples": imu_delays,
-        "rates_hz": rates,
+        "imu_delay": imu_delays,
         "cost_us_per_sample": {
             c.name: float(np.mean([per_trial[c.name][t]["us_per_sample"] for t in trial_names])) for c in columns
         },
@@ -387,7 +385,7 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
         out.append(f"| {t} | " + " | ".join(_fmt(pt[c][t]["l2"], 3) for c in cols) + " |")
     out.append("")
 
-    delays = results.get("imu_delay_samples") or {}
+    delays = results.get("imu_delay") or {}
     if delays:
         out += ["## Timing of the recordings", "",
                 "How late each recording's IMU samples are against its reference, in sample periods "
@@ -397,10 +395,7 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
                 "carries alike; it is a property of the recording, not of a filter.", "",
                 "| trial | IMU delay (samples) | (ms) |", "|---|---:|---:|"]
         for t in trials:
-            d = delays.get(t)
-            rate = results.get("rates_hz", {}).get(t)
-            ms = None if d is None or rate is None else d / rate * 1e3
-            out.append(f"| {t} | {_fmt(d)} | {_fmt(ms)} |")
+            out.append(f"| {t} | {_fmt(delays[t]['samples'])} | {_fmt(delays[t]['ms'])} |")
         out.append("")
 
     out += ["## Friedman and Nemenyi tests", "",
