@@ -166,11 +166,13 @@ class MavlinkBridge:
         """Publishes what is due and, every ``POLL_PERIOD_NS``, handles what came in.
 
         The telemetry snapshot is built only when a stream is due: at 100 Hz ATTITUDE that is
-        every other 5 ms tick, and building it is the costliest part of a tick.
+        every other 5 ms tick, and building it is the costliest part of a tick. Until the first
+        sample is estimated there is no attitude to publish: HEARTBEAT alone, state BOOT.
         """
         component = self.component
         if component.due(now_ns):
-            component.publish(now_ns, self.telemetry(now_ns))
+            estimated = self.svc.pipeline.last_sample is not None
+            component.publish(now_ns, self.telemetry(now_ns) if estimated else None)
         if now_ns >= self._next_poll_ns:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)
