@@ -132,10 +132,14 @@ class MavlinkBridge:
         return (mavlink.MAV_RESULT_ACCEPTED if started else mavlink.MAV_RESULT_TEMPORARILY_REJECTED), text
 
     # ------------------------------------------------------------------ per tick
-    def telemetry(self, now_ns: int) -> Telemetry:
+    def telemetry(self, now_ns: int) -> Telemetry | None:
+        """What the streams publish now; None until the first sample is estimated (then
+        HEARTBEAT alone goes out, state BOOT: there is no attitude yet)."""
         svc = self.svc
         pipeline = svc.pipeline
         sample = pipeline.last_sample
+        if sample is None:
+            return None
         health = svc.health()
         st = svc.scheduler
         diag = svc.source.diagnostics
@@ -144,12 +148,12 @@ class MavlinkBridge:
             (now_ns - svc.boot_ns) // 1_000_000,
             pipeline.published_quaternion(),
             pipeline.body_rates(),
-            gyr=None if sample is None else sample.gyr,
-            acc=None if sample is None else sample.acc,
-            mag=None if sample is None else sample.mag,
-            mag_new=bool(sample is not None and sample.flags & MAG_NEW),
-            temperature_c=None if sample is None else sample.temperature_c,
-            time_usec=None if sample is None else (sample.t_ns - svc.boot_ns) // 1000,
+            gyr=sample.gyr,
+            acc=sample.acc,
+            mag=sample.mag,
+            mag_new=bool(sample.flags & MAG_NEW),
+            temperature_c=sample.temperature_c,
+            time_usec=(sample.t_ns - svc.boot_ns) // 1000,
             gyro=SensorStatus(True, True, health["gyro_healthy"]),
             accel=SensorStatus(True, True, health["accel_healthy"]),
             mag_status=SensorStatus(health["mag_present"], mag_used, health["mag_healthy"]),
@@ -166,13 +170,11 @@ class MavlinkBridge:
         """Publishes what is due and, every ``POLL_PERIOD_NS``, handles what came in.
 
         The telemetry snapshot is built only when a stream is due: at 100 Hz ATTITUDE that is
-        every other 5 ms tick, and building it is the costliest part of a tick. Until the first
-        sample is estimated there is no attitude to publish: HEARTBEAT alone, state BOOT.
+        every other 5 ms tick, and building it is the costliest part of a tick.
         """
         component = self.component
         if component.due(now_ns):
-            estimated = self.svc.pipeline.last_sample is not None
-            component.publish(now_ns, self.telemetry(now_ns) if estimated else None)
+            component.publish(now_ns, self.telemetry(now_ns))
         if now_ns >= self._next_poll_ns:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)

@@ -163,17 +163,16 @@ class McapLogFile:
         self.unflushed = 0  # messages written since the last flush (lost if the process dies now)
         self.closed = False
 
-    def _channel(self, topic: str) -> int:
-        cid = self._channels.get(topic)
-        if cid is None:
-            name, _ = schemas.CHANNELS[topic]
-            sid = self._schemas.get(name)
-            if sid is None:
-                sid = self._w.register_schema(name, schemas.SCHEMA_ENCODING, schemas.schema_bytes(topic))
-                self._schemas[name] = sid
-            cid = self._w.register_channel(topic, schemas.MESSAGE_ENCODING, sid)
-            self._channels[topic] = cid
-            self._seq[cid] = 0
+    def _new_channel(self, topic: str) -> int:
+        """Registers ``topic``'s channel (and its schema, once) on first use."""
+        name, _ = schemas.CHANNELS[topic]
+        sid = self._schemas.get(name)
+        if sid is None:
+            sid = self._w.register_schema(name, schemas.SCHEMA_ENCODING, schemas.schema_bytes(topic))
+            self._schemas[name] = sid
+        cid = self._w.register_channel(topic, schemas.MESSAGE_ENCODING, sid)
+        self._channels[topic] = cid
+        self._seq[cid] = 0
         return cid
 
     def write(self, topic: str, log_time_ns: int, message: Mapping[str, Any], publish_time_ns: int | None = None) -> None:
@@ -183,7 +182,7 @@ class McapLogFile:
     def write_encoded(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None) -> None:
         cid = self._channels.get(topic)
         if cid is None:
-            cid = self._channel(topic)
+            cid = self._new_channel(topic)
         seq = self._seq[cid] = self._seq[cid] + 1
         self._w.add_message(
             cid, int(log_time_ns), data, time.time_ns() if publish_time_ns is None else int(publish_time_ns), seq
