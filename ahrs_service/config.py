@@ -4,11 +4,35 @@ Every key has a default (the embedded default runs a simulated GY-80 flying the 
 validation manoeuvre, publishing over UDP to 127.0.0.1:14550 and logging to ./flight-logs).
 A malformed file stops the start with a :class:`ConfigError` naming the key and what it
 accepts. ``ahrs-service config --print-default`` prints the full default file.
+
+One validation path: ``config --check``, ``run`` and a reload (SIGHUP) all go through
+:func:`load` → :func:`validate`, so a file ``--check`` passes is one ``run`` starts with, and a
+file a reload refuses leaves the running configuration as it was. Every error is one line:
+``section.key: <value> ... <what is accepted>``.
+
+Adding a key is one declaration in :data:`SCHEMA`: ``"name": (default, checker)`` in its
+section, the checker built from the factories below (they never let NaN or ±inf through):
+
+* ``_number(lo, hi)`` / ``_number(lo, hi, integer=True)`` — a finite number (int or float;
+  bool refused) in [lo, hi] (``None`` = unbounded on that side);
+* ``_choice(("a", "b"))``, ``_string``, ``_boolean``, ``_string_list``, ``_table``;
+* ``_optional(checker)`` — the key may be unset (default ``None``);
+* ``_endpoints`` — a non-empty list of distinct MAVLink connection strings, each parsed
+  (scheme, host, port 1..65535 or a serial device and baud);
+* ``_path(must_exist=True)`` — a string naming a path; checked against the file system only when
+  a rule in :func:`_check_source` (or your own cross-key check) needs it.
+
+Cross-key rules (board options against the board, a path required by ``source.type``) go in
+:func:`_check_source` or a ``_check_*`` function called from :func:`validate`; raise
+:class:`ConfigError` with the key's dotted name first. ``tests/test_config.py`` feeds every key
+NaN, ±inf, wrong types and out-of-range values: a new key is covered without a new test.
 """
 
 from __future__ import annotations
 
 import copy
+import inspect
+import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,11 +60,14 @@ Checker = Callable[[str, Any], Any]
 def _number(lo: float | None = None, hi: float | None = None, integer: bool = False) -> Checker:
     def check(key: str, v: Any) -> Any:
         ok_type = isinstance(v, int) if integer else isinstance(v, (int, float))
+        kind = "an integer" if integer else "a number"
+        accepted = f"{kind} in [{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]"
         if isinstance(v, bool) or not ok_type:
-            kind = "an integer" if integer else "a number"
-            raise ConfigError(f"{key}: expected {kind}, got {v!r}")
+            raise ConfigError(f"{key}: {v!r} is not {kind}; accepted: {accepted}")
+        if not math.isfinite(v):
+            raise ConfigError(f"{key}: {v!r} is not a finite number; accepted: {accepted}")
         if (lo is not None and v < lo) or (hi is not None and v > hi):
-            raise ConfigError(f"{key}: {v!r} is out of range [{lo}, {hi}]")
+            raise ConfigError(f"{key}: {v!r} is out of range; accepted: {accepted}")
         return int(v) if integer else float(v)
 
     return check
@@ -48,7 +75,7 @@ def _number(lo: float | None = None, hi: float | None = None, integer: bool = Fa
 
 def _choice(options: tuple[str, ...]) -> Checker:
     def check(key: str, v: Any) -> Any:
-        if v not in options:
+        if not isinstance(v, str) or v not in options:
             raise ConfigError(f"{key}: {v!r} is not one of {', '.join(options)}")
         return v
 
@@ -77,6 +104,66 @@ def _table(key: str, v: Any) -> dict:
     if not isinstance(v, dict):
         raise ConfigError(f"{key}: expected a table, got {v!r}")
     return dict(v)
+
+
+def _path(must_exist: bool = False) -> Checker:
+    """A path string; with ``must_exist`` an empty string is allowed (unset) but a given path must
+    exist (cross-key rules decide when an empty one is an error)."""
+    def check(key: str, v: Any) -> str:
+        v = _string(key, v)
+        if "\x00" in v:
+            raise ConfigError(f"{key}: {v!r} contains a NUL character; accepted: a file path")
+        if must_exist and v and not Path(v).exists():
+            raise ConfigError(f"{key}: {v!r} does not exist; accepted: an existing file")
+        return v
+
+    return check
+
+
+_ENDPOINT_HELP = ("udpout:HOST:PORT, udpin:HOST:PORT, udp:HOST:PORT, udpbcast:HOST:PORT, tcp:HOST:PORT, "
+                  "tcpin:HOST:PORT (PORT 1..65535) or a serial device /dev/NAME[,BAUD]")
+
+
+def _endpoint(key: str, v: Any) -> str:
+    """One pymavlink connection string, parsed the way mavutil will open it."""
+    if not isinstance(v, str) or not v.strip():
+        raise ConfigError(f"{key}: {v!r} is not a connection string; accepted: {_ENDPOINT_HELP}")
+    scheme, sep, rest = v.partition(":")
+    if sep and scheme in ("udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin"):
+        host, sep, port = rest.rpartition(":")
+        if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            raise ConfigError(f"{key}: {v!r} has no valid HOST:PORT; accepted: {_ENDPOINT_HELP}")
+        return v
+    if v.startswith("/dev/") or v.upper().startswith("COM"):
+        device, sep, baud = v.partition(",")
+        if sep and (not baud.isdigit() or not 50 <= int(baud) <= 20_000_000):
+            raise ConfigError(f"{key}: {v!r} has baud {baud!r}; accepted: {_ENDPOINT_HELP}")
+        return v
+    raise ConfigError(f"{key}: {v!r} is not a connection string; accepted: {_ENDPOINT_HELP}")
+
+
+def _endpoints(key: str, v: Any) -> list[str]:
+    """A non-empty list of distinct connection strings (two links on one port fight over it)."""
+    if not isinstance(v, list):
+        raise ConfigError(f"{key}: {v!r} is not a list; accepted: a non-empty list of {_ENDPOINT_HELP}")
+    if not v:
+        raise ConfigError(f"{key}: [] is empty; accepted: a non-empty list of {_ENDPOINT_HELP}")
+    out = [_endpoint(f"{key}[{i}]", x) for i, x in enumerate(v)]
+    seen: set[str] = set()
+    for x in out:
+        if x in seen:
+            raise ConfigError(f"{key}: {x!r} is listed twice; accepted: distinct endpoints")
+        seen.add(x)
+    return out
+
+
+def _finite_table(key: str, v: Any) -> dict:
+    """A table whose numbers are all finite (estimator parameters, board options)."""
+    v = _table(key, v)
+    for k, x in v.items():
+        if isinstance(x, float) and not math.isfinite(x):
+            raise ConfigError(f"{key}.{k}: {x!r} is not a finite number")
+    return v
 
 
 def _optional(check: Checker) -> Checker:
@@ -109,7 +196,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "board": ("gy80", _choice(BOARDS)),
         "i2c_bus": (1, _number(0, 255, integer=True)),
         # board options (addresses, ranges, rates), e.g. {gyro_rate_hz = 800}: docs/drivers.md
-        "board_options": ({}, _table),
+        "board_options": ({}, _finite_table),
         "profile": ("validation", _choice(PROFILES)),
         "loop_profile": (True, _boolean),
         "sensor_errors": (True, _boolean),
@@ -118,12 +205,12 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "can_channel": ("ahrs", _string),
         "can_bitrate": (1_000_000, _number(10_000, 8_000_000, integer=True)),
         "can_node_id": (0, _number(0, 127, integer=True)),
-        "recorded_path": ("", _string),
+        "recorded_path": ("", _path(must_exist=True)),
         "recorded_realtime": (True, _boolean),
     },
     "estimator": {
         "name": ("robust", _estimator_name),
-        "params": ({}, _table),
+        "params": ({}, _finite_table),
         "mag_timeout_s": (0.5, _number(0.01, 60.0)),
         "declination_deg": (0.0, _number(-180.0, 180.0)),
     },
@@ -142,7 +229,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
     },
     "calibration": {},  # free-form: validated by drivers.calibration.SensorCalibration.from_dict
     "mavlink": {
-        "endpoints": (["udpout:127.0.0.1:14550"], _string_list),
+        "endpoints": (["udpout:127.0.0.1:14550"], _endpoints),
         "identity": ("standalone", _choice(IDENTITIES)),
         "system_id": (1, _number(1, 255, integer=True)),
         "signing_key": ("", _signing_key),
@@ -156,9 +243,9 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
     },
     "log": {
         "enabled": (True, _boolean),
-        "directory": ("flight-logs", _string),
-        "rotate_mb": (0.0, _number(0.0, None)),
-        "rotate_minutes": (0.0, _number(0.0, None)),
+        "directory": ("flight-logs", _path()),
+        "rotate_mb": (0.0, _number(0.0, 1_000_000.0)),  # 0 = no size rotation; at most 1 TB
+        "rotate_minutes": (0.0, _number(0.0, 525_600.0)),  # 0 = no time rotation; at most a year
     },
 }
 
@@ -217,13 +304,7 @@ def load(path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = 
     data: dict[str, Any] = {}
     if path is not None:
         path = Path(path)
-        try:
-            with path.open("rb") as f:
-                data = tomllib.load(f)
-        except FileNotFoundError:
-            raise ConfigError(f"configuration file {path} does not exist") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+        data = read_toml(path)
     for section, values in (overrides or {}).items():
         data[section] = {**data.get(section, {}), **values}
     cfg = validate(data)
@@ -232,25 +313,65 @@ def load(path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = 
     return cfg
 
 
+def read_toml(path: Path) -> dict[str, Any]:
+    """The parsed TOML document at ``path``; every way of not being readable is a one-line
+    :class:`ConfigError` (missing, a directory, no permission, not UTF-8, not TOML)."""
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"configuration file {path} does not exist") from None
+    except IsADirectoryError:
+        raise ConfigError(f"configuration file {path} is a directory, not a file") from None
+    except PermissionError:
+        raise ConfigError(f"configuration file {path}: permission denied (cannot read it)") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"configuration file {path}: not UTF-8 text (byte {exc.start}: "
+                          f"{exc.object[exc.start:exc.start + 1]!r}); TOML files are UTF-8") from None
+    except OSError as exc:
+        raise ConfigError(f"configuration file {path}: cannot read it: {exc.strerror or exc}") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+
+
 def _check_estimator_params(section: dict[str, Any]) -> None:
     from ahrs_service import estimators
 
     try:
         estimators.create(section["name"], **section["params"])
-    except ValueError as exc:
+    except (ValueError, TypeError, OverflowError) as exc:
         raise ConfigError(f"estimator.params: {exc}") from None
 
 
 def _check_source(section: dict[str, Any]) -> None:
     if section["board_options"] and section["type"] in ("i2c", "simulated_i2c"):
-        from ahrs_service.drivers.i2c.boards import board_class
-
-        try:
-            board_class(section["board"], dict(section["board_options"]))
-        except ValueError as exc:
-            raise ConfigError(f"source.board_options: {exc}") from None
+        _check_board_options(section["board"], dict(section["board_options"]))
     if section["type"] == "recorded" and not section["recorded_path"]:
         raise ConfigError("source.recorded_path: required when source.type = 'recorded' (an .mcap log or a BROAD .hdf5 file)")
+
+
+def _check_board_options(board: str, options: dict[str, Any]) -> None:
+    """Each option's type against the board's signature, then its value by building the board's
+    drivers (on no bus: their constructors only check and store), so that a range or rate the
+    part does not have is refused here rather than at start."""
+    from ahrs_service.drivers.i2c.boards import I2CBoard, board_class
+
+    try:
+        cls = board_class(board, options)
+    except ValueError as exc:
+        raise ConfigError(f"source.board_options: {exc}") from None
+    params = {**inspect.signature(I2CBoard.__init__).parameters, **inspect.signature(cls.__init__).parameters}
+    for name, value in options.items():
+        default = params[name].default
+        if isinstance(default, (int, float)) and not isinstance(default, bool):
+            want = "an integer" if params[name].annotation in (int, "int") else "a number"
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or (want == "an integer" and not isinstance(value, int)):
+                raise ConfigError(f"source.board_options.{name}: {value!r} is not {want} (board {board!r})")
+    try:
+        cls(None, **options)  # type: ignore[arg-type]
+    except (ValueError, TypeError, OverflowError) as exc:
+        raise ConfigError(f"source.board_options = {options!r}: {exc}") from None
 
 
 def _check_calibration(given: dict[str, Any]) -> dict[str, Any]:

@@ -373,7 +373,7 @@ class Service:
         self.notifier.reloading()
         try:
             new = config_mod.load(self.cfg.path, self.cfg.overrides)
-        except config_mod.ConfigError as exc:
+        except Exception as exc:  # ConfigError, or anything unforeseen: the running config stays
             self.report(f"reload refused: {exc}", 3)
             self.notifier.ready(self.status_line())
             return

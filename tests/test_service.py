@@ -381,6 +381,30 @@ def test_declination_from_the_world_magnetic_model(tmp_path, gcs):
     assert math.degrees(diff) == pytest.approx(pipeline.declination_deg, abs=1e-6)
 
 
+@pytest.mark.parametrize("damage", [b"# caf\xe9\n", b"[estimator]\ndeclination_deg = nan\n"])
+def test_a_reload_of_a_damaged_file_keeps_the_running_configuration(tmp_path, gcs, damage):
+    """Issue 14: SIGHUP after the file gained a non-UTF-8 byte (or a NaN) is refused with one
+    line; the service goes on with what it runs."""
+    conn, port = gcs
+    cfg_file = tmp_path / "ahrs.toml"
+    text = (f'[source]\ntype = "simulated_i2c"\nsensor_errors = false\n\n[estimator]\nname = "madgwick"\n\n'
+            f'[mavlink]\nendpoints = ["udpout:127.0.0.1:{port}"]\n').encode()
+    cfg_file.write_bytes(text)
+    run = RunningService(config_mod.load(cfg_file, {"log": {"enabled": False}}), duration_s=120.0)
+    try:
+        collect(conn, 30.0, until=lambda m: m.get_type() == "ATTITUDE")
+        before = run.service.cfg
+        cfg_file.write_bytes(text + damage)
+        run.service.request_reload()
+        got = collect(conn, 30.0, until=lambda m: m.get_type() == "STATUSTEXT" and "reload" in m.text)
+        assert got and got[-1].text.startswith("reload refused")
+        assert run.service.cfg is before and run.thread.is_alive()
+        att = collect(conn, 30.0, until=lambda m: m.get_type() == "ATTITUDE")
+        assert att and all(math.isfinite(v) for v in (att[-1].roll, att[-1].pitch, att[-1].yaw))
+    finally:
+        run.stop()
+
+
 def test_reload_to_another_estimator_rebuilds_its_parameters_and_keeps_command_line_overrides(tmp_path, gcs):
     conn, port = gcs
     cfg_file = tmp_path / "ahrs.toml"
