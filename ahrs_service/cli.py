@@ -31,8 +31,24 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Runs one subcommand. A path that cannot be opened (missing, a directory where a file is
+    expected, no permission) ends any command with one line naming it, exit status 2."""
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except OSError as exc:
+        print(f"ahrs-service: {path_error(exc)}", file=sys.stderr)
+        return 2
+
+
+def path_error(exc: OSError) -> str:
+    """One line for an OSError about a path: ``PATH: what is wrong``."""
+    what = {FileNotFoundError: "does not exist", IsADirectoryError: "is a directory, not a file",
+            NotADirectoryError: "is not a directory", PermissionError: "permission denied"}
+    reason = next((text for cls, text in what.items() if isinstance(exc, cls)), None)
+    reason = reason or exc.strerror or str(exc)
+    reason = reason.splitlines()[0] if reason else type(exc).__name__
+    return f"{exc.filename}: {reason}" if exc.filename is not None else reason
 
 
 if __name__ == "__main__":

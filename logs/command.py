@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -112,6 +113,8 @@ def _info(args: argparse.Namespace) -> int:
 def _import_broad(args: argparse.Namespace) -> int:
     from ahrs_service.logs.broad_import import import_broad
 
+    if not args.input.is_file():  # h5py's own error names no path
+        raise (IsADirectoryError if args.input.is_dir() else FileNotFoundError)(2, "cannot open", str(args.input))
     summary = import_broad(args.input, args.output, args.start, args.duration)
     print(json.dumps(summary))
     return 0
@@ -125,7 +128,12 @@ def _replay(args: argparse.Namespace) -> int:
     params = dict(args.param)
     name = args.estimator or log.estimator
     if not name:
-        print("error: the log names no estimator; give --estimator NAME")
+        if log.damage is not None:
+            print(f"error: the log names no estimator: its /config was lost to the damage "
+                  f"({log.damage}); give --estimator NAME", file=sys.stderr)
+        else:
+            print("error: the log names no estimator (no /config or /attitude); give --estimator NAME",
+                  file=sys.stderr)
         return 2
     follow = not args.no_param_changes
     blend: float | None = None

@@ -56,7 +56,8 @@ def replay(
     """
     name = estimator or log.estimator
     if not name:
-        raise ValueError("the log names no estimator (no /config or /attitude): pass one")
+        lost = f": its /config was lost to the damage ({log.damage})" if log.damage is not None else " (no /config or /attitude)"
+        raise ValueError(f"the log names no estimator{lost}: pass one")
     est = estimators.create(name, **_effective_start(log, name, params))
     snap = log.initial_state
     if use_recorded_state and snap is not None and snap["estimator"] == name:

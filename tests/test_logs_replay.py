@@ -125,3 +125,26 @@ def test_every_rotated_file_replays_exactly_from_its_state_snapshot(tmp_path, on
     with open(files[1], "rb") as f:
         for schema, channel, message in make_reader(f).iter_messages():
             assert schemas.validate(json.loads(message.data), json.loads(schema.data)) == [], channel.topic
+
+
+def test_replay_of_a_log_whose_config_was_lost_names_the_damage(recording, tmp_path, capsys):
+    """Issue 14: a log cut before its /config says it is damaged, not only 'no estimator'."""
+    log, _, _ = recording
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(log.path.read_bytes()[:40])
+    assert cli_main(["replay", str(cut)]) == 2
+    err = capsys.readouterr().err
+    assert "names no estimator" in err and "/config was lost" in err and "damaged" in err
+
+
+@pytest.mark.parametrize("argv", [["log", "info"], ["replay"], ["log", "recover"], ["log", "import-broad"]])
+@pytest.mark.parametrize("kind", ["missing", "directory"])
+def test_every_command_taking_a_path_gives_one_line_for_a_bad_one(argv, kind, tmp_path, capsys):
+    path = tmp_path / "nope.mcap"
+    if kind == "directory":
+        path.mkdir()
+    extra = [str(tmp_path / "out.mcap")] if argv[-1] == "import-broad" else []
+    assert cli_main([*argv, str(path), *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(path) in err and "Traceback" not in err
+    assert ("does not exist" if kind == "missing" else "is a directory") in err
