@@ -15,6 +15,7 @@ section, the checker built from the factories below (they never let NaN or ±inf
 
 * ``_number(lo, hi)`` / ``_number(lo, hi, integer=True)`` — a finite number (int or float;
   bool refused) in [lo, hi] (``None`` = unbounded on that side);
+* ``_stream_rate(hi)`` — a MAVLink stream rate: 0 (off) or [0.01, hi] Hz;
 * ``_choice(("a", "b"))``, ``_string``, ``_boolean``, ``_string_list``, ``_table``;
 * ``_optional(checker)`` — the key may be unset (default ``None``);
 * ``_endpoints`` — a non-empty list of distinct MAVLink connection strings, each parsed
@@ -69,6 +70,22 @@ def _number(lo: float | None = None, hi: float | None = None, integer: bool = Fa
         if (lo is not None and v < lo) or (hi is not None and v > hi):
             raise ConfigError(f"{key}: {v!r} is out of range; accepted: {accepted}")
         return int(v) if integer else float(v)
+
+    return check
+
+
+MIN_STREAM_HZ = 0.01  # protocols.mavlink.component.MIN_RATE_HZ: an interval MESSAGE_INTERVAL can carry
+
+
+def _stream_rate(hi: float) -> Checker:
+    """A MAVLink stream rate, Hz: 0 (off) or [MIN_STREAM_HZ, hi]."""
+    number = _number(0.0, hi)
+
+    def check(key: str, v: Any) -> float:
+        v = number(key, v)
+        if 0.0 < v < MIN_STREAM_HZ:
+            raise ConfigError(f"{key}: {v!r} is too slow; accepted: 0 (off) or a number in [{MIN_STREAM_HZ}, {hi}]")
+        return v
 
     return check
 
@@ -216,11 +233,11 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
     },
     "rates": {
         "estimation_hz": (200.0, _number(10.0, 2000.0)),
-        "heartbeat_hz": (1.0, _number(0.0, 10.0)),
-        "attitude_hz": (50.0, _number(0.0, 1000.0)),
-        "attitude_quaternion_hz": (50.0, _number(0.0, 1000.0)),
-        "highres_imu_hz": (0.0, _number(0.0, 1000.0)),
-        "sys_status_hz": (1.0, _number(0.0, 50.0)),
+        "heartbeat_hz": (1.0, _stream_rate(10.0)),
+        "attitude_hz": (50.0, _stream_rate(1000.0)),
+        "attitude_quaternion_hz": (50.0, _stream_rate(1000.0)),
+        "highres_imu_hz": (0.0, _stream_rate(1000.0)),
+        "sys_status_hz": (1.0, _stream_rate(50.0)),
     },
     "mounting": {
         "roll_deg": (0.0, _number(-180.0, 180.0)),

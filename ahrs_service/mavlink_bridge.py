@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from ahrs_service import estimators
 from ahrs_service.drivers.base import MAG_NEW
 from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, ParameterTable, SensorStatus, Telemetry
 from ahrs_service.protocols.mavlink.dialect import mavlink
@@ -38,6 +39,22 @@ RATE_CONFIG_KEYS = {
     "HIGHRES_IMU": "highres_imu_hz",
     "SYS_STATUS": "sys_status_hz",
 }
+
+
+#: an EST_* parameter may move this factor away from its default (and to 0), not further
+EST_RANGE_FACTOR = 1000.0
+
+
+def estimator_param_bounds(default: float) -> tuple[float, float]:
+    """[minimum, maximum] of an ``EST_*`` parameter: from 0 to ``EST_RANGE_FACTOR`` times its
+    default on the default's side (a gain, a time constant, a noise level); ±EST_RANGE_FACTOR
+    around a default of 0. Keeps PARAM_SET from putting 3e38 into a filter over the air; wider
+    changes go through the configuration file (``estimator.params``)."""
+    if default > 0:
+        return 0.0, default * EST_RANGE_FACTOR
+    if default < 0:
+        return default * EST_RANGE_FACTOR, 0.0
+    return -EST_RANGE_FACTOR, EST_RANGE_FACTOR
 
 
 def estimator_param_names(names: list[str]) -> dict[str, str]:
@@ -91,11 +108,15 @@ class MavlinkBridge:
     def _parameter_table(self) -> ParameterTable:
         svc = self.svc
         table = ParameterTable()
+        defaults = estimators.create(svc.estimator.name).get_params()
         for name, mav_name in estimator_param_names(svc.estimator.param_names()).items():
+            lo, hi = estimator_param_bounds(defaults[name])
             table.add(
                 mav_name,
                 getter=lambda n=name: svc.estimator.get_params()[n],
                 setter=lambda v, n=name: svc.set_estimator_param(n, float(v)),
+                minimum=lo,
+                maximum=hi,
                 description=f"{svc.estimator.name} parameter {name}",
             )
         table.add(

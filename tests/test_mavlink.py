@@ -848,3 +848,63 @@ def test_due_tells_when_publish_would_send(gcs):
         assert not c.due(999_000_000) and c.due(1_000_000_000)
         c.set_rate("ATTITUDE", 50.0)  # a new schedule starts at once
         assert c.due(999_000_000)
+
+
+# ------------------------------------------------------------------------------ issue 14: edges
+def test_message_interval_beyond_its_int32_field_is_denied_and_get_still_answers(comp, gcs):
+    conn, _ = gcs
+    connect(comp, conn)
+    cmd = mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL
+    conn.mav.command_long_send(1, 1, cmd, 0, 30, 2.0**31, 0, 0, 0, 0, 0)  # 35.8 min: too slow
+    conn.mav.command_long_send(1, 1, cmd, 0, 30, 100_000_000, 0, 0, 0, 0, 0)  # 100 s: the slowest
+    got = exchange(comp, conn, lambda m: m.get_type() == "COMMAND_ACK", n=2)
+    assert [a.result for a in of(got, "COMMAND_ACK")] == [mavlink2.MAV_RESULT_DENIED, mavlink2.MAV_RESULT_ACCEPTED]
+    assert comp.stats.rates_refused == 1
+    conn.mav.command_long_send(1, 1, mavlink2.MAV_CMD_GET_MESSAGE_INTERVAL, 0, 30, 0, 0, 0, 0, 0, 0)
+    got = exchange(comp, conn, lambda m: m.get_type() == "MESSAGE_INTERVAL")
+    assert [m.interval_us for m in of(got, "MESSAGE_INTERVAL")] == [100_000_000]
+    with pytest.raises(ValueError, match="0 \\(off\\) or 0.01 Hz"):
+        comp.set_rate("ATTITUDE", 1.9e-6)
+
+
+@pytest.mark.parametrize("value", [3e38, 1.4e-45, -1.0, 2.0])
+def test_param_set_outside_bounds_or_real32_range_is_refused_with_the_current_value(comp, gcs, store, value):
+    conn, _ = gcs
+    connect(comp, conn)
+    conn.mav.param_set_send(1, 1, b"AHRS_BETA", value, mavlink2.MAV_PARAM_TYPE_REAL32)
+    got = exchange(comp, conn, lambda m: m.get_type() == "STATUSTEXT")
+    assert [m.param_value for m in of(got, "PARAM_VALUE")] == [pytest.approx(0.1)]
+    assert store["beta"] == 0.1 and "AHRS_BETA rejected" in of(got, "STATUSTEXT")[0].text
+
+
+def test_statustext_of_a_param_set_flood_is_rate_limited_and_summarised(comp, gcs, monkeypatch):
+    """An unsigned PARAM_SET flood with unknown names: BURST texts, then none until the bucket
+    refills, then one carrying the count (driven by a fake clock: no sleeping)."""
+    from ahrs_service.protocols.mavlink import component as comp_mod
+    from ahrs_service.protocols.mavlink import statustext_limit
+
+    conn, _ = gcs
+    now = [10**12]
+    monkeypatch.setattr(comp_mod.time, "monotonic_ns", lambda: now[0])
+    connect(comp, conn)
+    for i in range(200):
+        conn.mav.param_set_send(1, 1, f"NOPE_{i}".encode(), 1.0, mavlink2.MAV_PARAM_TYPE_REAL32)
+    got = settle(comp, conn, 0.5)
+    texts = [m.text for m in of(got, "STATUSTEXT")]
+    assert len(texts) == statustext_limit.BURST
+    assert comp.stats.statustext_suppressed == 200 - statustext_limit.BURST
+    # the service's own reports are never limited
+    comp.statustext(mavlink2.MAV_SEVERITY_INFO, "own report")
+    assert [m.text for m in of(settle(comp, conn, 0.3), "STATUSTEXT")] == ["own report"]
+    now[0] += int(statustext_limit.PERIOD_S * 1e9)
+    conn.mav.param_set_send(1, 1, b"NOPE_LAST", 1.0, mavlink2.MAV_PARAM_TYPE_REAL32)
+    texts = [m.text for m in of(settle(comp, conn, 0.3), "STATUSTEXT")]
+    assert texts == [f"unknown parameter NOPE_LAST (+{200 - statustext_limit.BURST} more)"]
+
+
+def test_estimator_parameter_bounds_keep_over_the_air_values_sane():
+    from ahrs_service.mavlink_bridge import EST_RANGE_FACTOR, estimator_param_bounds
+
+    assert estimator_param_bounds(0.1) == (0.0, pytest.approx(0.1 * EST_RANGE_FACTOR))
+    assert estimator_param_bounds(-2.0) == (-2.0 * EST_RANGE_FACTOR, 0.0)
+    assert estimator_param_bounds(0.0) == (-EST_RANGE_FACTOR, EST_RANGE_FACTOR)

@@ -22,6 +22,7 @@ wrongly signed ones are dropped and counted in ``stats.unsigned_rejected``.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Mapping
 
@@ -46,6 +47,7 @@ from ahrs_service.protocols.mavlink.identity import Identity, encode_heartbeat
 from ahrs_service.protocols.mavlink.imu import encode_highres_imu
 from ahrs_service.protocols.mavlink.params import BYTEWISE, ParameterTable
 from ahrs_service.protocols.mavlink.signing import SIGNED_ONLY, check_key
+from ahrs_service.protocols.mavlink.statustext_limit import StatusTextLimiter
 from ahrs_service.protocols.mavlink.telemetry import Telemetry
 
 #: default publishing rates, Hz (0 = off)
@@ -85,12 +87,20 @@ class MavlinkStats:
     unsigned_rejected: int = 0  # writes without a valid signature while signing is on
     not_for_us: int = 0  # requests addressed to another system/component
     handler_errors: int = 0  # exceptions raised by service callbacks (answered FAILED)
+    statustext_suppressed: int = 0  # STATUSTEXTs over their kind's rate limit (statustext_limit)
+    rates_refused: int = 0  # SET_MESSAGE_INTERVAL requests answered DENIED
     send_errors: dict[str, int] = field(default_factory=dict)
     receive_errors: dict[str, int] = field(default_factory=dict)
     last_error: str = ""
 
     def as_dict(self) -> dict[str, Any]:
         return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.__dict__.items()}
+
+
+#: slowest stream rate, Hz: an interval of 100 s. GET_MESSAGE_INTERVAL answers in
+#: MESSAGE_INTERVAL.interval_us, an int32 (at most 2³¹-1 µs ≈ 35.8 min); a slower rate could not
+#: be reported, and a stream that slow is off in all but name.
+MIN_RATE_HZ = 0.01
 
 
 @dataclass
@@ -141,6 +151,7 @@ class MavlinkComponent:
         self._last: Telemetry | None = None
         self._next_due_ns: int | None = None  # earliest stream deadline; None: not known yet
         self._statustext_id = 0
+        self._status_limit = StatusTextLimiter()
         self._rejected = False
         self._reply_after_ack: Any = None  # a message a command handler wants sent after its ACK
         if signing_key is not None:
@@ -180,8 +191,8 @@ class MavlinkComponent:
         if name not in STREAMABLE:
             raise ValueError(f"cannot stream {name!r}; streamable messages: {', '.join(STREAMABLE)}")
         hz = float(hz)
-        if not math.isfinite(hz) or hz < 0:
-            raise ValueError(f"rate of {name} must be a finite number ≥ 0 Hz, got {hz}")
+        if not math.isfinite(hz) or hz < 0 or 0 < hz < MIN_RATE_HZ:
+            raise ValueError(f"rate of {name} must be 0 (off) or {MIN_RATE_HZ:g} Hz or more, got {hz:g}")
         return name, hz
 
     @property
@@ -285,9 +296,17 @@ class MavlinkComponent:
         zeros8 = [0] * 8
         return mavlink.MAVLink_autopilot_version_message(caps, 0, 0, 0, 0, zeros8, zeros8, zeros8, 0, 0, 0, [0] * 18)
 
-    def statustext(self, severity: int, text: str) -> None:
+    def statustext(self, severity: int, text: str, kind: str | None = None) -> None:
         """Sends ``text`` on every link as STATUSTEXT at MAV_SEVERITY ``severity`` (0..7),
-        chunked when longer than 50 bytes."""
+        chunked when longer than 50 bytes. ``kind`` (a short key) puts the text under the rate
+        limit of that kind (see ``statustext_limit``): texts a peer can trigger pass one, the
+        service's own reports (kind None) are never dropped."""
+        if kind is not None:
+            admitted = self._status_limit.admit(kind, text, time.monotonic_ns())
+            self.stats.statustext_suppressed = self._status_limit.suppressed_total
+            if admitted is None:
+                return
+            text = admitted
         self._statustext_id = self._statustext_id % 0xFFFF + 1  # 1..65535; 0 means "single chunk"
         for msg in encode_statustext(severity, text, self._statustext_id):
             self._send_all(msg)
@@ -400,7 +419,9 @@ class MavlinkComponent:
         for answer in answers:
             self._send_all(answer)  # every link, so every ground station sees the new value
         if reason:
-            self.statustext(mavlink.MAV_SEVERITY_WARNING, reason)
+            # anyone on a link can send these: rate-limited, unknown names and rejections apart
+            self.statustext(mavlink.MAV_SEVERITY_WARNING, reason,
+                            kind="param unknown" if not answers else "param rejected")
 
     # ------------------------------------------------------------------ command protocol
     def _on_command_long(self, ep: Endpoint, msg: Any) -> None:
@@ -417,7 +438,8 @@ class MavlinkComponent:
         self._send_all(encode_command_ack(cmd, result), ep)
         if result.text:
             ok = result.result in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
-            self.statustext(mavlink.MAV_SEVERITY_INFO if ok else mavlink.MAV_SEVERITY_WARNING, result.text)
+            self.statustext(mavlink.MAV_SEVERITY_INFO if ok else mavlink.MAV_SEVERITY_WARNING, result.text,
+                            kind=f"command {cmd.command}")
         if self._reply_after_ack is not None:
             reply, self._reply_after_ack = self._reply_after_ack, None
             self._send_all(reply, ep)
@@ -456,8 +478,10 @@ class MavlinkComponent:
             hz = self._default_rates[s.name]
         else:
             hz = 1e6 / interval_us
-            if hz > self.max_rate_hz:
-                return CommandResult(mavlink.MAV_RESULT_DENIED, f"{s.name}: at most {self.max_rate_hz:g} Hz")
+            if hz > self.max_rate_hz or hz < MIN_RATE_HZ:
+                self.stats.rates_refused += 1
+                return CommandResult(mavlink.MAV_RESULT_DENIED,
+                                     f"{s.name}: {MIN_RATE_HZ:g}..{self.max_rate_hz:g} Hz")
         self.set_rate(s.name, hz)
         return CommandResult(mavlink.MAV_RESULT_ACCEPTED)
 

@@ -8,7 +8,8 @@ Wire rules followed (https://mavlink.io/en/services/parameter.html):
 * names are 1..16 ASCII characters; types are MAV_PARAM_TYPE_REAL32 or MAV_PARAM_TYPE_INT32;
 * PARAM_REQUEST_LIST → every parameter as PARAM_VALUE with param_index/param_count;
 * PARAM_REQUEST_READ → one PARAM_VALUE, by name, or by index when param_index ≥ 0;
-* PARAM_SET → validated (finite, integral for INT32, within min/max, setter accepts) and
+* PARAM_SET → validated (finite, a normal float32 or 0 for REAL32, integral for INT32, within
+  min/max, setter accepts) and
   applied; the answer is PARAM_VALUE with the value actually in force. A rejected set answers
   the unchanged value and a STATUSTEXT with the reason.
 
@@ -29,6 +30,8 @@ from ahrs_service.protocols.mavlink.dialect import mavlink
 
 REAL32 = mavlink.MAV_PARAM_TYPE_REAL32
 INT32 = mavlink.MAV_PARAM_TYPE_INT32
+FLT_MIN = 1.1754943508222875e-38  # smallest normal float32: a REAL32 below it (non-zero) is refused
+FLT_MAX = 3.4028234663852886e38
 INT32_EXACT_LIMIT = 1 << 24  # |n| up to 2**24 survives the float32 of C-cast encoding
 C_CAST = "c_cast"
 BYTEWISE = "bytewise"
@@ -143,6 +146,8 @@ class ParameterTable:
         v = float(value)
         if not math.isfinite(v):
             return "not a finite number"
+        if p.param_type == REAL32 and (abs(v) > FLT_MAX or 0.0 < abs(v) < FLT_MIN):
+            return f"{v:g} outside the normal REAL32 range"
         if p.param_type == INT32 and v != round(v):
             return f"{v:g} is not an integer"
         if p.param_type == INT32 and not -(2**31) <= v <= 2**31 - 1:
