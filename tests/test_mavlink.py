@@ -908,3 +908,54 @@ def test_estimator_parameter_bounds_keep_over_the_air_values_sane():
     assert estimator_param_bounds(0.1) == (0.0, pytest.approx(0.1 * EST_RANGE_FACTOR))
     assert estimator_param_bounds(-2.0) == (-2.0 * EST_RANGE_FACTOR, 0.0)
     assert estimator_param_bounds(0.0) == (-EST_RANGE_FACTOR, EST_RANGE_FACTOR)
+
+
+def test_udpin_peers_are_well_formed_senders_capped_and_expired(params, monkeypatch):
+    """Issue 14: a udpin link sends to those that sent a valid frame, at most MAX_PEERS of them,
+    each forgotten PEER_TIMEOUT_S after its last frame (fake clock: no sleeping)."""
+    import socket
+
+    from ahrs_service.protocols.mavlink import endpoints as ep_mod
+
+    now = [10**12]
+    monkeypatch.setattr(ep_mod.time, "monotonic_ns", lambda: now[0])
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    c = MavlinkComponent([f"udpin:127.0.0.1:{port}"], Identity(), params=params)
+    try:
+        ep = c._endpoints[0]
+        hb = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190)
+        frame = hb.heartbeat_encode(6, 8, 0, 0, 0).pack(hb)
+        spoofers = []
+        for i in range(3 * ep_mod.MAX_PEERS):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(("127.0.0.1", 0))
+            s.sendto(frame if i % 3 else b"\xfd\x09garbage", ("127.0.0.1", port))  # a third send garbage
+            spoofers.append(s)
+        gcs_conn, _ = make_gcs()
+        gcs_conn.port.sendto(frame, ("127.0.0.1", port))  # the ground station speaks last
+        valid = 2 * ep_mod.MAX_PEERS + 1  # the garbage datagrams parse to no message at all
+        handled = 0
+        for _ in range(400):
+            handled += c.poll(1000)
+            if handled >= valid:
+                break
+            time.sleep(0.005)
+        assert handled == valid
+        assert len(ep.peers) == ep_mod.MAX_PEERS
+        assert ep.peers.evicted == 2 * ep_mod.MAX_PEERS + 1 - ep_mod.MAX_PEERS
+        assert gcs_conn.port.getsockname() in ep.peers.live(now[0])
+        c.send_now("HEARTBEAT")
+        assert of(drain(gcs_conn), "HEARTBEAT")
+        garbage_senders = {spoofers[i].getsockname() for i in range(0, len(spoofers), 3)}
+        assert not garbage_senders & ep.peers.live(now[0])
+        now[0] += int(ep_mod.PEER_TIMEOUT_S * 1e9) + 1
+        c.send_now("HEARTBEAT")
+        assert len(ep.peers) == 0 and ep.peers.expired == ep_mod.MAX_PEERS
+        for s in spoofers:
+            s.close()
+        gcs_conn.close()
+    finally:
+        c.close()

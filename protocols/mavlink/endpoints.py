@@ -10,8 +10,14 @@ pymavlink's ``mavutil`` opens the link; this module adds what a long-running ser
   datagram are discarded (and reported), instead of being glued to the next datagram and
   spoiling the good message in it.
 
+* a ``udpin`` link sends to its *peers*: addresses that sent a well-formed MAVLink frame (a
+  datagram of garbage or a bad CRC makes nobody a peer), each forgotten ``PEER_TIMEOUT_S``
+  after its last frame, at most ``MAX_PEERS`` of them (a new one replaces the one heard least
+  recently). mavutil on its own sends every frame to every address that ever sent a datagram
+  and never forgets one, so anyone able to reach the port could load the loop without limit.
+
 Connection strings (mavutil's): ``udpout:HOST:PORT`` (send to a listener such as
-QGroundControl on 14550), ``udpin:HOST:PORT`` (listen; replies go to whoever sent last —
+QGroundControl on 14550), ``udpin:HOST:PORT`` (listen; replies go to the peers above —
 nothing is sent before a peer has spoken), ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``,
 ``/dev/ttyUSB0,921600`` (serial device, baud).
 """
@@ -19,6 +25,8 @@ nothing is sent before a peer has spoken), ``tcp:HOST:PORT``, ``tcpin:HOST:PORT`
 from __future__ import annotations
 
 import hashlib
+import time
+from collections import OrderedDict
 from typing import Any, Sequence
 
 from pymavlink import mavutil
@@ -26,6 +34,44 @@ from pymavlink import mavutil
 from ahrs_service.protocols.mavlink.dialect import mavlink
 
 _STREAM_READ = 4096  # bytes per read on TCP/serial
+_UDP_MAX = 65535  # bytes per datagram
+PEER_TIMEOUT_S = 10.0  # a udpin peer silent this long is forgotten (ground stations beat at 1 Hz)
+MAX_PEERS = 16  # udpin peers served at once
+
+
+class UdpPeers:
+    """The addresses a ``udpin`` link sends to, most recently heard last (see module docstring).
+
+    Time is the monotonic clock in ns, passed in (tests drive it)."""
+
+    def __init__(self, timeout_s: float = PEER_TIMEOUT_S, max_peers: int = MAX_PEERS) -> None:
+        self.timeout_ns = int(timeout_s * 1e9)
+        self.max_peers = int(max_peers)
+        self._last: OrderedDict[Any, int] = OrderedDict()
+        self.expired = 0  # peers forgotten after their timeout
+        self.evicted = 0  # peers replaced by a newer one while at the cap
+
+    def heard(self, addr: Any, now_ns: int) -> None:
+        """A well-formed frame came from ``addr``."""
+        if addr in self._last:
+            self._last.move_to_end(addr)
+        elif len(self._last) >= self.max_peers:
+            self._last.popitem(last=False)
+            self.evicted += 1
+        self._last[addr] = now_ns
+
+    def live(self, now_ns: int) -> set:
+        """The peers heard within the timeout (older ones are forgotten now)."""
+        while self._last:
+            addr, t = next(iter(self._last.items()))
+            if now_ns - t <= self.timeout_ns:
+                break
+            self._last.popitem(last=False)
+            self.expired += 1
+        return set(self._last)
+
+    def __len__(self) -> int:
+        return len(self._last)
 
 
 class _Parser(mavlink.MAVLink):
@@ -90,6 +136,12 @@ class Endpoint:
         conn.WIRE_PROTOCOL_VERSION = "2.0"
         conn.first_byte = False  # no auto-switching of the protocol version on the first byte
         self.datagram = isinstance(conn, (mavutil.mavudp, mavutil.mavmcast))
+        # udpin: this class reads the socket and keeps the peers; mavutil only sends to them
+        self.peers: UdpPeers | None = UdpPeers() if getattr(conn, "udp_server", False) else None
+        self._from: Any = None  # address of the datagram being parsed (udpin)
+        if self.peers is not None:
+            conn.timeout = 0  # mavutil's own expiry off: conn.clients is set from self.peers
+            conn.clients = set()
         self.send_errors = 0
         self.receive_errors = 0
         self.truncated = 0
@@ -117,6 +169,8 @@ class Endpoint:
         autopilots) split like a stream; False on any error — never raises. ``send_errors``
         counts the messages lost, every message of a failed write."""
         before = self.send_errors
+        if self.peers is not None:
+            self.conn.clients = self.peers.live(time.monotonic_ns())
         try:
             self._tap_port()
             mav = self.conn.mav
@@ -141,7 +195,10 @@ class Endpoint:
         """Bytes available now (one datagram on UDP); b"" when none. Never raises."""
         try:
             self._tap_port()
-            data = self.conn.recv() if self.datagram else self.conn.recv(_STREAM_READ)
+            if self.peers is not None:
+                data = self._recv_udpin()
+            else:
+                data = self.conn.recv() if self.datagram else self.conn.recv(_STREAM_READ)
         except Exception:
             self.receive_errors += 1
             return b""
@@ -149,10 +206,22 @@ class Endpoint:
             return b""
         return bytes(data) if not isinstance(data, str) else data.encode("latin-1")
 
+    def _recv_udpin(self) -> bytes:
+        # mavutil's recv would add every sender to its clients for good: read the socket here
+        try:
+            data, self._from = self.conn.port.recvfrom(_UDP_MAX)
+        except (BlockingIOError, InterruptedError, ConnectionRefusedError):
+            return b""
+        return data
+
     def parse(self, data: bytes) -> Any:
         """Feeds ``data`` to the parser and returns the first complete message (or None);
-        call again with b"" for the rest."""
-        return self.conn.mav.parse_char(data)
+        call again with b"" for the rest. On udpin, a well-formed message makes its sender a
+        peer."""
+        msg = self.conn.mav.parse_char(data)
+        if self.peers is not None and msg is not None and self._from is not None and msg.get_type() != "BAD_DATA":
+            self.peers.heard(self._from, time.monotonic_ns())
+        return msg
 
     def reset_parser(self) -> None:
         """Forgets any partly received message."""
