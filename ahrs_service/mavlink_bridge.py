@@ -41,6 +41,10 @@ RATE_CONFIG_KEYS = {
 }
 
 
+#: no sample estimated for this long: the attitude streams stop (Telemetry.attitude_fresh) and
+#: the gyroscope is reported unhealthy, until samples come again
+STALE_NS = 250_000_000
+
 #: an EST_* parameter may move this factor away from its default (and to 0), not further
 EST_RANGE_FACTOR = 1000.0
 
@@ -85,6 +89,8 @@ class MavlinkBridge:
 
         self.svc = service
         self._next_poll_ns = 0
+        self._samples_seen = -1  # pipeline.samples at the last telemetry, and when it last grew
+        self._fresh_at_ns = 0
         mcfg = cfg.mavlink
         identity = (
             Identity.standalone(mcfg["system_id"])
@@ -161,6 +167,9 @@ class MavlinkBridge:
         sample = pipeline.last_sample
         if sample is None:
             return None
+        if pipeline.samples != self._samples_seen:
+            self._samples_seen, self._fresh_at_ns = pipeline.samples, now_ns
+        fresh = now_ns - self._fresh_at_ns <= STALE_NS
         health = svc.health()
         st = svc.scheduler
         diag = svc.source.diagnostics
@@ -175,7 +184,8 @@ class MavlinkBridge:
             mag_new=bool(sample.flags & MAG_NEW),
             temperature_c=sample.temperature_c,
             time_usec=(sample.t_ns - svc.boot_ns) // 1000,
-            gyro=SensorStatus(True, True, health["gyro_healthy"]),
+            attitude_fresh=fresh,
+            gyro=SensorStatus(True, True, health["gyro_healthy"] and fresh),
             accel=SensorStatus(True, True, health["accel_healthy"]),
             mag_status=SensorStatus(health["mag_present"], mag_used, health["mag_healthy"]),
             estimator=svc.estimator.name,

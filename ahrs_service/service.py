@@ -351,11 +351,17 @@ class Service:
         s = self.pipeline.last_sample
         flags = s.flags if s is not None else 0
         lost = bool(self.source.diagnostics.device_lost) if self.source else True
+        # a board names the parts it lost: a lost magnetometer is a magnetometer fault (reduced
+        # mode), not an IMU fault; other sources only say "lost"
+        parts = getattr(self.source, "lost", None)
+        imu_lost = lost if not isinstance(parts, (set, frozenset)) else bool(parts & {"gyro", "acc"})
+        mag_lost = isinstance(parts, (set, frozenset)) and "mag" in parts
         return {
-            "gyro_healthy": bool(flags & GYR_VALID) and not lost,
-            "accel_healthy": bool(flags & ACC_VALID) and not lost,
+            "gyro_healthy": bool(flags & GYR_VALID) and not imu_lost,
+            "accel_healthy": bool(flags & ACC_VALID) and not imu_lost,
             "mag_present": bool(getattr(self.source, "has_mag", False)),
-            "mag_healthy": bool(flags & MAG_VALID or s is not None and s.mag is None) and not self.pipeline.reduced,
+            "mag_healthy": bool(flags & MAG_VALID or s is not None and s.mag is None)
+                           and not self.pipeline.reduced and not mag_lost,
         }
 
     # ------------------------------------------------------------------ live changes

@@ -632,3 +632,44 @@ def test_gyro_calibration_during_a_running_fit_is_kept_when_the_fit_is_applied(t
         assert np.array_equal(svc.pipeline.calibration.gyro_bias, gyro_bias)
     finally:
         run.stop()
+
+
+def _sys_status(conn, seconds: float = 10.0):
+    return _first(conn, lambda m: m.get_type() == "SYS_STATUS", seconds)
+
+
+def test_health_per_sensor_and_no_fresh_looking_attitude_without_a_gyroscope(tmp_path, gcs):
+    """Issue 14: a lost magnetometer is a magnetometer fault (reduced mode), not an IMU fault;
+    a lost gyroscope stops the attitude streams (HEARTBEAT CRITICAL, SYS_STATUS goes on) until
+    it returns."""
+    conn, port = gcs
+    run = RunningService(service_config(tmp_path, port, log={"enabled": False},
+                                        rates={"sys_status_hz": 5, "heartbeat_hz": 5}))
+    svc = run.service
+    bus = svc.source.bus
+    gyro_bit, mag_bit = mavlink2.MAV_SYS_STATUS_SENSOR_3D_GYRO, mavlink2.MAV_SYS_STATUS_SENSOR_3D_MAG
+    try:
+        collect(conn, 30.0, until=lambda m: m.get_type() == "ATTITUDE")
+        bus.set_present(0x1E, False)  # HMC5883L
+        assert _wait_until(lambda: "mag" in svc.source.lost and svc.pipeline.reduced)
+        collect(conn, 0.5)  # what was sent before the loss
+        st = _sys_status(conn)
+        assert st.onboard_control_sensors_health & gyro_bit and not st.onboard_control_sensors_health & mag_bit
+        hb = _first(conn, lambda m: m.get_type() == "HEARTBEAT", 10.0)
+        assert hb.system_status == mavlink2.MAV_STATE_ACTIVE
+        assert collect(conn, 10.0, until=lambda m: m.get_type() == "ATTITUDE")[-1].get_type() == "ATTITUDE"
+
+        withheld = svc.mavlink.component.stats.stale_withheld
+        bus.set_present(0x69, False)  # L3G4200D
+        assert _wait_until(lambda: svc.mavlink.component.stats.stale_withheld > withheld)
+        collect(conn, 0.3)
+        got = collect(conn, 1.0)
+        assert not [m for m in got if m.get_type() in ("ATTITUDE", "ATTITUDE_QUATERNION")]
+        assert any(m.get_type() == "HEARTBEAT" and m.system_status == mavlink2.MAV_STATE_CRITICAL for m in got)
+        assert any(m.get_type() == "SYS_STATUS" and not m.onboard_control_sensors_health & gyro_bit for m in got)
+
+        bus.set_present(0x69, True)
+        att = collect(conn, 10.0, until=lambda m: m.get_type() == "ATTITUDE")
+        assert att and att[-1].get_type() == "ATTITUDE" and math.isfinite(att[-1].roll)
+    finally:
+        run.stop()

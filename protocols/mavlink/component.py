@@ -89,6 +89,7 @@ class MavlinkStats:
     handler_errors: int = 0  # exceptions raised by service callbacks (answered FAILED)
     statustext_suppressed: int = 0  # STATUSTEXTs over their kind's rate limit (statustext_limit)
     rates_refused: int = 0  # SET_MESSAGE_INTERVAL requests answered DENIED
+    stale_withheld: int = 0  # stream messages not sent: no fresh estimate (Telemetry.attitude_fresh)
     send_errors: dict[str, int] = field(default_factory=dict)
     receive_errors: dict[str, int] = field(default_factory=dict)
     last_error: str = ""
@@ -101,6 +102,9 @@ class MavlinkStats:
 #: MESSAGE_INTERVAL.interval_us, an int32 (at most 2³¹-1 µs ≈ 35.8 min); a slower rate could not
 #: be reported, and a stream that slow is off in all but name.
 MIN_RATE_HZ = 0.01
+
+#: streams that carry the estimate or the IMU readings: withheld while the estimate is stale
+_NEEDS_FRESH_ESTIMATE = frozenset({"ATTITUDE", "ATTITUDE_QUATERNION", "HIGHRES_IMU"})
 
 
 @dataclass
@@ -230,6 +234,9 @@ class MavlinkComponent:
         if name == "HEARTBEAT":
             return encode_heartbeat(self.identity, system_state(telemetry))
         if telemetry is None:
+            return None
+        if not telemetry.attitude_fresh and name in _NEEDS_FRESH_ESTIMATE:
+            self.stats.stale_withheld += 1  # no fresh-looking copy of an old attitude
             return None
         return self._encoders[name](telemetry)
 

@@ -50,6 +50,9 @@ class Telemetry:
     comm_errors: sensor bus errors since start (I2C/CAN), SYS_STATUS errors_comm.
     sensor_faults: rejected samples (saturated, not finite) since start.
     faults: other named fault counters (kept for logs; not all fit in SYS_STATUS).
+    attitude_fresh: a sample was estimated recently; False (gyroscope gone, source silent)
+        withholds ATTITUDE, ATTITUDE_QUATERNION and HIGHRES_IMU — as PX4's streams, which send
+        only on a new estimate — while HEARTBEAT (CRITICAL) and SYS_STATUS go on.
     """
 
     time_boot_ms: int
@@ -75,6 +78,7 @@ class Telemetry:
     comm_errors: int = 0
     sensor_faults: int = 0
     faults: Mapping[str, int] = field(default_factory=dict)
+    attitude_fresh: bool = True
 
     @classmethod
     def from_quaternion(cls, time_boot_ms: int, q: Sequence[float], body_rate: Sequence[float] = (0.0, 0.0, 0.0),
