@@ -959,3 +959,76 @@ def test_udpin_peers_are_well_formed_senders_capped_and_expired(params, monkeypa
         gcs_conn.close()
     finally:
         c.close()
+
+
+def _hostile_frames(rng: random.Random, n: int) -> list[bytes]:
+    """Random bytes, truncated and bad-CRC frames, and valid frames with hostile contents
+    (non-finite or out-of-range PARAM_SET values, unknown names, impossible intervals, NaN
+    command parameters, other targets)."""
+    mav = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190)
+    bad = [float("nan"), float("inf"), float("-inf"), 3e38, 1.4e-45, -1.0, 2.0, 1e9]
+    intervals = [float("nan"), float("inf"), 2.0**31, 2.0**40, -5.0, 1.0, 3.5]
+    out = []
+    for i in range(n):
+        kind = i % 6
+        if kind == 0:
+            out.append(bytes(rng.getrandbits(8) for _ in range(rng.randint(1, 300))))
+            continue
+        pick = rng.randrange(5)
+        if pick == 0:
+            msg = mav.param_set_encode(1, 1, rng.choice([b"AHRS_BETA", b"AHRS_RATE_HZ", b"AHRS_VERSION",
+                                                         f"X{rng.getrandbits(30)}".encode()]),
+                                       rng.choice(bad), rng.choice([mavlink2.MAV_PARAM_TYPE_REAL32,
+                                                                    mavlink2.MAV_PARAM_TYPE_INT32]))
+        elif pick == 1:
+            msg = mav.command_long_encode(1, 1, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                          rng.choice([30.0, 31.0, 105.0, float("nan")]), rng.choice(intervals),
+                                          0, 0, 0, 0, 0)
+        elif pick == 2:
+            msg = mav.command_long_encode(1, 1, rng.randrange(65536), rng.randrange(256),
+                                          *(rng.choice(bad) for _ in range(7)))
+        elif pick == 3:
+            msg = mav.param_request_read_encode(1, 1, b"AHRS_BETA", rng.randrange(-32768, 32768))
+        else:
+            msg = mav.param_set_encode(rng.randrange(2, 256), 1, b"AHRS_BETA", 0.5, mavlink2.MAV_PARAM_TYPE_REAL32)
+        frame = bytearray(msg.pack(mav))
+        if kind == 1:
+            frame = frame[: rng.randrange(1, len(frame))]  # truncated
+        elif kind == 2:
+            frame[-1] ^= 0xFF  # bad CRC
+        out.append(bytes(frame))
+    return out
+
+
+def test_bounded_fuzz_keeps_the_schedule_the_values_and_the_parameters(comp, gcs, store):
+    """Issue 14 acceptance: 12 000 hostile datagrams interleaved with 6 s of simulated
+    publishing; from the component's own counters: every scheduled ATTITUDE sent, nothing
+    non-finite received, no parameter changed, the STATUSTEXT flood held back."""
+    conn, _ = gcs
+    connect(comp, conn)
+    comp_addr = next(iter(conn.clients))  # where the component sends from
+    frames = _hostile_frames(random.Random(14), 12_000)
+    before = {n: comp.params.get(n) for n in comp.params.names()}
+    step_ns, batch = 5_000_000, 10  # 1200 publish calls, 10 datagrams between two of them
+    t0 = 50_000_000_000
+    received = []
+    for i in range(0, len(frames), batch):
+        for f in frames[i:i + batch]:
+            conn.port.sendto(f, comp_addr)
+        now = t0 + (i // batch) * step_ns
+        comp.publish(now, telemetry(now // 1_000_000))
+        comp.poll(1000)
+        received += drain(conn)
+    received += settle(comp, conn, 0.3)
+    last = t0 + (len(frames) // batch - 1) * step_ns
+    scheduled = (last - t0) * 50 // 1_000_000_000 + 1  # ATTITUDE at 50 Hz from t0 on
+    assert comp.stats.sent["ATTITUDE"] == scheduled
+    assert comp.rates["ATTITUDE"] == 50.0  # no hostile interval was taken
+    assert {n: comp.params.get(n) for n in comp.params.names()} == before and store["beta"] == 0.1
+    for m in received:
+        for field in ("roll", "pitch", "yaw", "q1", "q2", "q3", "q4", "param_value"):
+            value = getattr(m, field, None)
+            if m.get_type() in ("ATTITUDE", "ATTITUDE_QUATERNION", "PARAM_VALUE") and value is not None:
+                assert math.isfinite(value), (m.get_type(), field)
+    assert comp.stats.malformed > 0 and comp.stats.statustext_suppressed > 0
+    assert len(of(received, "STATUSTEXT")) < 200  # thousands were triggered
