@@ -192,8 +192,9 @@ class Service:
                 if cal is not None and writer is not None:
                     state = pipeline.estimator.state
                     writer.write_sample(
-                        cal.t_ns, pipeline.row, cal.flags, state[_H.q], pipeline.estimator.name, state[_H.bias], state,
-                        sample.raw, cal.temperature_c, cal.truth_q,
+                        cal.t_ns, pipeline.row, cal.flags, q=state[_H.q], estimator=pipeline.estimator.name,
+                        bias=state[_H.bias], state=state, raw=sample.raw, temperature=cal.temperature_c,
+                        truth_q=cal.truth_q,
                     )
             # one attribute test per tick while no fit runs; done() takes a lock only during one
             if self._live_fit is not None and self._live_fit.done():

@@ -23,7 +23,7 @@ import numpy as np
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID
 from ahrs_service.evaluation.broad import CITATION
 from ahrs_service.logs.schemas import raw_message, truth_message
-from ahrs_service.logs.writer import McapLogFile
+from ahrs_service.logs.mcap_file import McapLogFile
 from ahrs_service.quaternion import Q_NED_TO_ENU, quat_conj_array, quat_mul_array
 from ahrs_service.estimators import SAMPLE_ROW
 
