@@ -3,7 +3,7 @@
 Every channel is JSON-encoded (MCAP message encoding ``"json"``) and carries a JSON Schema
 (schema encoding ``"jsonschema"``), which is what Foxglove expects for JSON data.
 
-Conventions (../shared/DESIGN.md): earth NED, body FRD, quaternions Hamilton [w, x, y, z]
+Conventions (docs/design.md): earth NED, body FRD, quaternions Hamilton [w, x, y, z]
 q_earth←body, gyroscope rad/s, specific force m/s², field µT, times in ns. Numbers that are
 not finite (NaN: "no magnetometer", an invalid reading) are written as ``null`` because JSON
 has no NaN; readers turn ``null`` back into NaN. Floats are written in their shortest

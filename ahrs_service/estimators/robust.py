@@ -1,10 +1,16 @@
-"""The project's robust real-time attitude estimator ("robust"): GIMLET.
+"""The robust real-time attitude estimator ("robust"): GIMLET.
 
 GIMLET — *Gyro-consistent Inertial-frame filter with Magnetic Learning of hard iron and
-Extended rejection* — is a causal, one-sample-at-a-time estimator built on the structure of
-VQF (D. Laidig, T. Seel, "VQF: Highly accurate IMU orientation estimation with bias
-estimation and magnetic disturbance rejection", Information Fusion 91, 2023, doi:
-10.1016/j.inffus.2022.10.014). The attitude is factored as (VQF eq. 3)
+Extended rejection* — is a causal, one-sample-at-a-time estimator built on VQF (D. Laidig,
+T. Seel, "VQF: Highly accurate IMU orientation estimation with bias estimation and magnetic
+disturbance rejection", Information Fusion 91, 2023, doi: 10.1016/j.inffus.2022.10.014).
+
+Credit: this module's start-up, rest detection, inclination correction (with its q_w guard)
+and gyro-bias Kalman filter (covariance in (0.01 °/s)², its noise scaling) follow VQF's
+reference implementation (github.com/dlaidig/vqf, vqf/cpp/vqf.cpp, MIT, © 2021 Daniel
+Laidig; notice in THIRD_PARTY_NOTICES), in places statement by statement, re-expressed for
+NED/FRD. The project's own: the output lead and the magnetic features marked so in
+``robust_mag``. The attitude is factored as (VQF eq. 3)
 
     q_E←S = q_δ ⊗ q_a ⊗ q_g
 

@@ -7,6 +7,13 @@ satisfy Δȳ = ΔR̄ h between consecutive blocks: linear in h (least squares wi
 and whatever Δȳ the rotation and ĥ do not explain is a field that changed in I — the
 gyro-consistency statistic. The heading offset δ follows VQF eq. 11–12 (D. Laidig, T. Seel,
 Information Fusion 91, 2023), written for NED: δ turns the field's horizontal part onto north.
+
+Credit: the heading filter, the norm/dip disturbance test, the rejection clock and new-field
+acceptance (with the start-up confirmation, VQF's magNewFirstTime) in ``heading`` follow
+VQF's reference implementation (github.com/dlaidig/vqf, vqf/cpp/vqf.cpp, MIT, © 2021 Daniel
+Laidig; notice in THIRD_PARTY_NOTICES). The project's own: ``hard_iron_and_consistency``
+(gyro consistency, hard-iron least squares, offset-change detection), the veto after an
+offset change and the choice of the corrected field in ``heading``, and ``mag_rot_rate``.
 """
 
 from __future__ import annotations
