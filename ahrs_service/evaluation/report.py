@@ -31,6 +31,9 @@ from ahrs_service.estimators import offline as offline_mode
 from ahrs_service.estimators.base import stack_rows, time_steps
 from ahrs_service.evaluation import broad, metrics, peers, stats
 from ahrs_service.quaternion import ned_to_enu_array
+from ahrs_service.estimators import SAMPLE_ROW
+
+_R = SAMPLE_ROW.slices
 
 
 @dataclass
@@ -169,7 +172,7 @@ def _run_offline(col: Column, trial: broad.Trial) -> np.ndarray:
     rows = stack_rows(trial.gyr, trial.acc, trial.mag, time_steps(len(trial), trial.rate_hz))
 
     def run_rows(r: np.ndarray) -> np.ndarray:
-        return peers.run(col.base, r[:, 0:3], r[:, 3:6], r[:, 6:9], rate_hz=trial.rate_hz, **col.params)
+        return peers.run(col.base, r[:, _R.gyr], r[:, _R.acc], r[:, _R.mag], rate_hz=trial.rate_hz, **col.params)
 
     return offline_mode.smooth_rows(run_rows, rows, blend_time_s=col.blend_time_s, align=not col.observes_heading).q
 
