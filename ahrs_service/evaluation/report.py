@@ -180,7 +180,8 @@ def _run_offline(col: Column, trial: broad.Trial) -> np.ndarray:
     if col.kind == "estimator":
         return offline_mode.smooth(
             col.base, trial.gyr, trial.acc, mag,
-            rate_hz=trial.rate_hz, timestamps=stamps_of(trial), params=col.params, blend_time_s=col.blend_time_s,
+            rate_hz=trial.rate_hz if stamps_of(trial) is None else None, timestamps=stamps_of(trial),
+            params=col.params, blend_time_s=col.blend_time_s,
         )
     # a peer takes whole arrays at a fixed rate: the reversed rows' dt column is not needed
     rows = stack_rows(trial.gyr, trial.acc, trial.mag, time_steps(len(trial), trial.rate_hz))
@@ -202,9 +203,10 @@ def _run_column(col: Column, trial: broad.Trial) -> tuple[np.ndarray, float]:
         t0 = time.perf_counter()
         # recorded stamps when the recording has them (recovered onto the sensor's clock by
         # estimators.run, docs/timing.md); a peer library takes a constant rate: the fitted one
-        q = estimators.run(
-            col.name, trial.gyr, trial.acc, mag, rate_hz=trial.rate_hz, timestamps=stamps_of(trial), **col.params
-        )
+        # (the fitted rate is a whole-flight figure: not given to a causal run as its nominal)
+        stamps = stamps_of(trial)
+        rate = trial.rate_hz if stamps is None else None
+        q = estimators.run(col.name, trial.gyr, trial.acc, mag, rate_hz=rate, timestamps=stamps, **col.params)
         return q, time.perf_counter() - t0
     t0 = time.perf_counter()
     q = peers.run(col.name, trial.gyr, trial.acc, trial.mag, rate_hz=trial.rate_hz, **col.params)
