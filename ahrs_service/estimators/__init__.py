@@ -8,6 +8,9 @@
 per sample. Inputs are (N, 3) arrays in the sensor's own axes: gyroscope rad/s, specific
 force m/s², magnetic field µT. For one sample at a time use ``create(name, **params)`` and
 its ``update`` method: the same compiled step serves both paths.
+
+``SAMPLE_ROW`` and ``STATE_HEADER`` name the columns of a sample row and the state slots
+every estimator shares (``state[STATE_HEADER.slices.bias]``); see ``layout``.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from ahrs_service.estimators._cache import drop_stale_kernels
 
 drop_stale_kernels()  # before any kernel is loaded from the cache
 
+from ahrs_service.estimators._kernel import SAMPLE_ROW, STATE_HEADER  # noqa: E402
 from ahrs_service.estimators.base import Estimator, stack_rows, time_steps  # noqa: E402
 
 # name -> (module, class). Order: first paper, second paper, third paper, then the project's own.
@@ -84,4 +88,4 @@ def run(
     return est.run(gyr, acc, mag, dt=time_steps(n, rate_hz, timestamps, recover_clock=recover_clock))
 
 
-__all__ = ["Estimator", "create", "get", "names", "run", "stack_rows", "time_steps"]
+__all__ = ["SAMPLE_ROW", "STATE_HEADER", "Estimator", "create", "get", "names", "run", "stack_rows", "time_steps"]

@@ -48,6 +48,9 @@ def stamps_of(trial: Any) -> np.ndarray | None:
     """The recording's own sample times (s) when it has them (DIDO), else None (BROAD: rate)."""
     return getattr(trial, "timestamps", None)
 from ahrs_service.quaternion import ned_to_enu_array
+from ahrs_service.estimators import SAMPLE_ROW
+
+_R = SAMPLE_ROW.slices
 
 
 @dataclass
@@ -187,7 +190,7 @@ def _run_offline(col: Column, trial: broad.Trial) -> np.ndarray:
     rows = stack_rows(trial.gyr, trial.acc, trial.mag, time_steps(len(trial), trial.rate_hz))
 
     def run_rows(r: np.ndarray) -> np.ndarray:
-        return peers.run(col.base, r[:, 0:3], r[:, 3:6], r[:, 6:9], rate_hz=trial.rate_hz, **col.params)
+        return peers.run(col.base, r[:, _R.gyr], r[:, _R.acc], r[:, _R.mag], rate_hz=trial.rate_hz, **col.params)
 
     return offline_mode.smooth_rows(run_rows, rows, blend_time_s=col.blend_time_s, align=not col.observes_heading).q
 
