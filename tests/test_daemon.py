@@ -167,7 +167,7 @@ def test_sighup_reloads_configuration(tmp_path):
     "text, message",
     [
         ("[estimator]\nname = 'kalmann'\n", "estimator.name: 'kalmann' is not one of"),
-        ("[rates]\nestimation_hz = 'fast'\n", "rates.estimation_hz: expected a number"),
+        ("[rates]\nestimation_hz = 'fast'\n", "rates.estimation_hz: 'fast' is not a number; accepted: a number in"),
         ("[source]\ntype = 'serial'\n", "source.type: 'serial' is not one of simulated_i2c"),
         ("[mavlink]\nendpoint = ['udpout:127.0.0.1:1']\n", "mavlink.endpoint: unknown key; accepted keys: endpoints"),
         ("[estimator]\nname = 'madgwick'\n[estimator.params]\ngain = 2\n", "estimator.params: unknown parameter(s) gain"),
