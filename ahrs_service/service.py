@@ -30,7 +30,7 @@ from ahrs_service.drivers.calibration import SensorCalibration
 from ahrs_service.calibration.live import LiveCalibrationResult, LiveCalibrator
 from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
 from ahrs_service.pipeline import EstimationPipeline
-from ahrs_service.scheduler import FixedRateScheduler, LoopStats
+from ahrs_service.scheduler import DataReadyScheduler, FixedRateScheduler, LoopStats
 from ahrs_service.sources import make_source
 from ahrs_service.systemd import Notifier
 
@@ -81,6 +81,10 @@ class Service:
             log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
         self.source = make_source(cfg.source, cfg.rates["estimation_hz"])
         self.source.open()
+        line = getattr(self.source, "data_ready_line", None)
+        if line is not None:
+            # the FIFO watermark wakes the loop; the timer stays the fallback (DataReadyScheduler)
+            self.scheduler = DataReadyScheduler(line, self.source.wakeup_rate_hz)
         self._use_source_calibration()
         self._open_log(cfg)
         self._open_mavlink(cfg)
@@ -396,7 +400,9 @@ class Service:
             self._use_source_calibration()
             if self.log_writer is not None and new.log == old_cfg.log:
                 self.log_writer.new_file()  # a fresh estimator: its own file replays exactly
-        if new.rates["estimation_hz"] != old_cfg.rates["estimation_hz"]:
+        # a data-ready scheduler runs at the part's watermark rate, not estimation_hz
+        if new.rates["estimation_hz"] != old_cfg.rates["estimation_hz"] \
+                and not isinstance(self.scheduler, DataReadyScheduler):
             self.scheduler.set_rate(new.rates["estimation_hz"])
         if new.log != old_cfg.log:
             if self.log_writer is not None:

@@ -169,7 +169,7 @@ class BusRateError(ValueError):
 
 
 def check_bus_rate(transport: RegisterTransport, key: str, rate_hz: float, bytes_per_sample: float,
-                   reads_per_s: float, overhead_bytes: float, part: str, margin: float = 0.5) -> None:
+                   reads_per_s: float, overhead_bytes: float, part: str, margin: float = 0.75) -> None:
     """Refuses ``rate_hz`` when its FIFO traffic needs more than ``margin`` of the bus.
 
     bytes_per_sample: FIFO bytes a sample takes; reads_per_s: FIFO bursts per second (the

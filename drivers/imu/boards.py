@@ -44,6 +44,10 @@ class FifoBoard(ImuSource):
     NAME = ""
     has_mag = False
     may_have_backlog = True
+    #: the FIFO watermark line, when wired (``source.drdy_gpio``); the service then waits on it
+    data_ready_line = None
+    #: bursts per second the watermark is set for (the data-ready line's edge rate), Hz
+    wakeup_rate_hz = 1000.0
 
     def __init__(self, transport: RegisterTransport, *, retries: int = 2,
                  reinit_period_s: float = 0.05, own_bus: Any = None) -> None:
@@ -77,6 +81,8 @@ class FifoBoard(ImuSource):
 
     def close(self) -> None:
         self._opened = False
+        if self.data_ready_line is not None:
+            self.data_ready_line.close()
         if self.own_bus is not None:
             self.own_bus.close()
 
@@ -178,6 +184,7 @@ class ICM42688PBoard(FifoBoard):
             watermark = max(1, min(int(round(odr_hz / fifo_read_hz)), icm42688p.ICM42688P.FIFO_SAMPLES - 2))
         self.part = icm42688p.ICM42688P(transport, odr_hz=odr_hz, watermark=watermark, **self._kw())
         self.odr_hz = float(odr_hz)
+        self.wakeup_rate_hz = self.odr_hz / watermark
         check_bus_rate(transport, "source.board_options.odr_hz", self.odr_hz, icm42688p.PACKET,
                        min(self.odr_hz, self.odr_hz / watermark), icm42688p.STATUS_BYTES, "ICM-42688-P")
 

@@ -219,6 +219,12 @@ PART_MODELS: dict[str, SensorErrorModel] = {
     # AKM AK8963 (in the MPU-9250), 16 bit: 0.15 µT/LSB, ±4912 µT; no noise density in the
     # datasheet, ≈0.3 µT rms at 100 Hz ODR assumed → 0.042 µT/√Hz
     "AK8963": _mag(0.042, 0.15, 4912.0),
+    # TDK ICM-42688-P gyro (DS-000347 Table 1), FS ±2000 dps (hi-res FIFO): 0.0028 dps/√Hz,
+    # ZRO ±0.5 dps, 1/131 dps per LSB (19-bit FIFO data), ±0.005 dps/°C
+    "ICM42688P_GYRO": _gyro(0.0028, 0.5, 1000.0 / 131.0, 2000.0, 0.005),
+    # TDK ICM-42688-P accelerometer (Table 2), FS ±16 g (hi-res FIFO): 70 µg/√Hz, zero-g
+    # ±20 mg, 8192 LSB/g (18-bit FIFO data), ±0.15 mg/°C
+    "ICM42688P_ACC": _acc(70.0, 20.0, 1000.0 / 8192.0, 16.0, 0.15),
 }
 
 
