@@ -1,54 +1,24 @@
 """FIFO acquisition shared by today's IMUs: decoded bursts, the sensor clock, simulated FIFOs.
 
-* :class:`FifoBlock` — the rows of one FIFO burst as arrays (a named structure, not one
-  object per sample): sample times, gyro, accelerometer, magnetometer, temperature, flags,
-  raw counts, and the samples lost before its first row.
 * :class:`SensorClock` — each sample's time from its index on the part's own output clock,
   with the part's real rate tracked against the host's monotonic clock: timestamps neither
   jitter with the host's read times nor drift from the host clock.
 * :class:`SimulatedFifo` and :class:`SimulatedFifoDevice` — the twins' side: a byte FIFO of
   the part's depth (stop-on-full or stream), filled with every sample due on a clock that
-  runs ``rate_error`` off nominal (real parts are 0.5–2 % off).
+  runs ``clock_error`` off nominal (real parts are 0.5–2 % off).
 
-This is the local shape this branch codes against until the sample-block interface of the
-real-rates work lands (``SampleBlock`` / ``ImuSource.read_block``); boards hand the rows out
-one :class:`~ahrs_service.drivers.base.ImuSample` at a time through ``read()`` meanwhile.
+Bursts are handed out as :class:`~ahrs_service.drivers.base.SampleBlock` (the sample-block
+interface in ``drivers/base.py``).
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
 
 import numpy as np
 
 from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice, _ZERO_PHYSICS
-
-
-@dataclass(slots=True)
-class FifoBlock:
-    """Rows of one burst, oldest first. Axes are the part's (board) axes, SI units.
-
-    t_ns: (n,) int64 sample times, monotonic ns (sensor clock mapped onto the host's).
-    gyr, acc: (n, 3) rad/s, m/s² (specific force). mag: (n, 3) µT, NaN where no new reading.
-    flags: (n,) validity bits (``GYR_VALID`` …). temperature_c: (n,) °C (NaN if unknown).
-    raw_gyr, raw_acc: (n, 3) int counts as read. lost_before: samples lost (overflow, bus
-    error) between the previous block's last row and this one's first.
-    """
-
-    t_ns: np.ndarray
-    gyr: np.ndarray
-    acc: np.ndarray
-    mag: np.ndarray
-    flags: np.ndarray
-    temperature_c: np.ndarray
-    raw_gyr: np.ndarray
-    raw_acc: np.ndarray
-    lost_before: int = 0
-
-    def __len__(self) -> int:
-        return len(self.t_ns)
 
 
 class SensorClock:
@@ -157,24 +127,24 @@ class SimulatedFifo:
 class SimulatedFifoDevice(SimulatedRegisterDevice):
     """Twin base whose every due sample is latched (and pushed to its FIFO), in order.
 
-    rate_error: the part's oscillator error (+0.004 = 0.4 % fast): ``rate_hz()`` returns the
-    nominal rate from the registers, the samples come at ``nominal · (1 + rate_error)``.
+    clock_error: the part's oscillator error (+0.004 = 0.4 % fast; the name the I2C twins use): ``rate_hz()`` returns the
+    nominal rate from the registers, the samples come at ``nominal · (1 + clock_error)``.
     Subclasses implement :meth:`nominal_rate_hz`, :meth:`latch` (data registers + FIFO) and
     :meth:`backlog_limit` (how many samples can matter at once: the FIFO's depth + 1).
     """
 
-    RATE_ERROR = 0.0
+    CLOCK_ERROR = 0.0
 
-    def __init__(self, source=None, address: int | None = None, rate_error: float | None = None) -> None:
-        self.rate_error = self.RATE_ERROR if rate_error is None else float(rate_error)
+    def __init__(self, source=None, address: int | None = None, clock_error: float | None = None) -> None:
         super().__init__(source, address)
+        self.clock_error = self.CLOCK_ERROR if clock_error is None else float(clock_error)
 
     def nominal_rate_hz(self) -> float | None:
         return None
 
     def rate_hz(self) -> float | None:
         r = self.nominal_rate_hz()
-        return None if not r else r * (1.0 + self.rate_error)
+        return None if not r else r * (1.0 + self.clock_error)
 
     def backlog_limit(self) -> int:
         return 1

@@ -89,13 +89,13 @@ def test_burst_scale_within_one_lsb_and_timestamps_on_the_part_clock():
     for _ in range(400):  # 0.4 s of 1 ms bursts
         imu.clock.advance(0.001)
         blk = b.read_block()
-        if blk is not None:
+        if len(blk):
             blocks.append(blk)
     blk = blocks[-1]
     assert np.abs(blk.gyr - imu.gyr).max() <= D2R / 131 / 2 + 1e-12  # 131 LSB/(°/s)
     assert np.abs(blk.acc - imu.acc).max() <= G0 / 8192 / 2 + 1e-12  # 8192 LSB/g
     assert blk.temperature_c[0] == pytest.approx(31.0, abs=1 / 132.48)
-    assert blk.raw_gyr[0].tolist() == [round(w / (D2R / 131)) for w in imu.gyr]
+    assert blk.raw["gyr"][0].tolist() == [round(w / (D2R / 131)) for w in imu.gyr]
     n = sum(len(x) for x in blocks)
     assert n == b.diagnostics.samples == twin.samples_latched  # every sample, none twice
     # the packets' 16-bit µs timestamp steps by 125 µs of the part's clock at 8 kHz
@@ -146,13 +146,13 @@ def test_overflow_counts_the_loss_resets_the_fifo_and_shows_the_gap():
     full = b.read_block()
     assert len(full) == 102
     assert b.diagnostics.extra["fifo_overflows"] == 1
-    lost = b.diagnostics.extra["lost_overflow"]
+    lost = b.diagnostics.lost.fifo_overflow
     assert abs(lost - twin.fifo.dropped) <= 1  # the samples the full FIFO turned away
     assert lost > 250
     assert twin.fifo.level == 0  # FIFO_FLUSH
     imu.clock.advance(0.001)
     after = b.read_block()
-    assert after.lost_before == lost
+    assert after.lost.fifo_overflow == lost and after.lost.total == lost
     gap = (after.t_ns[0] - full.t_ns[-1]) / 1e9
     assert gap == pytest.approx((lost + 1) / twin.rate_hz(), abs=2e-4)  # a long dt, no fake rows
 
@@ -170,7 +170,7 @@ def test_bus_errors_are_retried_and_a_vanished_part_comes_back_with_the_loss_cou
     assert b.diagnostics.retries == 2 and b.diagnostics.bus_errors == 2
     bus.set_present(0, False)  # MISO floats: the count reads 0xFFFF
     imu.clock.advance(0.004)
-    assert b.read_block() is None and b.diagnostics.device_lost
+    assert len(b.read_block()) == 0 and b.diagnostics.device_lost
     for _ in range(25):  # 100 ms away
         imu.clock.advance(0.004)
         b.read_block()
@@ -179,7 +179,7 @@ def test_bus_errors_are_retried_and_a_vanished_part_comes_back_with_the_loss_cou
         imu.clock.advance(0.004)
         b.read_block()
     assert not b.diagnostics.device_lost and b.diagnostics.reinitialisations == 1
-    assert 95 <= b.diagnostics.extra["lost_bus_error"] <= 160
+    assert 95 <= b.diagnostics.lost.bus_error <= 160
 
 
 def test_i2c_transport_reads_the_fifo_in_smbus_blocks():
@@ -190,8 +190,22 @@ def test_i2c_transport_reads_the_fifo_in_smbus_blocks():
     before = bus.transfers
     blk = b.read_block()
     assert len(blk) == 10
-    assert bus.transfers - before == 1 + 10  # status+count, then one 20-byte block a packet (≤ 32)
+    assert bus.transfers - before == 1 + 7  # status+count, then 200 bytes in 32-byte SMBus blocks
     assert np.abs(blk.gyr - imu.gyr).max() <= D2R / 131 / 2 + 1e-12
+
+
+def test_read_block_takes_at_most_max_samples_and_keeps_the_rest_in_the_fifo():
+    b, imu, twin = board(odr_hz=8000, watermark=8)
+    b.open()
+    for _ in range(300):
+        imu.clock.advance(0.001)
+        b.read_block()
+    imu.clock.advance(0.03)  # overflowed
+    a = b.read_block(max_samples=64)
+    assert len(a) == 64 and b.diagnostics.extra["fifo_overflows"] == 0  # not drained: no reset yet
+    c = b.read_block(max_samples=64)
+    assert len(c) == 38 and b.diagnostics.extra["fifo_overflows"] == 1
+    assert c.t_ns[0] - a.t_ns[-1] == pytest.approx(1e9 / twin.rate_hz(), rel=1e-3)  # contiguous
 
 
 def test_rows_carry_the_truth_of_their_own_sample():

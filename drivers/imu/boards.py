@@ -3,13 +3,14 @@
 A :class:`FifoBoard` reads its part's FIFO in bursts (status + count in one transfer, the
 packets in transfers of at most what the transport carries), timestamps each row on the
 sensor's clock (:class:`~ahrs_service.drivers.fifo.SensorClock`), and hands the rows out
-as a :class:`~ahrs_service.drivers.fifo.FifoBlock` (``read_block``) or one
+as a :class:`~ahrs_service.drivers.base.SampleBlock` (``read_block``) or one
 :class:`~ahrs_service.drivers.base.ImuSample` per row (``read``, ``may_have_backlog``).
 
-Loss accounting (``diagnostics.extra``): ``fifo_overflows`` (events), ``lost_overflow``
-(samples the full FIFO could not take, estimated from the sensor clock at the FIFO reset),
-``lost_bus_error`` (samples produced while the part was unreachable). A burst after a loss
-carries ``lost_before``; its first row's time shows the gap (a long dt, no fake samples).
+Loss accounting: ``diagnostics.lost`` (:class:`~ahrs_service.drivers.base.LossCounts`):
+``fifo_overflow`` — samples the full FIFO turned away, estimated from the sensor clock at
+the FIFO reset; ``bus_error`` — samples produced while the part was unreachable;
+``diagnostics.extra["fifo_overflows"]`` counts the events. The block after a loss carries it
+in ``lost``; its first row's time shows the gap (a long dt, never fake samples).
 
 Faults: a failed transfer is retried and counted; a part that keeps failing is marked lost
 and configured again at most every ``reinit_period_s``.
@@ -29,13 +30,13 @@ from ahrs_service.drivers.base import (
     GYR_VALID,
     ImuSample,
     ImuSource,
+    LossCounts,
+    SampleBlock,
 )
-from ahrs_service.drivers.fifo import FifoBlock, SensorClock
-from ahrs_service.drivers.i2c.device import DeviceIdentityError
+from ahrs_service.drivers.fifo import SensorClock
+from ahrs_service.drivers.i2c.device import DeviceIdentityError, watermark_frames
 from ahrs_service.drivers.imu import icm42688p
 from ahrs_service.drivers.transport import RegisterTransport, check_bus_rate
-
-_NAN3 = np.full(3, np.nan)
 
 
 class FifoBoard(ImuSource):
@@ -63,10 +64,9 @@ class FifoBoard(ImuSource):
         self._rows: deque[ImuSample] = deque()
         self.clock: SensorClock | None = None
         self._next_index = 0
-        self._lost_pending = 0
-        self._truth_rows: list | None = None
-        for key in ("fifo_overflows", "lost_overflow", "lost_bus_error"):
-            self.diagnostics.extra[key] = 0
+        self._lost_pending = LossCounts()
+        self._overflow_pending = False
+        self.diagnostics.extra["fifo_overflows"] = 0
 
     def _kw(self) -> dict[str, Any]:
         return {"diagnostics": self.diagnostics, "retries": self.retries}
@@ -108,54 +108,43 @@ class FifoBoard(ImuSource):
         if self.clock is not None and self.clock._idx:
             idx = self.clock.index_at(self.transport.now_ns())
             lost = max(0, idx + 1 - self._next_index)
-            self.diagnostics.extra["lost_bus_error"] += lost
+            self.diagnostics.lost.bus_error += lost
             self._next_index += lost
-            self._lost_pending += lost
+            self._lost_pending.bus_error += lost
         self.lost = False
         self.diagnostics.device_lost = False
         self.diagnostics.reinitialisations += 1
         return True
 
     # ------------------------------------------------------------------ samples
-    def read_block(self) -> FifoBlock | None:
-        """The rows read from the FIFO now (None: nothing new, or the part is lost)."""
+    def read_block(self, max_samples: int = 128) -> SampleBlock:
+        """The rows read from the FIFO now, at most ``max_samples`` (empty: nothing new, or
+        the part is lost); a FIFO holding more keeps the rest for the next call."""
         if not self._opened:
             raise RuntimeError(f"{self.NAME} on {self.transport.where}: read before open()")
         if self.lost and not self._recover():
-            return None
+            return SampleBlock.empty()
         try:
-            return self._burst()
+            return self._burst(max_samples)
         except OSError as exc:
             self._mark_lost(exc)
-            return None
+            return SampleBlock.empty()
 
     def read(self) -> ImuSample | None:
         """The oldest row not yet handed out (a burst is read when none is left)."""
         if not self._rows:
             block = self.read_block()
-            if block is None or not len(block):
+            if not len(block):
                 return None
-            self._rows.extend(self.rows(block))
+            self._rows.extend(block.samples())
         return self._rows.popleft()
 
-    def rows(self, block: FifoBlock) -> list[ImuSample]:
-        """One :class:`ImuSample` per row of ``block`` (the adapter for per-sample consumers)."""
-        truth = self._truth(len(block))
-        out = []
-        for i in range(len(block)):
-            t = block.temperature_c[i]
-            out.append(ImuSample(int(block.t_ns[i]), block.gyr[i], block.acc[i], None,
-                                 int(block.flags[i]),
-                                 {"gyr": block.raw_gyr[i].tolist(), "acc": block.raw_acc[i].tolist()},
-                                 truth[i] if truth is not None else None,
-                                 None if t != t else float(t)))
-        return out
-
-    def _truth(self, n: int) -> list | None:
-        return None
-
-    def _burst(self) -> FifoBlock | None:
+    def _burst(self, max_samples: int) -> SampleBlock:
         raise NotImplementedError
+
+    def _take_loss(self) -> LossCounts:
+        lost, self._lost_pending = self._lost_pending, LossCounts()
+        return lost
 
     def _flags(self, gyr_counts: np.ndarray, acc_counts: np.ndarray, gfs: int, afs: int) -> np.ndarray:
         gsat = (np.abs(gyr_counts) >= gfs).any(axis=1)
@@ -181,7 +170,8 @@ class ICM42688PBoard(FifoBoard):
         if not 1 <= fifo_read_hz <= 8000:
             raise ValueError(f"icm42688p fifo_read_hz must be 1…8000 Hz, got {fifo_read_hz}")
         if watermark is None:
-            watermark = max(1, min(int(round(odr_hz / fifo_read_hz)), icm42688p.ICM42688P.FIFO_SAMPLES - 2))
+            # one sample of room short of the I2C twins' rule: the driver takes ≤ depth − 2
+            watermark = watermark_frames(odr_hz, fifo_read_hz, icm42688p.ICM42688P.FIFO_SAMPLES - 1)
         self.part = icm42688p.ICM42688P(transport, odr_hz=odr_hz, watermark=watermark, **self._kw())
         self.odr_hz = float(odr_hz)
         self.wakeup_rate_hz = self.odr_hz / watermark
@@ -193,52 +183,54 @@ class ICM42688PBoard(FifoBoard):
         if self.clock is None:
             self.clock = SensorClock(self.odr_hz)
 
-    def _burst(self) -> FifoBlock | None:
+    def _burst(self, max_samples: int) -> SampleBlock:
         part = self.part
         status, count = part.read_status()
         if count > icm42688p.FIFO_BYTES:
             # a count the part cannot hold: a garbled transfer or no part (SPI reads 0xFF)
             raise OSError(5, f"FIFO count {count} > {icm42688p.FIFO_BYTES}: bad transfer or part gone")
-        if count < icm42688p.PACKET:
-            return None
-        pk = part.read_packets(count)
+        # FIFO_FULL clears on reading INT_STATUS: remember it until the FIFO is drained
+        self._overflow_pending |= bool(status & icm42688p.FIFO_FULL_INT)
+        packets = min(count // icm42688p.PACKET, max_samples)
+        if packets == 0:
+            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+        pk = part.read_packets(packets * icm42688p.PACKET)
         host = self.transport.now_ns()
-        if self.transport.simulated:  # the twin hands over the truth of the packets just read
-            popped = _twin(self.transport).take_popped_truth()
+        drained = packets * icm42688p.PACKET > count - icm42688p.PACKET
+        overflow = self._overflow_pending
         header = pk["header"]
         ok = ((header & 0xFC) == icm42688p.HIRES_HEADER) & \
             (pk["acc20"] != icm42688p.INVALID_20BIT).all(axis=1) & \
             (pk["gyr20"] != icm42688p.INVALID_20BIT).all(axis=1)
-        n = int(ok.sum())
-        if self.transport.simulated:
-            self._truth_rows = [q for q, good in zip(popped, ok) if good]
-        overflow = bool(status & icm42688p.FIFO_FULL_INT)
         first = self._next_index
         self._next_index += len(header)
-        lost_before = self._lost_pending
-        self._lost_pending = 0
+        lost = self._take_loss()
         # a full FIFO's newest sample is older than the read: not a clock anchor
         t = self.clock.stamp(host, first, len(header), anchor=not overflow)[ok]
-        if overflow:
+        if overflow and drained:
             part.flush()
-            d = self.diagnostics.extra
-            d["fifo_overflows"] += 1
+            self._overflow_pending = False
+            self.diagnostics.extra["fifo_overflows"] += 1
             produced = self.clock.index_at(self.transport.now_ns())
-            lost = max(0, produced + 1 - self._next_index)
-            d["lost_overflow"] += lost
-            self._next_index += lost
-            self._lost_pending = lost
+            n_lost = max(1, produced + 1 - self._next_index)  # the part did report one
+            self.diagnostics.lost.fifo_overflow += n_lost
+            self._next_index += n_lost
+            self._lost_pending.fifo_overflow += n_lost
+        n = int(ok.sum())
         self.diagnostics.samples += n
-        gyr_c, acc_c = pk["gyr"][ok], pk["acc"][ok]
-        return FifoBlock(
+        gyr_c, acc_c = pk["gyr"][ok].astype(np.int64), pk["acc"][ok].astype(np.int64)
+        truth = None
+        if self.transport.simulated:  # the twin hands over the truth of the packets just read
+            popped = _twin(self.transport).take_popped_truth()
+            rows = [q for q, good in zip(popped, ok) if good]
+            if rows and all(q is not None for q in rows):
+                truth = np.array(rows, dtype=float)
+        return SampleBlock(
             t_ns=t, gyr=gyr_c * part.gyro_scale, acc=acc_c * part.acc_scale,
             mag=np.full((n, 3), np.nan),
-            flags=self._flags(gyr_c, acc_c, part.gyro_full_scale, part.acc_full_scale),
-            temperature_c=part.temperature_c(pk["temp"][ok]), raw_gyr=gyr_c, raw_acc=acc_c,
-            lost_before=lost_before)
-
-    def _truth(self, n: int) -> list | None:
-        return self._truth_rows
+            flags=self._flags(gyr_c, acc_c, part.gyro_full_scale, part.acc_full_scale).astype(np.int64),
+            temperature_c=part.temperature_c(pk["temp"][ok]).astype(float),
+            raw={"gyr": gyr_c, "acc": acc_c}, truth_q=truth, lost=lost)
 
 
 def _twin(transport: RegisterTransport) -> Any:

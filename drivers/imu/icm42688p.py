@@ -159,7 +159,8 @@ class ICM42688P(TransportDevice):
     def read_packets(self, count_bytes: int) -> dict[str, np.ndarray]:
         """The whole packets among ``count_bytes``, decoded (:func:`decode_hires`)."""
         n = min(count_bytes, FIFO_BYTES) // PACKET
-        return decode_hires(self.read_fifo(FIFO_DATA, n * PACKET, PACKET))
+        # FIFO_DATA is a byte stream: transfers may split packets (full 32-byte SMBus blocks)
+        return decode_hires(self.read_fifo(FIFO_DATA, n * PACKET))
 
     @staticmethod
     def temperature_c(raw: np.ndarray) -> np.ndarray:
@@ -176,7 +177,7 @@ class SimulatedICM42688P(SimulatedFifoDevice):
 
     PART = "ICM-42688-P"
     DEFAULT_ADDRESS = 0x68
-    RATE_ERROR = +0.0042  # this unit's RC oscillator runs 0.42 % fast
+    CLOCK_ERROR = +0.0042  # this unit's RC oscillator runs 0.42 % fast
     POWER_ON = {WHO_AM_I: WHO_AM_I_VALUE, INTF_CONFIG0: 0x30, GYRO_CONFIG0: 0x06,
                 ACCEL_CONFIG0: 0x06, INT_SOURCE0: 0x10, FIFO_CONFIG1: 0x00, TMST_CONFIG: 0x23,
                 INT_CONFIG: 0x00, INT_STATUS: RESET_DONE_INT}
@@ -184,9 +185,9 @@ class SimulatedICM42688P(SimulatedFifoDevice):
                           PWR_MGMT0, GYRO_CONFIG0, ACCEL_CONFIG0, TMST_CONFIG, FIFO_CONFIG1,
                           FIFO_CONFIG2, FIFO_CONFIG3, INT_SOURCE0, REG_BANK_SEL})
 
-    def __init__(self, source: Any = None, address: int | None = None, rate_error: float | None = None) -> None:
+    def __init__(self, source: Any = None, address: int | None = None, clock_error: float | None = None) -> None:
         self.int1 = None
-        super().__init__(source, address, rate_error)
+        super().__init__(source, address, clock_error)
 
     def reset_state(self, now: float) -> None:
         self.fifo = SimulatedFifo(FIFO_BYTES, stop_on_full=True)
