@@ -20,7 +20,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 SOURCE_TYPES = ("simulated_i2c", "simulated_spi", "simulated_can", "simulated", "i2c", "spi", "can", "recorded")
-BOARDS = ("gy80", "minimu9v2", "mpu9250", "icm42688p")
+BOARDS = ("gy80", "minimu9v2", "mpu9250", "icm42688p", "bmi088")
 PROFILES = ("static", "validation", "figure8")
 IDENTITIES = ("standalone", "companion")
 

@@ -2,8 +2,10 @@
 
 * I2C boards of the source papers and the MPU-9250: :mod:`ahrs_service.drivers.i2c.boards`
   (``gy80``, ``minimu9v2``, ``mpu9250``) — I2C only.
-* Today's FIFO boards: :mod:`ahrs_service.drivers.imu.boards` (``icm42688p``) — SPI or I2C
-  through a :class:`~ahrs_service.drivers.transport.RegisterTransport`.
+* Today's FIFO boards: :mod:`ahrs_service.drivers.imu.boards` (``icm42688p`` on SPI or I2C,
+  ``bmi088`` on SPI: its accelerometer on ``spi_device``, its gyroscope on
+  ``board_options.gyro_spi_device``, default ``spi_device + 1``) through a
+  :class:`~ahrs_service.drivers.transport.RegisterTransport`.
 
 :func:`make_transport_board` builds a FIFO board on a real bus (``spi``: ``/dev/spidevB.C``;
 ``i2c``: ``/dev/i2c-N``) or on the simulated bus of that kind with its twin attached.
@@ -14,12 +16,14 @@ from __future__ import annotations
 import inspect
 from typing import Any
 
-from ahrs_service.drivers.imu.boards import FifoBoard, ICM42688PBoard
+from ahrs_service.drivers.imu.bmi088 import SimulatedBMI088Accel, SimulatedBMI088Gyro
+from ahrs_service.drivers.imu.boards import BMI088Board, FifoBoard, ICM42688PBoard
 from ahrs_service.drivers.imu.icm42688p import SimulatedICM42688P
 
 #: FIFO boards: name → (class, buses it can be wired on, default I2C address)
 TRANSPORT_BOARDS: dict[str, tuple[type[FifoBoard], tuple[str, ...], int]] = {
     "icm42688p": (ICM42688PBoard, ("spi", "i2c"), 0x68),
+    "bmi088": (BMI088Board, ("spi",), 0x00),
 }
 #: the twin of each FIFO board's part
 _TWINS = {"icm42688p": SimulatedICM42688P}
@@ -40,7 +44,9 @@ def transport_board_class(name: str, options: dict[str, Any]) -> type[FifoBoard]
     """The FIFO board class for ``name``; ValueError naming unknown options."""
     cls = TRANSPORT_BOARDS[name][0]
     allowed = {p for c in (cls, FifoBoard) for p in inspect.signature(c.__init__).parameters
-               if p not in ("self", "transport", "kw", "own_bus")}
+               if p not in ("self", "transport", "kw", "own_bus", "acc_transport")}
+    if name == "bmi088":
+        allowed.add("gyro_spi_device")
     unknown = sorted(set(options) - allowed)
     if unknown:
         raise ValueError(f"board {name!r}: unknown option(s) {', '.join(unknown)}; "
@@ -60,6 +66,8 @@ def make_transport_board(name: str, bus_kind: str, *, simulated_imu: Any = None,
     from ahrs_service.drivers.transport import I2CTransport, SPITransport
 
     cls = transport_board_class(name, options)
+    if name == "bmi088":
+        return _make_bmi088(simulated_imu, spi_bus, spi_device, spi_mode, spi_speed_hz, options)
     kinds = TRANSPORT_BOARDS[name][1]
     if bus_kind not in kinds:
         raise ValueError(f"board {name!r} cannot be wired on {bus_kind}; it supports {', '.join(kinds)}")
@@ -88,6 +96,34 @@ def make_transport_board(name: str, bus_kind: str, *, simulated_imu: Any = None,
         transport = I2CTransport(bus, addr, clock_hz=i2c_speed_hz)
     try:
         return cls(transport, own_bus=None if simulated_imu is not None else bus, **options)
+    except BaseException:
+        if simulated_imu is None:
+            bus.close()
+        raise
+
+
+def _make_bmi088(simulated_imu: Any, spi_bus: int, spi_device: int, spi_mode: int, spi_speed_hz: int,
+                 options: dict[str, Any]) -> FifoBoard:
+    """The BMI088's two dies on two chip selects: accelerometer (dummy byte) and gyroscope."""
+    from ahrs_service.drivers.transport import SPITransport
+
+    gyro_cs = int(options.pop("gyro_spi_device", spi_device + 1))
+    if gyro_cs == spi_device:
+        raise ValueError(f"bmi088: gyro_spi_device must differ from source.spi_device ({spi_device}): "
+                         f"each die has its own chip select")
+    if simulated_imu is not None:
+        from ahrs_service.drivers.spi.bus import SimulatedSPIBus
+
+        bus = SimulatedSPIBus(simulated_imu.clock, name=f"sim-spi{spi_bus}", speed_hz=spi_speed_hz)
+        bus.attach(SimulatedBMI088Accel(simulated_imu), spi_device)
+        bus.attach(SimulatedBMI088Gyro(simulated_imu), gyro_cs)
+    else:
+        from ahrs_service.drivers.spi.bus import SpidevSPI
+
+        bus = SpidevSPI(spi_bus, (spi_device, gyro_cs), mode=spi_mode, speed_hz=spi_speed_hz)
+    try:
+        return BMI088Board(SPITransport(bus, gyro_cs), acc_transport=SPITransport(bus, spi_device, dummy_bytes=1),
+                           own_bus=None if simulated_imu is not None else bus, **options)
     except BaseException:
         if simulated_imu is None:
             bus.close()

@@ -236,3 +236,117 @@ class ICM42688PBoard(FifoBoard):
 def _twin(transport: RegisterTransport) -> Any:
     bus = transport.bus
     return bus.device(transport.cs if transport.kind == "spi" else transport.address)
+
+
+class BMI088Board(FifoBoard):
+    """Bosch BMI088 on SPI: the gyroscope die (``transport``, drives the rows) and the
+    accelerometer die (``acc_transport``, one dummy byte per read), each with its FIFO.
+
+    **Pairing rule** (two dies, two oscillators): every gyroscope sample is one row; its
+    accelerometer value is the newest accelerometer sample whose own sensor-clock time is at
+    or before the row's time (zero-order hold, never a sample from the row's future). Rows
+    before the first accelerometer sample after start are not emitted. The accelerometer's
+    overflows are counted in ``diagnostics.extra["acc_fifo_overflows"]`` (they cost no rows:
+    the held value bridges them) and do not count as lost samples.
+
+    odr_hz: gyro 100/200/400/1000/2000; acc_odr_hz: 100…1600; watermark: gyro frames per
+    burst (default ``odr_hz / fifo_read_hz``); ranges: gyro_range_dps, acc_range_g.
+    """
+
+    NAME = "bmi088"
+
+    def __init__(self, transport: RegisterTransport, *, acc_transport: RegisterTransport,
+                 odr_hz: float = 2000, acc_odr_hz: float = 1600, gyro_range_dps: int = 2000,
+                 acc_range_g: int = 24, fifo_read_hz: float = 1000, watermark: int | None = None,
+                 **kw: Any) -> None:
+        from ahrs_service.drivers.imu import bmi088
+
+        super().__init__(transport, **kw)
+        self.acc_transport = acc_transport
+        if not 1 <= fifo_read_hz <= 2000:
+            raise ValueError(f"bmi088 fifo_read_hz must be 1…2000 Hz, got {fifo_read_hz}")
+        if odr_hz not in bmi088.GYRO_ODR_CODES:
+            raise ValueError(f"BMI088 odr_hz must be one of {sorted(bmi088.GYRO_ODR_CODES)}, got {odr_hz}")
+        if watermark is None:
+            watermark = watermark_frames(odr_hz, fifo_read_hz, bmi088.GYRO_FIFO_FRAMES - 1)
+        self.gyro = bmi088.BMI088Gyro(transport, odr_hz=odr_hz, range_dps=gyro_range_dps,
+                                      watermark=watermark, **self._kw())
+        acc_wm = max(1, int(round(acc_odr_hz / (odr_hz / watermark))))
+        self.acc = bmi088.BMI088Accel(acc_transport, odr_hz=acc_odr_hz, range_g=acc_range_g,
+                                      watermark=acc_wm, **self._kw())
+        self.part = self.gyro
+        self.odr_hz = float(odr_hz)
+        self.wakeup_rate_hz = self.odr_hz / watermark
+        self._bmi = bmi088
+        self.diagnostics.extra["acc_fifo_overflows"] = 0
+        check_bus_rate(transport, "source.board_options.odr_hz", self.odr_hz, bmi088.GYRO_FRAME,
+                       min(self.odr_hz, self.wakeup_rate_hz), 1, "BMI088 gyroscope")
+        check_bus_rate(acc_transport, "source.board_options.acc_odr_hz", float(acc_odr_hz),
+                       bmi088.ACC_FRAME, min(float(acc_odr_hz), self.wakeup_rate_hz), 2,
+                       "BMI088 accelerometer")
+
+    def _configure(self) -> None:
+        self.acc.configure()
+        self.gyro.configure()
+        if self.clock is None:
+            self.clock = SensorClock(self.odr_hz)
+            self.acc_clock = SensorClock(self.acc.odr_hz)
+            self._acc_next = 0
+            self._acc_t = np.empty(0, np.int64)
+            self._acc_c = np.empty((0, 3), np.int64)
+
+    def _read_acc(self) -> None:
+        bmi = self._bmi
+        level = self.acc.read_level()
+        counts, full = self.acc.read_frames(level // bmi.ACC_FRAME * bmi.ACC_FRAME)
+        host = self.acc_transport.now_ns()
+        if len(counts):
+            t = self.acc_clock.stamp(host, self._acc_next, len(counts), anchor=not full)
+            self._acc_next += len(counts)
+            self._acc_t = np.concatenate([self._acc_t[-1:], t])
+            self._acc_c = np.concatenate([self._acc_c[-1:], counts])
+        if full:
+            self.acc.flush()
+            self.diagnostics.extra["acc_fifo_overflows"] += 1
+            self._acc_next = self.acc_clock.index_at(self.acc_transport.now_ns()) + 1
+
+    def _burst(self, max_samples: int) -> SampleBlock:
+        gyro = self.gyro
+        frames, overrun = gyro.read_status()
+        self._overflow_pending |= overrun
+        take = min(frames, max_samples)
+        g = gyro.read_frames(take) if take else np.empty((0, 3), np.int64)
+        host = self.transport.now_ns()
+        self._read_acc()
+        if take == 0:
+            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+        overflow = self._overflow_pending
+        first = self._next_index
+        self._next_index += take
+        lost = self._take_loss()
+        t = self.clock.stamp(host, first, take, anchor=not overflow)
+        if overflow and take == frames:
+            gyro.flush()
+            self._overflow_pending = False
+            self.diagnostics.extra["fifo_overflows"] += 1
+            n_lost = max(1, self.clock.index_at(self.transport.now_ns()) + 1 - self._next_index)
+            self.diagnostics.lost.fifo_overflow += n_lost
+            self._next_index += n_lost
+            self._lost_pending.fifo_overflow += n_lost
+        # pairing: the newest accelerometer sample at or before each gyro row
+        idx = np.searchsorted(self._acc_t, t, side="right") - 1
+        ok = idx >= 0
+        truth = None
+        if self.transport.simulated:
+            popped = _twin(self.transport).take_popped_truth()
+            rows = [q for q, good in zip(popped, ok) if good]
+            if rows and all(q is not None for q in rows):
+                truth = np.array(rows, dtype=float)
+        g, t, idx = g[ok], t[ok], idx[ok]
+        a = self._acc_c[idx]
+        n = len(t)
+        self.diagnostics.samples += n
+        return SampleBlock(
+            t_ns=t, gyr=g * gyro.scale, acc=a * self.acc.scale, mag=np.full((n, 3), np.nan),
+            flags=self._flags(g, a, gyro.full_scale, self.acc.full_scale).astype(np.int64),
+            temperature_c=np.full(n, np.nan), raw={"gyr": g, "acc": a}, truth_q=truth, lost=lost)

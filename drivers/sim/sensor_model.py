@@ -225,6 +225,11 @@ PART_MODELS: dict[str, SensorErrorModel] = {
     # TDK ICM-42688-P accelerometer (Table 2), FS ±16 g (hi-res FIFO): 70 µg/√Hz, zero-g
     # ±20 mg, 8192 LSB/g (18-bit FIFO data), ±0.15 mg/°C
     "ICM42688P_ACC": _acc(70.0, 20.0, 1000.0 / 8192.0, 16.0, 0.15),
+    # Bosch BMI088 gyro (BST-BMI088-DS001 Table 2), ±2000 dps: 0.014 dps/√Hz, zero-rate ±1 dps,
+    # 16.384 LSB/dps, ±0.015 dps/K
+    "BMI088_GYRO": _gyro(0.014, 1.0, 1000.0 / 16.384, 2000.0, 0.015),
+    # Bosch BMI088 accelerometer (Table 1), ±24 g: 230 µg/√Hz, zero-g ±20 mg, 1365 LSB/g, ±0.2 mg/K
+    "BMI088_ACC": _acc(230.0, 20.0, 1000.0 / 1365.33, 24.0, 0.2),
 }
 
 
