@@ -72,7 +72,7 @@ def test_frames_scale_and_little_endian_layout():
         imu.clock.advance(0.001)
         blk = b.read_block()
     assert np.abs(blk.gyr - imu.gyr).max() <= D2R / 16.384 / 2 + 1e-12  # 16.384 LSB/(°/s)
-    assert np.abs(blk.acc - imu.acc).max() <= G0 / (32768 / 48) / 2 + 1e-12  # 32768 / (1.5·2^4) LSB/g
+    assert np.abs(blk.acc - imu.acc).max() <= G0 / (32768 / 24) / 2 + 1e-12  # ±24 g: 32768 / (1.5·2^4) = 1365 LSB/g
     imu.clock.advance(0.002)
     acc.update(imu.clock.now())  # the twins latch when the bus touches them
     gyro.update(imu.clock.now())
