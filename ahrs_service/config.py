@@ -20,7 +20,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 SOURCE_TYPES = ("simulated_i2c", "simulated_spi", "simulated_can", "simulated", "i2c", "spi", "can", "recorded")
-BOARDS = ("gy80", "minimu9v2", "mpu9250", "icm42688p", "bmi088")
+BOARDS = ("gy80", "minimu9v2", "mpu9250", "icm42688p", "icm20948", "bmi088")
 PROFILES = ("static", "validation", "figure8")
 IDENTITIES = ("standalone", "companion")
 
@@ -260,7 +260,7 @@ def _check_source(section: dict[str, Any]) -> None:
     if section["drdy_gpio"]:
         from ahrs_service.drivers.gpio.drdy import parse_line_spec
 
-        if section["board"] not in TRANSPORT_BOARDS:
+        if section["board"] not in TRANSPORT_BOARDS or not TRANSPORT_BOARDS[section["board"]][0].HAS_WATERMARK_LINE:
             raise ConfigError(f"source.drdy_gpio: board {section['board']!r} has no FIFO watermark "
                               f"line; leave drdy_gpio empty (timer polling)")
         try:

@@ -6,7 +6,7 @@
   bus, fed by the motion simulator flying ``source.profile``; the very driver code that runs
   on hardware reads it.
 * ``i2c`` — the real board on ``/dev/i2c-<source.i2c_bus>``.
-* ``spi`` / ``simulated_spi`` — a FIFO board (``icm42688p``, ``bmi088``) on ``/dev/spidev<spi_bus>.<spi_device>``
+* ``spi`` / ``simulated_spi`` — a FIFO board (``icm42688p``, ``icm20948``, ``bmi088``) on ``/dev/spidev<spi_bus>.<spi_device>``
   or on the simulated SPI bus with its twin; I2C FIFO boards take ``i2c`` / ``simulated_i2c``.
   ``source.drdy_gpio`` ("gpiochip0:17") wakes the loop on the FIFO watermark line (a
   simulated line on the simulated buses).
@@ -28,6 +28,7 @@ _BOARD_PARTS = {
     "minimu9v2": ("L3GD20", "LSM303DLHC_ACC", "LSM303DLHC_MAG"),
     "mpu9250": ("MPU9250_GYRO", "MPU9250_ACC", "AK8963"),
     "icm42688p": ("ICM42688P_GYRO", "ICM42688P_ACC", "ideal"),  # no magnetometer
+    "icm20948": ("ICM20948_GYRO", "ICM20948_ACC", "AK09916"),
     "bmi088": ("BMI088_GYRO", "BMI088_ACC", "ideal"),  # no magnetometer
 }
 

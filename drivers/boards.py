@@ -3,7 +3,7 @@
 * I2C boards of the source papers and the MPU-9250: :mod:`ahrs_service.drivers.i2c.boards`
   (``gy80``, ``minimu9v2``, ``mpu9250``) — I2C only.
 * Today's FIFO boards: :mod:`ahrs_service.drivers.imu.boards` (``icm42688p`` on SPI or I2C,
-  ``bmi088`` on SPI: its accelerometer on ``spi_device``, its gyroscope on
+  ``icm20948`` on SPI or I2C, ``bmi088`` on SPI: its accelerometer on ``spi_device``, its gyroscope on
   ``board_options.gyro_spi_device``, default ``spi_device + 1``) through a
   :class:`~ahrs_service.drivers.transport.RegisterTransport`.
 
@@ -17,16 +17,18 @@ import inspect
 from typing import Any
 
 from ahrs_service.drivers.imu.bmi088 import SimulatedBMI088Accel, SimulatedBMI088Gyro
-from ahrs_service.drivers.imu.boards import BMI088Board, FifoBoard, ICM42688PBoard
+from ahrs_service.drivers.imu.boards import BMI088Board, FifoBoard, ICM20948Board, ICM42688PBoard
+from ahrs_service.drivers.imu.icm20948 import SimulatedICM20948
 from ahrs_service.drivers.imu.icm42688p import SimulatedICM42688P
 
 #: FIFO boards: name → (class, buses it can be wired on, default I2C address)
 TRANSPORT_BOARDS: dict[str, tuple[type[FifoBoard], tuple[str, ...], int]] = {
     "icm42688p": (ICM42688PBoard, ("spi", "i2c"), 0x68),
+    "icm20948": (ICM20948Board, ("spi", "i2c"), 0x68),
     "bmi088": (BMI088Board, ("spi",), 0x00),
 }
 #: the twin of each FIFO board's part
-_TWINS = {"icm42688p": SimulatedICM42688P}
+_TWINS = {"icm42688p": SimulatedICM42688P, "icm20948": SimulatedICM20948}
 
 
 def all_board_names() -> list[str]:
@@ -77,7 +79,7 @@ def make_transport_board(name: str, bus_kind: str, *, simulated_imu: Any = None,
             from ahrs_service.drivers.spi.bus import SimulatedSPIBus
 
             bus = SimulatedSPIBus(simulated_imu.clock, name=f"sim-spi{spi_bus}", speed_hz=spi_speed_hz)
-            bus.attach(_TWINS[name](simulated_imu), spi_device)
+            bus.attach(_twin_for(name, simulated_imu), spi_device)
         else:
             from ahrs_service.drivers.spi.bus import SpidevSPI
 
@@ -88,7 +90,7 @@ def make_transport_board(name: str, bus_kind: str, *, simulated_imu: Any = None,
             from ahrs_service.drivers.i2c.bus import SimulatedI2CBus
 
             bus = SimulatedI2CBus(simulated_imu.clock, name=f"sim-i2c[{name}]")
-            bus.attach(_TWINS[name](simulated_imu, addr))
+            bus.attach(_twin_for(name, simulated_imu, addr))
         else:
             from ahrs_service.drivers.i2c.bus import SMBusI2C
 
@@ -128,3 +130,9 @@ def _make_bmi088(simulated_imu: Any, spi_bus: int, spi_device: int, spi_mode: in
         if simulated_imu is None:
             bus.close()
         raise
+
+
+def _twin_for(name: str, simulated_imu: Any, address: int | None = None) -> Any:
+    if name == "icm20948":  # its aux I2C bus runs on the same clock
+        return SimulatedICM20948(simulated_imu, address, clock=simulated_imu.clock)
+    return _TWINS[name](simulated_imu, address)

@@ -49,6 +49,8 @@ class FifoBoard(ImuSource):
     data_ready_line = None
     #: bursts per second the watermark is set for (the data-ready line's edge rate), Hz
     wakeup_rate_hz = 1000.0
+    #: whether the part raises a FIFO watermark interrupt a data-ready line can wait for
+    HAS_WATERMARK_LINE = True
 
     def __init__(self, transport: RegisterTransport, *, retries: int = 2,
                  reinit_period_s: float = 0.05, own_bus: Any = None) -> None:
@@ -350,3 +352,81 @@ class BMI088Board(FifoBoard):
             t_ns=t, gyr=g * gyro.scale, acc=a * self.acc.scale, mag=np.full((n, 3), np.nan),
             flags=self._flags(g, a, gyro.full_scale, self.acc.full_scale).astype(np.int64),
             temperature_c=np.full(n, np.nan), raw={"gyr": g, "acc": a}, truth_q=truth, lost=lost)
+
+
+class ICM20948Board(FifoBoard):
+    """ICM-20948 with its AK09916 (through the part's auxiliary I2C master), SPI or I2C.
+
+    Each FIFO packet carries accelerometer, gyro and the AK09916's ST1 … ST2 as slave 0 read
+    them at that sample: a row has ``MAG_NEW`` exactly when ST1.DRDY is set in its packet
+    (the master reads ST2 each sample, which clears DRDY until the next measurement). The
+    field is in the accelerometer's axes (X, −Y, −Z of the die). No watermark line: timer
+    polling at ``fifo_read_hz`` (the FIFO holds 21 ms at 1125 Hz).
+    """
+
+    NAME = "icm20948"
+    has_mag = True
+    HAS_WATERMARK_LINE = False
+
+    def __init__(self, transport: RegisterTransport, *, odr_hz: float = 1125, gyro_range_dps: int = 2000,
+                 acc_range_g: int = 16, mag_rate_hz: float = 100, fifo_read_hz: float = 250, **kw: Any) -> None:
+        from ahrs_service.drivers.imu import icm20948
+
+        super().__init__(transport, **kw)
+        self._icm = icm20948
+        self.part = icm20948.ICM20948(transport, odr_hz=odr_hz, gyro_range_dps=gyro_range_dps,
+                                      acc_range_g=acc_range_g, mag_rate_hz=mag_rate_hz, **self._kw())
+        self.odr_hz = self.part.odr_hz
+        self.wakeup_rate_hz = float(fifo_read_hz)
+        check_bus_rate(transport, "source.board_options.odr_hz", self.odr_hz, icm20948.PACKET,
+                       min(self.odr_hz, fifo_read_hz), 3, "ICM-20948")
+
+    def _configure(self) -> None:
+        self.part.configure()
+        if self.clock is None:
+            self.clock = SensorClock(self.odr_hz)
+
+    def _burst(self, max_samples: int) -> SampleBlock:
+        from ahrs_service.drivers.base import MAG_NEW, MAG_SATURATED, MAG_VALID
+
+        icm, part = self._icm, self.part
+        overflow, count = part.read_status()
+        if count > icm.FIFO_BYTES + 64:
+            raise OSError(5, f"FIFO count {count} > {icm.FIFO_BYTES}: bad transfer or part gone")
+        self._overflow_pending |= overflow
+        packets = min(count // icm.PACKET, max_samples)
+        if packets == 0:
+            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+        p = part.read_packets(packets)
+        host = self.transport.now_ns()
+        drained = packets * icm.PACKET > count - icm.PACKET
+        overflow = self._overflow_pending
+        first = self._next_index
+        self._next_index += packets
+        lost = self._take_loss()
+        t = self.clock.stamp(host, first, packets, anchor=not overflow)
+        if overflow and drained:
+            part.flush()
+            self._overflow_pending = False
+            self.diagnostics.extra["fifo_overflows"] += 1
+            n_lost = max(1, self.clock.index_at(self.transport.now_ns()) + 1 - self._next_index)
+            self.diagnostics.lost.fifo_overflow += n_lost
+            self._next_index += n_lost
+            self._lost_pending.fifo_overflow += n_lost
+        acc_c, gyr_c = p[:, 0:3], p[:, 3:6]
+        st1, mag_c, st2 = p[:, 6], p[:, 7:10], p[:, 11]
+        new = (st1 & 0x01) != 0
+        hofl = (st2 & 0x08) != 0
+        mag = np.where(new[:, None], part.mag_to_board(mag_c), np.nan)
+        flags = self._flags(gyr_c, acc_c, part.gyro_full_scale, part.acc_full_scale)
+        flags |= np.where(new, MAG_NEW | np.where(hofl, MAG_SATURATED, MAG_VALID), 0)
+        self.diagnostics.samples += packets
+        truth = None
+        if self.transport.simulated:
+            rows = _twin(self.transport).take_popped_truth()
+            if rows and all(q is not None for q in rows):
+                truth = np.array(rows, dtype=float)
+        return SampleBlock(
+            t_ns=t, gyr=gyr_c * part.gyro_scale, acc=acc_c * part.acc_scale, mag=mag,
+            flags=flags.astype(np.int64), temperature_c=np.full(packets, np.nan),
+            raw={"gyr": gyr_c, "acc": acc_c, "mag": mag_c}, truth_q=truth, lost=lost)

@@ -230,6 +230,12 @@ PART_MODELS: dict[str, SensorErrorModel] = {
     "BMI088_GYRO": _gyro(0.014, 1.0, 1000.0 / 16.384, 2000.0, 0.015),
     # Bosch BMI088 accelerometer (Table 1), ±24 g: 230 µg/√Hz, zero-g ±20 mg, 1365 LSB/g, ±0.2 mg/K
     "BMI088_ACC": _acc(230.0, 20.0, 1000.0 / 1365.33, 24.0, 0.2),
+    # TDK ICM-20948 gyro (DS-000189 Table 1), ±2000 dps: 0.015 dps/√Hz, ZRO ±5 dps, 16.4 LSB/dps
+    "ICM20948_GYRO": _gyro(0.015, 5.0, 1000.0 / 16.4, 2000.0, 0.05),
+    # TDK ICM-20948 accelerometer (Table 2), ±16 g: 230 µg/√Hz, zero-g ±25 mg, 2048 LSB/g
+    "ICM20948_ACC": _acc(230.0, 25.0, 1000.0 / 2048.0, 16.0, 0.8),
+    # AKM AK09916 (in the ICM-20948): 0.15 µT/LSB, ±4912 µT; noise taken like the AK8963's
+    "AK09916": _mag(0.042, 0.15, 4912.0),
 }
 
 
