@@ -81,6 +81,9 @@ class Service:
             log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
         self.source = make_source(cfg.source, cfg.rates["estimation_hz"])
         self.source.open()
+        if not self.source.has_mag:
+            # a part without magnetometer (ICM-42688-P, BMI088): no start waiting for a field
+            self.pipeline.use_mag = False
         line = getattr(self.source, "data_ready_line", None)
         if line is not None:
             # the FIFO watermark wakes the loop; the timer stays the fallback (DataReadyScheduler)
@@ -98,6 +101,7 @@ class Service:
             mag_timeout_s=est_cfg["mag_timeout_s"],
             declination_deg=self.declination_deg(cfg),
             nominal_dt=1.0 / cfg.rates["estimation_hz"],
+            use_mag=self.source is None or self.source.has_mag,
         )
 
     def declination_deg(self, cfg: config_mod.Config) -> float:
