@@ -164,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
             pass
         lost0 = (board.diagnostics.lost.fifo_overflow, board.diagnostics.lost.bus_error,
                  board.diagnostics.extra["fifo_overflows"])
-        produced0 = twin.samples_latched + twin.fifo.dropped
+        produced0 = twin.samples_latched + twin.samples_unseen
         est0 = svc.pipeline.samples
         read0 = board.diagnostics.samples
         c0, w0 = time.process_time(), time.monotonic()
@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
         wall = time.monotonic() - w0
         diag = board.diagnostics
         twin.update(clock.now())
-        produced = twin.samples_latched + twin.fifo.dropped - produced0 - twin.fifo.level // 20
+        produced = twin.samples_latched + twin.samples_unseen - produced0 - twin.fifo.level // 20
         estimated = svc.pipeline.samples - est0
         lost = (diag.lost.fifo_overflow - lost0[0], diag.lost.bus_error - lost0[1],
                 diag.extra["fifo_overflows"] - lost0[2])

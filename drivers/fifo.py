@@ -41,6 +41,7 @@ class SensorClock:
         self._idx = deque(maxlen=window)
         self._host = deque(maxlen=window)
         self._last_t: int | None = None
+        self._anchors = 0
 
     @property
     def rate_hz(self) -> float:
@@ -55,15 +56,21 @@ class SensorClock:
         was full): the burst is stamped from the current fit without updating it.
         """
         last = first_index + n - 1
-        if not anchor and self._idx:
-            pass
-        elif self._first is None:
-            self._first = (last, host_ns)
-        else:
-            i0, h0 = self._first
-            if host_ns - h0 >= self._min_span and last > i0:
-                self.period_ns = (host_ns - h0) / (last - i0)
-        if anchor or not self._idx:
+        if anchor:
+            self._anchors += 1
+            nominal = self.nominal_period_ns
+            if self._first is None or (self._anchors <= 16 and host_ns - last * nominal
+                                       < self._first[1] - self._first[0] * nominal):
+                # the first anchor is the least late of the first 16 reads: one slow first
+                # read (a start-up stall) must not bias the period for good
+                self._first = (last, host_ns)
+            else:
+                i0, h0 = self._first
+                if host_ns - h0 >= self._min_span and last > i0:
+                    self.period_ns = (host_ns - h0) / (last - i0)
+            self._idx.append(last)
+            self._host.append(host_ns)
+        if not self._idx:  # no anchor yet (a first burst from a full FIFO): provisional offset
             self._idx.append(last)
             self._host.append(host_ns)
         p = self.period_ns
@@ -138,6 +145,9 @@ class SimulatedFifoDevice(SimulatedRegisterDevice):
     def __init__(self, source=None, address: int | None = None, clock_error: float | None = None) -> None:
         super().__init__(source, address)
         self.clock_error = self.CLOCK_ERROR if clock_error is None else float(clock_error)
+        #: samples produced while the FIFO was full that were never computed (``samples_latched``
+        #: counts the rest: produced = samples_latched + samples_unseen)
+        self.samples_unseen = 0
 
     def nominal_rate_hz(self) -> float | None:
         return None
@@ -161,6 +171,7 @@ class SimulatedFifoDevice(SimulatedRegisterDevice):
         first = max(self._k + 1, k - self.backlog_limit() + 1)
         if first > self._k + 1:
             # samples that could only have overflowed the FIFO: count them, skip the physics
+            self.samples_unseen += first - self._k - 1
             self.skipped_unseen(first - self._k - 1)
         physics = self._physics
         for j in range(first, k + 1):
