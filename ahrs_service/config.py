@@ -293,8 +293,11 @@ def _check_fifo_board(section: dict[str, Any], bus: str) -> None:
             return {"gyr": (0.0, 0.0, 0.0), "acc": (0.0, 0.0, 0.0), "mag": (0.0, 0.0, 0.0)}
 
     try:
-        make_transport_board(section["board"], bus, simulated_imu=_Quiet(),
-                             spi_device=section["spi_device"], spi_speed_hz=section["spi_speed_hz"],
+        real = not section["type"].startswith("simulated")
+        name = (f"/dev/spidev{section['spi_bus']}" if bus == "spi" else f"/dev/i2c-{section['i2c_bus']}")
+        make_transport_board(section["board"], bus, simulated_imu=_Quiet(), sim_bus_name=name if real else None,
+                             spi_bus=section["spi_bus"], spi_device=section["spi_device"],
+                             spi_speed_hz=section["spi_speed_hz"],
                              i2c_speed_hz=section["i2c_speed_hz"], **dict(section["board_options"]))
     except ValueError as exc:
         msg = str(exc)

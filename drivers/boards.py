@@ -59,17 +59,18 @@ def transport_board_class(name: str, options: dict[str, Any]) -> type[FifoBoard]
 def make_transport_board(name: str, bus_kind: str, *, simulated_imu: Any = None, spi_bus: int = 0,
                          spi_device: int = 0, spi_mode: int = 3, spi_speed_hz: int = 8_000_000,
                          i2c_bus: int = 1, i2c_speed_hz: int = 400_000, address: int | None = None,
-                         **options: Any) -> FifoBoard:
+                         sim_bus_name: str | None = None, **options: Any) -> FifoBoard:
     """A FIFO board (not opened) on a real or, with ``simulated_imu``, a simulated bus.
 
     bus_kind: "spi" or "i2c". The simulated bus carries the board's twin fed by
-    ``simulated_imu`` (``physics(t)``, ``clock``) at ``spi_device`` / ``address``.
+    ``simulated_imu`` (``physics(t)``, ``clock``) at ``spi_device`` / ``address``;
+    ``sim_bus_name`` names it in messages (the configuration check simulates the real bus).
     """
     from ahrs_service.drivers.transport import I2CTransport, SPITransport
 
     cls = transport_board_class(name, options)
     if name == "bmi088":
-        return _make_bmi088(simulated_imu, spi_bus, spi_device, spi_mode, spi_speed_hz, options)
+        return _make_bmi088(simulated_imu, spi_bus, spi_device, spi_mode, spi_speed_hz, options, sim_bus_name)
     kinds = TRANSPORT_BOARDS[name][1]
     if bus_kind not in kinds:
         raise ValueError(f"board {name!r} cannot be wired on {bus_kind}; it supports {', '.join(kinds)}")
@@ -78,7 +79,8 @@ def make_transport_board(name: str, bus_kind: str, *, simulated_imu: Any = None,
         if simulated_imu is not None:
             from ahrs_service.drivers.spi.bus import SimulatedSPIBus
 
-            bus = SimulatedSPIBus(simulated_imu.clock, name=f"sim-spi{spi_bus}", speed_hz=spi_speed_hz)
+            bus = SimulatedSPIBus(simulated_imu.clock, name=sim_bus_name or f"sim-spi{spi_bus}",
+                                  speed_hz=spi_speed_hz)
             bus.attach(_twin_for(name, simulated_imu), spi_device)
         else:
             from ahrs_service.drivers.spi.bus import SpidevSPI
@@ -89,7 +91,7 @@ def make_transport_board(name: str, bus_kind: str, *, simulated_imu: Any = None,
         if simulated_imu is not None:
             from ahrs_service.drivers.i2c.bus import SimulatedI2CBus
 
-            bus = SimulatedI2CBus(simulated_imu.clock, name=f"sim-i2c[{name}]")
+            bus = SimulatedI2CBus(simulated_imu.clock, name=sim_bus_name or f"sim-i2c[{name}]")
             bus.attach(_twin_for(name, simulated_imu, addr))
         else:
             from ahrs_service.drivers.i2c.bus import SMBusI2C
@@ -105,7 +107,7 @@ def make_transport_board(name: str, bus_kind: str, *, simulated_imu: Any = None,
 
 
 def _make_bmi088(simulated_imu: Any, spi_bus: int, spi_device: int, spi_mode: int, spi_speed_hz: int,
-                 options: dict[str, Any]) -> FifoBoard:
+                 options: dict[str, Any], sim_bus_name: str | None = None) -> FifoBoard:
     """The BMI088's two dies on two chip selects: accelerometer (dummy byte) and gyroscope."""
     from ahrs_service.drivers.transport import SPITransport
 
@@ -116,7 +118,8 @@ def _make_bmi088(simulated_imu: Any, spi_bus: int, spi_device: int, spi_mode: in
     if simulated_imu is not None:
         from ahrs_service.drivers.spi.bus import SimulatedSPIBus
 
-        bus = SimulatedSPIBus(simulated_imu.clock, name=f"sim-spi{spi_bus}", speed_hz=spi_speed_hz)
+        bus = SimulatedSPIBus(simulated_imu.clock, name=sim_bus_name or f"sim-spi{spi_bus}",
+                              speed_hz=spi_speed_hz)
         bus.attach(SimulatedBMI088Accel(simulated_imu), spi_device)
         bus.attach(SimulatedBMI088Gyro(simulated_imu), gyro_cs)
     else:

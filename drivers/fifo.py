@@ -26,11 +26,13 @@ class SensorClock:
 
     A part's samples are evenly spaced on its own oscillator, ``1 / rate`` apart, where the
     real rate is off the nominal one by the oscillator's error. Sample ``i`` is at
-    ``offset + i · period``. ``period`` is the host time between the first anchor and the
-    newest one divided by the samples between them (host read latency is a few 100 µs
-    against seconds of span); ``offset`` is the lower envelope of ``host_read − i_newest ·
-    period`` over the last ``window`` bursts — a read never happens before the newest
-    sample it returns, so the smallest latency is the best estimate of none.
+    ``offset + i · period``. ``period`` is the host time between the first anchor (the least
+    late of the first 16 reads) and the least late read of the last ``window`` bursts, divided
+    by the samples between them (read latency is a few 100 µs against seconds of span, and a
+    read delayed by a host stall is never the one chosen); ``offset`` is the lower envelope
+    of ``host_read − i_newest · period`` over the last ``window`` bursts — a read never
+    happens before the newest sample it returns, so the smallest latency is the best
+    estimate of none.
     """
 
     def __init__(self, nominal_rate_hz: float, window: int = 64, min_span_s: float = 0.2) -> None:
@@ -64,12 +66,16 @@ class SensorClock:
                 # the first anchor is the least late of the first 16 reads: one slow first
                 # read (a start-up stall) must not bias the period for good
                 self._first = (last, host_ns)
-            else:
-                i0, h0 = self._first
-                if host_ns - h0 >= self._min_span and last > i0:
-                    self.period_ns = (host_ns - h0) / (last - i0)
             self._idx.append(last)
             self._host.append(host_ns)
+            i0, h0 = self._first
+            if host_ns - h0 >= self._min_span:
+                # the slope to the least late recent read: a read delayed by a host stall
+                # (late by ms) must not tilt the period
+                p = self.period_ns
+                i1, h1 = min(zip(self._idx, self._host), key=lambda ih: ih[1] - ih[0] * p)
+                if h1 - h0 >= self._min_span and i1 > i0:
+                    self.period_ns = (h1 - h0) / (i1 - i0)
         if not self._idx:  # no anchor yet (a first burst from a full FIFO): provisional offset
             self._idx.append(last)
             self._host.append(host_ns)

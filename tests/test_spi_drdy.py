@@ -231,7 +231,7 @@ def _source(**kw):
 def test_spi_source_keys_and_rate_limits_per_bus():
     src = _source(type="simulated_spi", board="icm42688p", spi_device=1, board_options={"odr_hz": 8000})
     assert (src["spi_bus"], src["spi_device"], src["spi_mode"], src["drdy_gpio"]) == (0, 1, 3, "")
-    with pytest.raises(config.ConfigError, match=r"^source.board_options.odr_hz = 8000 Hz: .*I2C bus's 400 kHz"):
+    with pytest.raises(config.ConfigError, match=r"^source.board_options.odr_hz = 8000 Hz: the ICM-42688-P on /dev/i2c-1 address 0x68 .*I2C bus's 400 kHz"):
         _source(type="i2c", board="icm42688p", board_options={"odr_hz": 8000})
     _source(type="i2c", board="icm42688p", board_options={"odr_hz": 1000})  # 1 kHz fits fast mode
     with pytest.raises(config.ConfigError, match=r"odr_hz = 1000 Hz.*100 kHz"):
@@ -270,7 +270,7 @@ def test_service_runs_on_the_simulated_spi_part_woken_by_its_watermark_line(tmp_
         "mavlink": {"endpoints": ["udpout:127.0.0.1:9"]},
         "log": {"directory": str(tmp_path / "logs")},
     })
-    svc = Service(cfg, duration_s=1.0)
+    svc = Service(cfg, duration_s=2.0)
     svc.start()
     try:
         assert isinstance(svc.scheduler, DataReadyScheduler)
