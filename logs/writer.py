@@ -55,6 +55,7 @@ from ahrs_service.logs.schemas import (
     attitude_message,
     encode,
     jsonable,
+    log_message,
     raw_message,
     tf_message,
     truth_message,
@@ -236,7 +237,7 @@ class McapLogFile:
 
 # --------------------------------------------------------------------------- threaded writer
 
-_RAW, _ATT, _TRUTH, _LOOP, _CONFIG, _PARAM, _MAV, _CLOSE, _NEW_FILE, _STATE, _SAMPLE = range(11)
+_RAW, _ATT, _TRUTH, _LOOP, _CONFIG, _PARAM, _MAV, _CLOSE, _NEW_FILE, _STATE, _SAMPLE, _LOG = range(12)
 _IDLE_WAIT_S = 0.2  # longest sleep of an idle writer thread, s
 
 
@@ -394,10 +395,13 @@ class FlightLogWriter:
         raw: Mapping[str, Any] | None = None,
         temperature: float | None = None,
         truth_q: np.ndarray | None = None,
+        diagnostics: Mapping[str, Any] | None = None,
     ) -> None:
         """``write_raw`` + ``write_attitude`` (+ ``write_truth`` when ``truth_q`` is given) of one
         sample as one queue entry: the service's per-sample call, a third of the caller's cost.
-        Same arguments and units as those three; the file holds the same messages."""
+        Same arguments and units as those three; the file holds the same messages.
+        ``diagnostics`` (the estimator's, copied here) fills this sample's /attitude
+        ``diagnostics``; the service passes it at its diagnostics rate, else None ({})."""
         self._put(
             (
                 _SAMPLE,
@@ -411,6 +415,7 @@ class FlightLogWriter:
                 estimator,
                 None if bias is None else _tolist(bias),
                 None if truth_q is None else _tolist(truth_q),
+                None if diagnostics is None else dict(diagnostics),
             )
         )
         self.samples += 1
@@ -448,6 +453,11 @@ class FlightLogWriter:
         ``write_raw`` calls so far — right when every fed sample is written)."""
         index = self.samples if sample_index is None else int(sample_index)
         self._put((_PARAM, t_ns, index, name, old, new, source))
+
+    def write_log(self, t_ns: int, severity: int, text: str) -> None:
+        """A health event on /log (foxglove.Log); ``severity`` is MAVLink's (0 emergency … 7
+        debug), mapped to Foxglove's level by :func:`~ahrs_service.logs.schemas.log_level`."""
+        self._put((_LOG, t_ns, int(severity), str(text)))
 
     def write_mavlink(self, t_ns: int, counters: Mapping[str, Any]) -> None:
         """MAVLink traffic counters."""
@@ -638,9 +648,9 @@ class FlightLogWriter:
             if kind == _CONFIG:
                 return  # _open just wrote this configuration as the file's first message
         if kind == _SAMPLE:
-            # (_SAMPLE, t_ns, row, flags, raw, temperature, index, q, estimator, bias, truth_q)
+            # (_SAMPLE, t_ns, row, flags, raw, temperature, index, q, estimator, bias, truth_q, diagnostics)
             self._write("/imu/raw", t_ns, raw_message(t_ns, *item[2:7]))
-            self._write_attitude(t_ns, item[7], item[8], item[9], None)
+            self._write_attitude(t_ns, item[7], item[8], item[9], item[11])
             if item[10] is not None:
                 if self._file is None:  # a write before failed: _fail counted what the file held
                     self._dropped_io += 1
@@ -666,6 +676,8 @@ class FlightLogWriter:
                 "source": str(item[6]),
             }
             self._write("/params", t_ns, msg)
+        elif kind == _LOG:
+            self._write("/log", t_ns, log_message(t_ns, item[2], item[3]))
         elif kind == _MAV:
             self._write("/mavlink", t_ns, {"t_ns": int(t_ns), "counters": jsonable(item[2])})
 
