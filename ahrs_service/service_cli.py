@@ -24,6 +24,16 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     group.add_argument("--print-default", action="store_true", help="print the embedded default configuration")
     cfg.set_defaults(func=cmd_config)
 
+    lay = sub.add_parser("foxglove-layout", help="print the Foxglove layout for the live view and the logs (JSON)")
+    lay.set_defaults(func=cmd_foxglove_layout)
+
+
+def cmd_foxglove_layout(args: argparse.Namespace) -> int:
+    from ahrs_service.foxglove_layout import shipped_layout_json
+
+    sys.stdout.write(shipped_layout_json())
+    return 0
+
 
 def cmd_config(args: argparse.Namespace) -> int:
     try:
