@@ -5,8 +5,8 @@ truth where it has one), raw gyro, accelerometer and magnetometer, loop timing, 
 and overruns, magnetometer rejections and the reduced form, with the /log health events
 marked. matplotlib comes from the ``analysis`` extra.
 
-Speed on long logs: the log is read once (:class:`~ahrs_service.logs.reader.MessageSource`,
-which also reads a truncated file up to the damage), keeping only the fields drawn; each
+Speed on long logs: the log is read once (:func:`~ahrs_service.logs.fast_scan.scan_messages`,
+which also reads a truncated file up to the damage), decoding only the topics drawn; each
 series is then *decimated for drawing only*, to a min/max envelope of ``DRAW_BINS`` bins (the
 highest and lowest value of every bin are both drawn, so a one-sample spike stays visible).
 The numbers in the title (samples, lost samples, overruns, time rejected) come from the full
@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from ahrs_service.logs.fast_scan import scan_messages
 from ahrs_service.logs.reader import MessageSource
 from ahrs_service.logs.schemas import decode
 
@@ -64,47 +65,64 @@ def _num(v: Any) -> float:
 
 def read_series(path: str | Path, progress: bool = True) -> LogSeries:
     """Reads the drawn series of ``path`` (a truncated log: up to the damage, see ``damage``)."""
-    source = MessageSource(path)
-    bar = _progress(path, progress)
     att_t, att, tr_t, tr, raw_t, gyr, acc, mag = [], [], [], [], [], [], [], []
     loop_t, jit, late, missed, over = [], [], [], [], []
     diag_t, rej, red, events = [], [], [], []
-    n = 0
-    for topic, log_time, _, data in source:
-        n += 1
-        if bar is not None and n % 4096 == 0:
-            bar.update(4096)
-        if topic == "/imu/raw":
-            m = decode(data)
-            raw_t.append(log_time)
-            gyr.append(m["gyr"])
-            acc.append(m["acc"])
-            mag.append(m["mag"] or _NAN3)
-        elif topic == "/attitude":
-            m = decode(data)
-            att_t.append(log_time)
-            att.append((m["roll"], m["pitch"], m["yaw"]))
-            d = m.get("diagnostics")
-            if d:
-                diag_t.append(log_time)
-                rej.append(bool(d.get("mag_disturbed", False)))
-                red.append(bool(d.get("reduced", False)))
-        elif topic == "/attitude/truth":
-            m = decode(data)
-            tr_t.append(log_time)
-            tr.append((m.get("roll"), m.get("pitch"), m.get("yaw")))
-        elif topic == "/loop":
-            m = decode(data)
-            loop_t.append(log_time)
-            jit.append(_num(m.get("period_jitter_p99_us")))
-            late.append(_num(m.get("lateness_p99_us")))
-            missed.append(_num(m.get("missed_ticks")))
-            over.append(_num(m.get("overruns")))
-        elif topic == "/log":
-            m = decode(data)
-            events.append((log_time, int(m.get("level", 0)), str(m.get("message", ""))))
+    bar = _progress(path, progress)
+    count = [0]
+
+    def on_raw(log_time: int, data: bytes) -> None:
+        m = decode(data)
+        raw_t.append(log_time)
+        gyr.append(m["gyr"])
+        acc.append(m["acc"])
+        mag.append(m["mag"] or _NAN3)
+        count[0] += 1
+        if bar is not None and count[0] % 8192 == 0:
+            bar.update(8192)
+
+    def on_attitude(log_time: int, data: bytes) -> None:
+        m = decode(data)
+        att_t.append(log_time)
+        att.append((m["roll"], m["pitch"], m["yaw"]))
+        d = m.get("diagnostics")
+        if d:
+            diag_t.append(log_time)
+            rej.append(bool(d.get("mag_disturbed", False)))
+            red.append(bool(d.get("reduced", False)))
+
+    def on_truth(log_time: int, data: bytes) -> None:
+        m = decode(data)
+        tr_t.append(log_time)
+        tr.append((m.get("roll"), m.get("pitch"), m.get("yaw")))
+
+    def on_loop(log_time: int, data: bytes) -> None:
+        m = decode(data)
+        loop_t.append(log_time)
+        jit.append(_num(m.get("period_jitter_p99_us")))
+        late.append(_num(m.get("lateness_p99_us")))
+        missed.append(_num(m.get("missed_ticks")))
+        over.append(_num(m.get("overruns")))
+
+    def on_log(log_time: int, data: bytes) -> None:
+        m = decode(data)
+        events.append((log_time, int(m.get("level", 0)), str(m.get("message", ""))))
+
+    handlers = {"/imu/raw": on_raw, "/attitude": on_attitude, "/attitude/truth": on_truth, "/loop": on_loop,
+                "/log": on_log}
+    try:
+        scan = scan_messages(path, handlers)
+        damage, n = scan.damage, scan.messages
+    except ValueError:  # a chunk compression the fast scan does not read: the mcap library's way
+        source = MessageSource(path)
+        n = 0
+        for topic, log_time, _, data in source:
+            handler = handlers.get(topic)
+            if handler is not None:
+                handler(log_time, data)
+                n += 1
+        damage = None if source.damage is None else str(source.damage)
     if bar is not None:
-        bar.update(n % 4096)
         bar.close()
     times = [t[0] for t in (raw_t, att_t, loop_t) if t]
     t0 = min(times) if times else 0
@@ -122,7 +140,7 @@ def read_series(path: str | Path, progress: bool = True) -> LogSeries:
         missed_ticks=np.asarray(missed), overruns=np.asarray(over),
         diag_t=sec(diag_t), mag_rejected=np.asarray(rej, dtype=float), reduced=np.asarray(red, dtype=float),
         events=[((t - t0) * 1e-9, level, text) for t, level, text in events],
-        damage=None if source.damage is None else str(source.damage), messages=n,
+        damage=damage, messages=n,
     )
 
 
@@ -133,10 +151,10 @@ def _progress(path: str | Path, wanted: bool) -> Any:
         from tqdm import tqdm
     except ImportError:
         return None
-    # message count from the file size: about 150 bytes a message once compressed (a guess
-    # for the bar only; it stops where the file does)
-    total = max(1, Path(path).stat().st_size // 150)
-    return tqdm(total=total, unit="msg", unit_scale=True, delay=1.0, leave=False, desc="reading log")
+    # samples from the file size: about 190 compressed bytes per logged sample (/imu/raw,
+    # /attitude, truth, /tf share) — a guess for the bar only; it stops where the file does
+    total = max(1, Path(path).stat().st_size // 190)
+    return tqdm(total=total, unit="sample", unit_scale=True, delay=1.0, leave=False, desc="reading log")
 
 
 def envelope(t: np.ndarray, y: np.ndarray, bins: int = DRAW_BINS) -> tuple[np.ndarray, np.ndarray]:

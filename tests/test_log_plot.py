@@ -112,3 +112,20 @@ def test_envelope_keeps_every_bin_extreme():
     assert len(yy) == 2000 + len(y) - 1000 * k
     assert np.array_equal(yy[1:2000:2], y[: 1000 * k].reshape(1000, k).max(axis=1))
     assert yy.max() == y.max() and yy.min() == y.min()
+
+
+def test_fast_scan_reads_what_the_mcap_library_reads(log_file, tmp_path):
+    from ahrs_service.logs.fast_scan import scan_messages
+    from ahrs_service.logs.reader import MessageSource
+
+    path = log_file[0]
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    for f in (path, cut):
+        topics = ("/imu/raw", "/attitude", "/loop", "/log", "/config")
+        got: list = []
+        result = scan_messages(f, {t: (lambda t_ns, d, t=t: got.append((t, t_ns, bytes(d)))) for t in topics})
+        ref = [(t, t_ns, d) for t, t_ns, _, d in MessageSource(f, stream_only=True) if t in topics]
+        assert got == ref and result.messages == len(ref) > 0
+        assert (result.damage is None) == (f == path)
