@@ -49,6 +49,7 @@ class LogSeries:
     loop_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     jitter_p99_us: np.ndarray = field(default_factory=lambda: np.zeros(0))
     lateness_p99_us: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    lost: np.ndarray = field(default_factory=lambda: np.zeros(0))  # source's lost samples, running total
     missed_ticks: np.ndarray = field(default_factory=lambda: np.zeros(0))  # running totals since start
     overruns: np.ndarray = field(default_factory=lambda: np.zeros(0))
     diag_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -66,7 +67,7 @@ def _num(v: Any) -> float:
 def read_series(path: str | Path, progress: bool = True) -> LogSeries:
     """Reads the drawn series of ``path`` (a truncated log: up to the damage, see ``damage``)."""
     att_t, att, tr_t, tr, raw_t, gyr, acc, mag = [], [], [], [], [], [], [], []
-    loop_t, jit, late, missed, over = [], [], [], [], []
+    loop_t, jit, late, lost, missed, over = [], [], [], [], [], []
     diag_t, rej, red, events = [], [], [], []
     bar = _progress(path, progress)
     count = [0]
@@ -102,6 +103,8 @@ def read_series(path: str | Path, progress: bool = True) -> LogSeries:
         jit.append(_num(m.get("period_jitter_p99_us")))
         late.append(_num(m.get("lateness_p99_us")))
         missed.append(_num(m.get("missed_ticks")))
+        source_lost = (m.get("source") or {}).get("lost")
+        lost.append(_num(source_lost.get("total")) if isinstance(source_lost, dict) else math.nan)
         over.append(_num(m.get("overruns")))
 
     def on_log(log_time: int, data: bytes) -> None:
@@ -137,7 +140,7 @@ def read_series(path: str | Path, progress: bool = True) -> LogSeries:
         t0_ns=t0, att_t=sec(att_t), att_deg=np.degrees(arr(att)), truth_t=sec(tr_t), truth_deg=np.degrees(arr(tr)),
         raw_t=sec(raw_t), gyr=arr(gyr), acc=arr(acc), mag=arr(mag),
         loop_t=sec(loop_t), jitter_p99_us=np.asarray(jit), lateness_p99_us=np.asarray(late),
-        missed_ticks=np.asarray(missed), overruns=np.asarray(over),
+        lost=np.asarray(lost), missed_ticks=np.asarray(missed), overruns=np.asarray(over),
         diag_t=sec(diag_t), mag_rejected=np.asarray(rej, dtype=float), reduced=np.asarray(red, dtype=float),
         events=[((t - t0) * 1e-9, level, text) for t, level, text in events],
         damage=damage, messages=n,
@@ -178,7 +181,7 @@ def envelope(t: np.ndarray, y: np.ndarray, bins: int = DRAW_BINS) -> tuple[np.nd
 def summary(s: LogSeries) -> str:
     """One line of full-resolution statistics (not the decimated arrays)."""
     dur = float(s.raw_t[-1]) if len(s.raw_t) else 0.0
-    lost = int(np.nanmax(s.missed_ticks)) if np.isfinite(s.missed_ticks).any() else 0  # running totals
+    lost = int(np.nanmax(s.lost)) if np.isfinite(s.lost).any() else 0  # running totals
     overruns = int(np.nanmax(s.overruns)) if np.isfinite(s.overruns).any() else 0
     rejected = 100.0 * float(np.mean(s.mag_rejected)) if len(s.mag_rejected) else 0.0
     return (f"{len(s.raw_t)} samples, {dur:.1f} s; lost samples {lost}, overruns {overruns}; "
@@ -210,7 +213,8 @@ def build_figure(s: LogSeries, title: str = "") -> Any:
     ax.plot(*envelope(s.loop_t, s.lateness_p99_us), lw=0.9, label="lateness p99")
     ax.set_ylabel("loop, µs")
     ax = axes[5]
-    ax.step(*envelope(s.loop_t, s.missed_ticks), where="post", lw=0.9, label="lost samples (missed ticks)")
+    ax.step(*envelope(s.loop_t, s.lost), where="post", lw=0.9, label="lost samples (source)")
+    ax.step(*envelope(s.loop_t, s.missed_ticks), where="post", lw=0.9, label="missed ticks")
     ax.step(*envelope(s.loop_t, s.overruns), where="post", lw=0.9, label="overruns")
     ax.set_ylabel("total since start")
     ax = axes[6]

@@ -36,7 +36,8 @@ def write_log(path_dir) -> tuple:
                        None, None, q, diag)
         if i % 200 == 0:
             w.write_loop(t_ns, {"period_jitter_p99_us": 100.0 + i / 200, "lateness_p99_us": 50.0,
-                                "overruns": i // 4000, "missed_ticks": 2 * (i // 4000)})
+                                "overruns": i // 4000, "missed_ticks": 2 * (i // 4000),
+                                "source": {"lost": {"total": 5 * (i // 4000)}}})
     w.write_log(T0 + SPIKE * 5_000_000, 3, "sensor lost: test")
     w.close()
     (path,) = path_dir.glob("*.mcap")
@@ -69,7 +70,8 @@ def test_figure_shows_the_series_of_the_log(log_file, tmp_path, capsys):
     assert ax_mag.lines[2].get_ydata() == pytest.approx(np.full_like(ax_mag.lines[2].get_ydata(), 45.0))
     jitter = ax_loop.lines[0]
     assert list(jitter.get_ydata()) == [100.0 + k for k in range(N // 200)]  # short: not decimated
-    assert ax_lost.lines[0].get_ydata().max() == 2 * ((N - 1) // 4000)
+    assert ax_lost.lines[0].get_ydata().max() == 5 * ((N - 1) // 4000)
+    assert ax_lost.lines[1].get_ydata().max() == 2 * ((N - 1) // 4000)
     rejected = ax_flags.lines[0]
     on = rejected.get_xdata()[rejected.get_ydata() == 1.0]
     assert on.min() == pytest.approx(15.0) and on.max() == pytest.approx(29.9)
@@ -77,7 +79,7 @@ def test_figure_shows_the_series_of_the_log(log_file, tmp_path, capsys):
     assert marks.get_label() == "/log warning+" and list(marks.get_xdata()) == [pytest.approx(SPIKE * 0.005)]
     # the statistics come from the full arrays
     assert series.mag_rejected.mean() == pytest.approx(3000 / N, abs=0.01)
-    assert "lost samples 4, overruns 2" in fig.texts[0].get_text()
+    assert "lost samples 10, overruns 2" in fig.texts[0].get_text()
 
 
 def test_truncated_log_is_plotted_up_to_the_damage(log_file, tmp_path, capsys):
