@@ -95,7 +95,7 @@ class LiveView:
                 host=host,
                 port=port,
                 capabilities=[Capability.Parameters],
-                server_listener=_Listener(self),
+                server_listener=_listener(self),
                 context=self._ctx,
             )
         except Exception as exc:  # the SDK raises on bind errors (port in use, bad address)
@@ -189,17 +189,20 @@ class LiveView:
         return self._parameters(None)
 
 
-class _Listener:
-    """The SDK's ServerListener: called on the server's threads, never touches the estimator."""
+def _listener(view: LiveView) -> Any:
+    """The SDK's ServerListener for ``view``: called on the server's threads, it never touches
+    the estimator. Built here because the SDK is imported only when the view is enabled; the
+    other callbacks (subscribe, advertise …) are the base class's, which do nothing."""
+    from foxglove.websocket import ServerListener
 
-    def __init__(self, view: LiveView) -> None:
-        self._view = view
+    class Listener(ServerListener):
+        def on_get_parameters(self, client: Any, param_names: list[str], request_id: str | None = None) -> list[Any]:
+            return view._parameters(param_names)
 
-    def on_get_parameters(self, client: Any, param_names: list[str], request_id: str | None = None) -> list[Any]:
-        return self._view._parameters(param_names)
+        def on_set_parameters(self, client: Any, parameters: list[Any], request_id: str | None = None) -> list[Any]:
+            return view._request_sets(parameters)
 
-    def on_set_parameters(self, client: Any, parameters: list[Any], request_id: str | None = None) -> list[Any]:
-        return self._view._request_sets(parameters)
+    return Listener()
 
 
 def open_live_view(service: "Service", settings: Mapping[str, Any]) -> LiveView | None:

@@ -263,7 +263,7 @@ class Service:
             if self._reload:
                 self._reload = False
                 self.reload()
-                sched, pipeline, writer = self.scheduler, self.pipeline, self.log_writer
+                sched, pipeline, writer, live = self.scheduler, self.pipeline, self.log_writer, self.live
                 was_reduced = pipeline.reduced  # a new pipeline starts in full form
                 _freeze_heap()
             if end_ns is not None and now >= end_ns:
@@ -463,7 +463,12 @@ class Service:
             # another filter has other EST_* parameters: the table is rebuilt with the component
             self.mavlink.close()
             self._open_mavlink(new)
-        if self.live is not None:
+        if new.live != old_cfg.live:  # a new address, rate, or switched on or off
+            if self.live is not None:
+                self.live.close()
+                self.live = None
+            self._open_live(new)
+        elif self.live is not None:
             self.live.params_changed()
         self.report("configuration reloaded", 6)
         self.notifier.ready(self.status_line())
