@@ -69,7 +69,7 @@ async def _messages(ws, by_sub: dict[int, str], count: int, seconds: float = 15.
     return got
 
 
-def test_client_sees_channels_messages_and_sets_a_parameter(tmp_path):
+def test_client_sees_channels_messages_and_sets_a_parameter(tmp_path, capfd):
     run = live_service(tmp_path)
     port = run.service.live.port
     beta0 = run.service.estimator.get_params()["beta"]
@@ -120,6 +120,7 @@ def test_client_sees_channels_messages_and_sets_a_parameter(tmp_path):
     assert params[0]["new"] == pytest.approx(beta0 * 2) and params[0]["sample_index"] > 0
     logs = [decode(d)["message"] for topic, _, _, d in MessageSource(path) if topic == "/log"]
     assert any("parameter beta" in m and "foxglove" in m for m in logs)
+    assert "Callback failed" not in capfd.readouterr().err  # the SDK found every listener callback
 
 
 def test_bad_clients_do_not_disturb_the_service_or_other_clients(tmp_path):
