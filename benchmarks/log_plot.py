@@ -79,7 +79,8 @@ def main() -> None:
             ("read messages (reference) s", f"{read_s:.1f}"),
             ("log plot (read + decode + draw + PNG) s", f"{plot_s:.1f}"),
             ("plot / read", f"{plot_s / read_s:.2f}"),
-            ("target", "<= 30 s for 60 min at 200 Hz: " + ("ok" if plot_s * 60 / args.minutes * 200 / args.rate_hz <= 30 else "MISSED")),
+            ("target", "<= 30 s for 60 min at 200 Hz: " + (("ok" if plot_s <= 30 else "MISSED")
+                                                           if (args.minutes, args.rate_hz) == (60, 200) else "n/a (another log)")),
         ]
     if args.markdown:
         print("| measure | value |\n|---|---|")
