@@ -192,7 +192,7 @@ def build_figure(s: LogSeries, title: str = "") -> Any:
     """The quick-look figure (matplotlib ``Figure``; needs the analysis extra)."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(12, 13), layout="constrained")
+    fig = Figure(figsize=(13, 13), layout="constrained")
     axes = fig.subplots(7, 1, sharex=True, height_ratios=[1.4, 1, 1, 1, 0.8, 0.7, 0.6])
     colors = ("tab:red", "tab:green", "tab:blue")
 
@@ -228,7 +228,7 @@ def build_figure(s: LogSeries, title: str = "") -> Any:
     ax.set_xlabel("time since the first sample, s")
     for ax in axes:
         if ax.lines:
-            ax.legend(loc="upper right", fontsize=7, ncols=3)
+            ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=7)  # beside, not over, the data
         ax.grid(True, lw=0.3)
     head = title + ("" if s.damage is None else "  [TRUNCATED: plotted up to the damage]")
     fig.suptitle(f"{head}\n{summary(s)}", fontsize=10)
