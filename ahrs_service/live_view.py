@@ -158,11 +158,12 @@ class LiveView:
         while self._requests:  # nobody will apply these any more: let their clients go
             self._requests.popleft().done.set()
 
-    # ---------------------------------------------------------------- server threads
     def _current_params(self) -> dict[str, float]:
+        # loop thread (and the constructor): the numeric parameters of the running estimator
         return {k: float(v) for k, v in self.service.estimator.get_params().items()
                 if isinstance(v, (int, float)) and not isinstance(v, bool)}
 
+    # ---------------------------------------------------------------- server threads
     def _parameters(self, names: list[str] | None) -> list[Any]:
         params = self._params  # replaced, never mutated: safe to read from the server thread
         Parameter = self._foxglove.Parameter
