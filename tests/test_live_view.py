@@ -183,3 +183,14 @@ def test_port_in_use_warns_once_and_the_service_runs_on(tmp_path, caplog):
             run.stop()
     warnings = [r.getMessage() for r in caplog.records if "live view" in r.getMessage()]
     assert len(warnings) == 1 and str(port) in warnings[0] and "without live view" in warnings[0]
+
+
+def test_run_live_flag_starts_the_view(tmp_path, caplog):
+    from ahrs_service.cli import main
+
+    port = free_port()
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[mavlink]\nendpoints = ["udpout:127.0.0.1:{free_port()}"]\n\n[live]\nport = {port}\n')
+    with caplog.at_level(logging.INFO, logger="ahrs_service"):
+        assert main(["run", "-c", str(cfg), "--live", "--no-log", "--duration", "0.3"]) == 0
+    assert any(f"ws://127.0.0.1:{port}" in r.getMessage() for r in caplog.records)
