@@ -28,6 +28,7 @@ import threading
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Mapping
 
+from ahrs_service.estimators import STATE_HEADER
 from ahrs_service.logs import schemas
 
 if TYPE_CHECKING:  # the service imports this module, not the other way round at run time
@@ -35,6 +36,7 @@ if TYPE_CHECKING:  # the service imports this module, not the other way round at
 
 log = logging.getLogger("ahrs_service.live")
 
+_H = STATE_HEADER.slices  # the state header every estimator shares
 PARAM_PREFIX = "estimator."
 SET_WAIT_S = 1.0  # how long a client's parameter set waits for the loop to apply it, s
 # channels the live view serves: the log's, less those only a file needs
@@ -117,10 +119,10 @@ class LiveView:
             return
         est = pipeline.estimator
         t_ns = sample.t_ns
-        q = est.state[:4].tolist()
+        q = est.state[_H.q].tolist()
         self.publish("/imu/raw", t_ns, schemas.raw_message(t_ns, pipeline.row.tolist(), sample.flags, sample.raw,
                                                            sample.temperature_c, pipeline.samples - 1))
-        self.publish("/attitude", t_ns, schemas.attitude_message(t_ns, q, est.name, est.state[8:11].tolist(),
+        self.publish("/attitude", t_ns, schemas.attitude_message(t_ns, q, est.name, est.state[_H.bias].tolist(),
                                                                  self.service.diagnostics()))
         if all(v == v for v in q):  # a NaN rotation would break the 3-D panel
             self.publish("/tf", t_ns, schemas.tf_message(t_ns, q))

@@ -42,7 +42,7 @@ def write_log(directory: Path, minutes: float, rate_hz: float) -> Path:
                         20.0, 0.0, 45.0, 1 / rate_hz])
         q = np.array([math.cos(a / 2), math.sin(a / 2), 0.0, 0.0])
         diag = {"mag_disturbed": False, "rest": False, "reduced": False} if i % diag_every == 0 else None
-        w.write_sample(t_ns, row, flags, q, "robust", np.zeros(3), None, None, None, q, diag)
+        w.write_sample(t_ns, row, flags, q=q, estimator="robust", bias=np.zeros(3), truth_q=q, diagnostics=diag)
         if i % int(rate_hz) == 0:
             w.write_loop(t_ns, {"period_jitter_p99_us": 80.0, "lateness_p99_us": 40.0, "overruns": 0, "missed_ticks": 0})
         if i % 20000 == 0:

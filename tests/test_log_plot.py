@@ -32,8 +32,8 @@ def write_log(path_dir) -> tuple:
         row = np.array([gyr_x[i], 0.0, 0.0, 0.0, 0.0, -9.8, 20.0, 0.0, 45.0, 0.005])
         q = np.array(quat_from_euler(roll[i], 0.0, 0.0))
         diag = {"mag_disturbed": 3_000 <= i < 6_000, "reduced": False} if i % 20 == 0 else None
-        w.write_sample(t_ns, row, GYR_VALID | ACC_VALID | MAG_VALID, q, "madgwick", np.zeros(3), None,
-                       None, None, q, diag)
+        w.write_sample(t_ns, row, GYR_VALID | ACC_VALID | MAG_VALID, q=q, estimator="madgwick", bias=np.zeros(3),
+                       truth_q=q, diagnostics=diag)
         if i % 200 == 0:
             w.write_loop(t_ns, {"period_jitter_p99_us": 100.0 + i / 200, "lateness_p99_us": 50.0,
                                 "overruns": i // 4000, "missed_ticks": 2 * (i // 4000),
