@@ -39,6 +39,7 @@ OPTIONAL_MODULES = {
     "vqf": "peers",
     "imufusion": "peers",
     "ahrs": "peers",
+    "foxglove": "live",
 }
 
 

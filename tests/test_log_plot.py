@@ -100,9 +100,9 @@ def test_bad_arguments_and_missing_extra_give_one_line(log_file, tmp_path, capsy
     assert main(["log", "plot", str(path), "--out", str(tmp_path / "x.jpg")]) == 2
     assert main(["log", "plot", str(tmp_path / "none.mcap"), "--out", str(tmp_path / "x.png")]) == 2
     monkeypatch.setitem(sys.modules, "matplotlib", None)
-    assert main(["log", "plot", str(path), "--out", str(tmp_path / "x.png")]) == 1
+    assert main(["log", "plot", str(path), "--out", str(tmp_path / "x.png")]) == 2
     lines = capsys.readouterr().err.splitlines()
-    assert len(lines) == 3 and "analysis" in lines[2] and "no such file" in lines[1] and ".svg" in lines[0]
+    assert len(lines) == 3 and "ahrs-service[analysis]" in lines[2] and "no such file" in lines[1] and ".svg" in lines[0]
 
 
 def test_envelope_keeps_every_bin_extreme():
