@@ -41,6 +41,7 @@ OPTIONAL_MODULES = {
     "ahrs": "peers",
     "spidev": "hardware",
     "gpiod": "hardware",
+    "foxglove": "live",
 }
 
 

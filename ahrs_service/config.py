@@ -168,6 +168,16 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "directory": ("flight-logs", _string),
         "rotate_mb": (0.0, _number(0.0, None)),
         "rotate_minutes": (0.0, _number(0.0, None)),
+        # the estimator's diagnostics (rest, rejections, form) in /attitude this often, Hz
+        "diagnostics_hz": (10.0, _number(0.0, 1000.0)),
+    },
+    # Foxglove WebSocket live view (extra "live"): docs/live.md
+    "live": {
+        "enabled": (False, _boolean),
+        "host": ("127.0.0.1", _string),
+        "port": (8765, _number(0, 65535, integer=True)),
+        # viewers get the per-sample channels (/imu/raw, /attitude, /tf) at most this often, Hz
+        "rate_hz": (30.0, _number(1.0, 200.0)),
     },
 }
 
