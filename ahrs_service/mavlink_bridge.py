@@ -164,6 +164,7 @@ class MavlinkBridge:
             load_percent=svc.last_load_percent,
             comm_errors=diag.bus_errors,
             sensor_faults=diag.saturated + diag.non_finite,
+            lost_samples=diag.lost.total,
         )
 
     def tick(self, now_ns: int) -> None:

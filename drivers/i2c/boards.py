@@ -305,10 +305,12 @@ class MPU9250Board(I2CBoard):
         self._last_t_ns: int | None = None  # sensor time of the last sample handed out
         self._pending_loss = LossCounts()  # lost before the next block's first row
         self._queue: deque[ImuSample] = deque()  # rows of drained blocks for read()
+        self._started = False
 
     # ------------------------------------------------------------------ FIFO path
     def open(self) -> None:
         super().open()
+        self._started = False  # nothing handed out yet since open()
         self._restart_fifo_schedule()
 
     def _restart_fifo_schedule(self) -> None:
@@ -344,7 +346,8 @@ class MPU9250Board(I2CBoard):
         ones handed out, so they are timed on from there; the rest are counted in
         ``lost.fifo_overflow`` (from the sensor clock) and the FIFO is reset. A failed read
         marks the part lost; the samples it produced until it is back are counted in
-        ``lost.bus_error``.
+        ``lost.bus_error``. A FIFO that overflowed before the first read after ``open`` is
+        emptied without counting: those samples predate the consumer.
         """
         if not self.fifo:
             return super().read_block(max_samples)
@@ -380,6 +383,13 @@ class MPU9250Board(I2CBoard):
             return SampleBlock.empty()
         elapsed = t_read - self._last_drain_ns
         self._last_drain_ns = t_read
+        if status.overflow and not self._started:
+            # the FIFO filled between open() and the first read (the service sets up its log
+            # and links in between): stale samples nobody asked for yet, not a loss
+            self._started = True
+            self._restart_fifo_schedule()
+            return SampleBlock.empty()
+        self._started = True
         T = self.period_ns
         if status.overflow and self._last_t_ns is not None:
             t_ns = self._last_t_ns + T * np.arange(1, n + 1, dtype=np.int64)
