@@ -144,7 +144,7 @@ class Service:
     def _open_mavlink(self, cfg: config_mod.Config) -> None:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
-        self.mavlink = MavlinkBridge(self, cfg)
+        self.mavlink = MavlinkBridge(self, cfg, io_period_ns=IO_PERIOD_NS)
 
     # ------------------------------------------------------------------ control
     def request_stop(self, *_: Any) -> None:
