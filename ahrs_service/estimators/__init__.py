@@ -72,16 +72,20 @@ def run(
     *,
     rate_hz: float | None = None,
     timestamps: Any = None,
+    recover_clock: bool = True,
     **params: float,
 ) -> np.ndarray:
     """Runs estimator ``name`` over a recording and returns (N, 4) q_earth←body (NED).
 
     gyr rad/s, acc m/s² (specific force), mag µT or None, each (N, 3) in the sensor's axes.
-    Time steps come from ``timestamps`` (s) when given, else from ``rate_hz``.
+    Time steps come from ``timestamps`` (s) when given, else from ``rate_hz``. Host stamps are
+    first recovered onto the sensor's steady clock (``ahrs_service.sample_clock``, causal;
+    uniform stamps pass unchanged); ``recover_clock=False`` integrates the raw steps instead.
+    Stamps that cannot be seconds (NaN, not increasing, steps over a second) raise ValueError.
     """
     est = create(name, **params)
     n = np.shape(gyr)[0]
-    return est.run(gyr, acc, mag, dt=time_steps(n, rate_hz, timestamps))
+    return est.run(gyr, acc, mag, dt=time_steps(n, rate_hz, timestamps, recover_clock=recover_clock))
 
 
 __all__ = ["SAMPLE_ROW", "STATE_HEADER", "Estimator", "create", "get", "names", "run", "stack_rows", "time_steps"]

@@ -29,7 +29,24 @@ import numpy as np
 from ahrs_service import estimators
 from ahrs_service.estimators import offline as offline_mode
 from ahrs_service.estimators.base import stack_rows, time_steps
-from ahrs_service.evaluation import broad, metrics, peers, stats
+from ahrs_service.evaluation import broad, dido, metrics, peers, stats
+
+#: ``--dataset`` name → the module that reads it (same functions: default_dir, check_dir,
+#: list_trials, list_groups, load_trial, CITATION).
+DATASETS = {"broad": broad, "dido": dido}
+
+#: Title of each data set in the report.
+TITLES = {"broad": "BROAD", "dido": "DIDO (quadrotor flights)"}
+
+
+def has_mag(trial: Any) -> bool:
+    """False for recordings without a magnetometer (DIDO): scored on inclination only."""
+    return not bool(np.isnan(trial.mag).all())
+
+
+def stamps_of(trial: Any) -> np.ndarray | None:
+    """The recording's own sample times (s) when it has them (DIDO), else None (BROAD: rate)."""
+    return getattr(trial, "timestamps", None)
 from ahrs_service.quaternion import ned_to_enu_array
 from ahrs_service.estimators import SAMPLE_ROW
 
@@ -166,7 +183,8 @@ def _run_offline(col: Column, trial: broad.Trial) -> np.ndarray:
     if col.kind == "estimator":
         return offline_mode.smooth(
             col.base, trial.gyr, trial.acc, mag,
-            rate_hz=trial.rate_hz, params=col.params, blend_time_s=col.blend_time_s,
+            rate_hz=trial.rate_hz if stamps_of(trial) is None else None, timestamps=stamps_of(trial),
+            params=col.params, blend_time_s=col.blend_time_s,
         )
     # a peer takes whole arrays at a fixed rate: the reversed rows' dt column is not needed
     rows = stack_rows(trial.gyr, trial.acc, trial.mag, time_steps(len(trial), trial.rate_hz))
@@ -186,7 +204,12 @@ def _run_column(col: Column, trial: broad.Trial) -> tuple[np.ndarray, float]:
         return q, time.perf_counter() - t0
     if col.kind == "estimator":
         t0 = time.perf_counter()
-        q = estimators.run(col.name, trial.gyr, trial.acc, mag, rate_hz=trial.rate_hz, **col.params)
+        # recorded stamps when the recording has them (recovered onto the sensor's clock by
+        # estimators.run, docs/timing.md); a peer library takes a constant rate: the fitted one
+        # (the fitted rate is a whole-flight figure: not given to a causal run as its nominal)
+        stamps = stamps_of(trial)
+        rate = trial.rate_hz if stamps is None else None
+        q = estimators.run(col.name, trial.gyr, trial.acc, mag, rate_hz=rate, timestamps=stamps, **col.params)
         return q, time.perf_counter() - t0
     t0 = time.perf_counter()
     q = peers.run(col.name, trial.gyr, trial.acc, trial.mag, rate_hz=trial.rate_hz, **col.params)
@@ -208,12 +231,17 @@ def evaluate(
     *,
     progress: bool = False,
     on_trial: Callable[[broad.Trial, dict[str, dict[str, np.ndarray]]], None] | None = None,
+    dataset: str = "broad",
 ) -> dict:
     """Runs every column over every trial (each trial loaded once) and returns the results dict.
+
+    ``dataset``: "broad" (handheld, optical truth) or "dido" (quadrotor flights: recorded
+    stamps, no magnetometer, inclination only, first 10 % of each flight not scored).
 
     ``on_trial(trial, errors)`` is called after each trial with per-column per-sample errors in
     degrees ({"total", "heading", "inclination"} → (N,) arrays) — the plots use it.
     """
+    source = DATASETS[dataset]
     if not trial_names:
         raise ValueError("no trial selected")
     if not columns:
@@ -228,7 +256,8 @@ def evaluate(
     warmed: set[str] = set()
     try:
         for tname in trial_names:
-            trial = broad.load_trial(data_dir, tname)
+            trial = source.load_trial(data_dir, tname)
+            with_mag = has_mag(trial)
             delay = metrics.imu_delay(trial.gyr, trial.ref, trial.rate_hz, trial.movement)
             imu_delays[tname] = {"samples": delay, "ms": delay / trial.rate_hz * 1e3}
             errors: dict[str, dict[str, np.ndarray]] = {}
@@ -239,7 +268,9 @@ def evaluate(
                     _warm_up(col, trial)
                     warmed.add(col.name)
                 q, seconds = _run_column(col, trial)
-                score = metrics.score(q, trial.ref, trial.movement, rate_hz=trial.rate_hz, with_heading=col.scores_heading)
+                score = metrics.score(
+                    q, trial.ref, trial.movement, rate_hz=trial.rate_hz, with_heading=col.scores_heading and with_mag
+                )
                 row = score.as_dict()
                 row["us_per_sample"] = seconds / len(trial) * 1e6
                 per_trial[col.name][tname] = row
@@ -254,7 +285,7 @@ def evaluate(
         if bar is not None:
             bar.close()
 
-    groups = broad.list_groups(data_dir, trial_names)
+    groups = source.list_groups(data_dir, trial_names)
     per_group: dict[str, dict[str, dict]] = {}
     for col in columns:
         per_group[col.name] = {}
@@ -269,12 +300,17 @@ def evaluate(
             {c.name: [per_trial[c.name][t]["inclination_rmse"] for t in trial_names] for c in columns}, trial_names
         ).as_dict(),
         "total": stats.rank_test(
-            {c.name: [per_trial[c.name][t]["total_rmse"] for t in trial_names] for c in columns if c.scores_heading},
+            {
+                c.name: [per_trial[c.name][t]["total_rmse"] for t in trial_names]
+                for c in columns
+                if c.scores_heading and all(per_trial[c.name][t]["total_rmse"] is not None for t in trial_names)
+            },
             trial_names,
         ).as_dict(),
     }
     return {
-        "citation": broad.CITATION,
+        "dataset": dataset,
+        "citation": source.CITATION,
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "data_dir": str(Path(data_dir).resolve()),
         "trials": trial_names,
@@ -325,13 +361,23 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
     meta = {c["name"]: c for c in results["columns"]}
     trials = results["trials"]
     pt, pg = results["per_trial"], results["per_group"]
+    dataset = results.get("dataset", "broad")
+    citation = results.get("citation", broad.CITATION)
+    scope = (
+        "Errors in degrees, RMSE over the `movement` samples (reference gaps skipped); a group's "
+        if dataset == "broad"
+        else "Flights have no magnetometer: inclination only (the angle between the estimated and "
+        "the true gravity direction in the IMU frame), RMSE over each flight after its first 10 %. "
+        "Our estimators take the recorded stamps (recovered onto the sensor's clock, "
+        "docs/timing.md); peers take the flight's fitted rate (VQF: its 6D output). A group's "
+    )
     out = [
-        "# Attitude estimator evaluation on BROAD",
+        f"# Attitude estimator evaluation on {TITLES.get(dataset, dataset)}",
         "",
-        f"Data: {broad.CITATION}",
+        f"Data: {citation}",
         "",
         f"Created {results['created']} from `{results['data_dir']}`, {len(trials)} trial(s). "
-        "Errors in degrees, RMSE over the `movement` samples (reference gaps skipped); a group's "
+        + scope +
         "figure is the mean of its trials' RMSEs. Estimators without heading are scored on "
         "inclination only (total and heading n/a). L2: the second paper's index "
         "√(1/(t−t₀)∫|e|dt) of the scored error, √deg. µs/sample: wall time of the batch run "
@@ -419,7 +465,7 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
 
     if plots:
         out += ["## Plots", ""] + [f"- [{p}]({p})" for p in plots] + [""]
-    out += ["---", "", f"Data: {broad.CITATION}", ""]
+    out += ["---", "", f"Data: {citation}", ""]
     return "\n".join(out)
 
 
@@ -428,9 +474,13 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
 
 def main(args: Any) -> int:
     """Entry of ``ahrs-service evaluate`` (arguments from ``command.add_subcommands``)."""
+    dataset = getattr(args, "dataset", "broad") or "broad"
     try:
-        data_dir = broad.check_dir(args.data if args.data else broad.default_dir())
-        trial_names = broad.list_trials(data_dir, args.trials)
+        if dataset not in DATASETS:
+            raise ValueError(f"--dataset {dataset!r}: choose from {', '.join(DATASETS)}")
+        source = DATASETS[dataset]
+        data_dir = source.check_dir(args.data if args.data else source.default_dir())
+        trial_names = source.list_trials(data_dir, args.trials)
         if not trial_names:
             raise ValueError(f"no trial in {str(data_dir)!r} matches {args.trials!r}")
         est_names, skipped = select_estimators(args.estimators)
@@ -456,10 +506,10 @@ def main(args: Any) -> int:
     plot_files: list[str] = []
 
     def on_trial(trial, errors):
-        plot_files.append(plots.error_over_time(trial, errors, columns, out_dir))
+        plot_files.append(plots.error_over_time(trial, errors, columns, out_dir, source.CITATION))
 
     progress = not args.quiet and sys.stderr.isatty()
-    results = evaluate(data_dir, columns, trial_names, progress=progress, on_trial=on_trial)
+    results = evaluate(data_dir, columns, trial_names, progress=progress, on_trial=on_trial, dataset=dataset)
     plot_files += plots.group_bars(results, out_dir)
     results["plots"] = plot_files
     if skipped:
