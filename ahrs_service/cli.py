@@ -52,6 +52,9 @@ OPTIONAL_MODULES = {
     "vqf": "peers",
     "imufusion": "peers",
     "ahrs": "peers",
+    "spidev": "hardware",
+    "gpiod": "hardware",
+    "foxglove": "live",
 }
 
 
