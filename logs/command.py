@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 from typing import Any
+from ahrs_service.cli import add_offline_options
 
 
 def _param(text: str) -> tuple[str, float]:
@@ -52,18 +53,7 @@ def add_subcommands(subparsers: Any) -> None:
     p.add_argument("--param", type=_param, action="append", default=[], metavar="NAME=VALUE")
     p.add_argument("--no-param-changes", action="store_true", help="ignore recorded live parameter changes")
     p.add_argument("--out", type=Path, default=None, help="write a new log with the new estimate")
-    p.add_argument(
-        "--offline",
-        action="store_true",
-        help="non-causal estimate: the estimator run forward and backward over the log and fused",
-    )
-    p.add_argument(
-        "--offline-blend",
-        type=float,
-        default=None,
-        metavar="S",
-        help="with --offline: time constant of the fusion weights 1 - exp(-t/S), seconds (default 10)",
-    )
+    add_offline_options(p, "non-causal estimate: the estimator run forward and backward over the log and fused")
     p.add_argument("--json", action="store_true", help="print the comparison as JSON")
     p.set_defaults(func=_replay)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ahrs_service.evaluation.broad import ENV_VAR
+from ahrs_service.cli import add_offline_options
 from ahrs_service.evaluation.dido import ENV_VAR as DIDO_ENV_VAR
 
 
@@ -49,18 +50,7 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         metavar="NAME.KEY=VALUE",
         help="tuning parameter for one column, e.g. madgwick.beta=0.05 (repeatable)",
     )
-    p.add_argument(
-        "--offline",
-        action="store_true",
-        help="also score the offline (forward-backward, non-causal) mode of every column, as '<name>+offline'",
-    )
-    p.add_argument(
-        "--offline-blend",
-        type=float,
-        default=None,
-        metavar="S",
-        help="time constant of the offline fusion weights 1 - exp(-t/S), seconds (default 10)",
-    )
+    add_offline_options(p, "also score the offline (forward-backward, non-causal) mode of every column, as '<name>+offline'")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     p.set_defaults(func=_run)
 
