@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ahrs_service import execution
 from ahrs_service.evaluation.broad import ENV_VAR
 
 
@@ -53,6 +54,7 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         help="time constant of the offline fusion weights 1 - exp(-t/S), seconds (default 10)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
+    execution.add_arguments(p)
     p.set_defaults(func=_run)
 
 
