@@ -28,6 +28,7 @@ Requires the ``fleet`` extra (``pip install 'ahrs-service[fleet]'``) for N > 1 o
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 from collections import OrderedDict
@@ -197,8 +198,8 @@ def open_runner(
         threads_per_worker=1,
         processes=True,
         host="127.0.0.1",
-        dashboard_address=None,
-        silence_logs="error",
+        dashboard_address=None,  # no web server: nothing listens but the scheduler and workers
+        silence_logs=logging.ERROR,
     )
     client = Client(cluster, set_as_default=False)
     return Runner(client, cluster, RunnerInfo("local", n, cluster.scheduler_address), retries)
