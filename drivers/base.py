@@ -1,8 +1,17 @@
 """What every sensor input gives the service: timestamped samples in SI units, and counters.
 
 A source (an I2C IMU, a DroneCAN IMU, the simulator, a recorded log) is one class behind
-:class:`ImuSource`. The scheduler calls :meth:`ImuSource.read` once per tick; a source
-returns the newest *new* sample or ``None`` — it never hands the same reading out twice.
+:class:`ImuSource`. Two ways to take its samples:
+
+* :meth:`ImuSource.read` — the newest *new* sample or ``None``; it never hands the same
+  reading out twice (one :class:`ImuSample` object per sample);
+* :meth:`ImuSource.read_block` — every new sample at once as a :class:`SampleBlock` (arrays,
+  one row per sample, oldest first), with the samples lost before its first row counted by
+  cause (:class:`LossCounts`). A part with a FIFO drains it here in bursts; every other
+  source gets a block built from ``read`` (the base implementation).
+
+A source is read through one of them, not both interleaved: a FIFO board's ``read`` hands
+out the rows of its last drained burst one by one.
 
 Units and axes of an :class:`ImuSample`: gyroscope rad/s, specific force m/s², magnetic
 field µT; ``gyr``/``acc``/``mag`` are calibrated and in the **body frame (FRD)** once
@@ -12,6 +21,8 @@ field µT; ``gyr``/``acc``/``mag`` are calibrated and in the **body frame (FRD)*
 from __future__ import annotations
 
 import abc
+import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -51,6 +62,123 @@ class ImuSample:
     temperature_c: float | None = None
 
 
+@dataclass(slots=True)
+class LossCounts:
+    """Samples that never reached the host, by cause (whole sample periods of the part).
+
+    fifo_overflow: the part's FIFO filled and overwrote (or refused) samples; where the part
+        only flags the overrun, the count is estimated from the sensor clock (elapsed time ×
+        output rate − what the FIFO held).
+    bus_error: samples the part produced while a read failed or the part was lost.
+    gap: periods missing in a source without FIFO or sample counter (clock recovery, CAN,
+        recordings).
+    host_stall: samples a part without FIFO overwrote in its data registers before the
+        host came to read them (the host was late: an overrun of the loop).
+    """
+
+    fifo_overflow: int = 0
+    bus_error: int = 0
+    gap: int = 0
+    host_stall: int = 0
+
+    @property
+    def total(self) -> int:
+        return self.fifo_overflow + self.bus_error + self.gap + self.host_stall
+
+    def add(self, other: "LossCounts") -> None:
+        """Adds ``other``'s counts to these (in place)."""
+        self.fifo_overflow += other.fifo_overflow
+        self.bus_error += other.bus_error
+        self.gap += other.gap
+        self.host_stall += other.host_stall
+
+    def as_dict(self) -> dict[str, int]:
+        return {"fifo_overflow": self.fifo_overflow, "bus_error": self.bus_error, "gap": self.gap,
+                "host_stall": self.host_stall, "total": self.total}
+
+
+@dataclass(slots=True)
+class SampleBlock:
+    """Consecutive samples of one source as arrays, one row per sample, oldest first.
+
+    t_ns: (n,) int64, each sample's time on the monotonic clock (ns): the sensor clock's
+        sample instant mapped onto the host's clock where the source knows it (FIFO position
+        × output period), else the host's read time.
+    gyr, acc: (n, 3) float64, rad/s and m/s² (specific force), sensor or body axes as for
+        :class:`ImuSample`.
+    mag: (n, 3) float64 µT; NaN rows where the magnetometer has no new reading for the
+        sample (then ``MAG_NEW`` is clear in ``flags``).
+    flags: (n,) int64 validity bits, as :attr:`ImuSample.flags`.
+    temperature_c: (n,) float64 °C, NaN where unknown.
+    raw: counts as read, {"gyr": (n, 3) int64, "acc": …, "mag": …} where the driver has them.
+    truth_q: (n, 4) q_earth←body [w, x, y, z] where the source knows the truth, else None.
+    lost: samples lost **immediately before row 0** (a source ends a block at a loss, so the
+        gap shows as one long dt between the previous block's last row and this one's first —
+        lost samples are never filled in).
+    """
+
+    t_ns: np.ndarray
+    gyr: np.ndarray
+    acc: np.ndarray
+    mag: np.ndarray
+    flags: np.ndarray
+    temperature_c: np.ndarray
+    raw: dict[str, np.ndarray] | None = None
+    truth_q: np.ndarray | None = None
+    lost: LossCounts = field(default_factory=LossCounts)
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    @classmethod
+    def empty(cls, lost: LossCounts | None = None) -> "SampleBlock":
+        """A block without samples (it may still carry a loss)."""
+        return cls(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)), np.empty((0, 3)),
+                   np.empty(0, np.int64), np.empty(0), lost=lost or LossCounts())
+
+    @classmethod
+    def from_samples(cls, samples: list[ImuSample], lost: LossCounts | None = None) -> "SampleBlock":
+        """The block of ``samples`` (oldest first); ``raw`` and ``truth_q`` are kept only when
+        every sample has them."""
+        n = len(samples)
+        if n == 0:
+            return cls.empty(lost)
+        nan3 = (np.nan, np.nan, np.nan)
+        raw = None
+        if all(s.raw is not None for s in samples):
+            keys = set.intersection(*(set(s.raw) for s in samples))  # type: ignore[arg-type]
+            vector_keys = [k for k in keys if all(np.ndim(s.raw[k]) == 1 for s in samples)]  # type: ignore[index]
+            raw = {k: np.array([s.raw[k] for s in samples], dtype=np.int64)  # type: ignore[index]
+                   for k in sorted(vector_keys)}
+        truth = (np.array([s.truth_q for s in samples], dtype=float)
+                 if all(s.truth_q is not None for s in samples) else None)
+        return cls(
+            np.array([s.t_ns for s in samples], dtype=np.int64),
+            np.array([s.gyr for s in samples], dtype=float).reshape(n, 3),
+            np.array([s.acc for s in samples], dtype=float).reshape(n, 3),
+            np.array([nan3 if s.mag is None else s.mag for s in samples], dtype=float).reshape(n, 3),
+            np.array([s.flags for s in samples], dtype=np.int64),
+            np.array([np.nan if s.temperature_c is None else s.temperature_c for s in samples], dtype=float),
+            raw, truth, lost or LossCounts())
+
+    def sample(self, i: int) -> ImuSample:
+        """Row ``i`` as an :class:`ImuSample` (``mag`` None where the row has no reading)."""
+        mag = self.mag[i]
+        temp = float(self.temperature_c[i])
+        return ImuSample(
+            int(self.t_ns[i]), self.gyr[i].copy(), self.acc[i].copy(),
+            None if np.isnan(mag).all() else mag.copy(), int(self.flags[i]),
+            None if self.raw is None else {k: v[i].tolist() for k, v in self.raw.items()},
+            None if self.truth_q is None else self.truth_q[i].copy(),
+            None if math.isnan(temp) else temp,
+        )
+
+    def samples(self) -> Iterator[ImuSample]:
+        """The rows as :class:`ImuSample` objects, oldest first (for per-sample consumers)."""
+        for i in range(len(self.t_ns)):
+            yield self.sample(i)
+
+
 @dataclass
 class SourceDiagnostics:
     """Fault counters of one source; the service publishes them (SYS_STATUS, STATUSTEXT, MCAP).
@@ -69,10 +197,13 @@ class SourceDiagnostics:
     dropped_frames: int = 0  # malformed / foreign / out-of-order CAN frames
     incomplete_transfers: int = 0
     last_error: str = ""
+    #: samples lost since the start, by cause (blocks carry theirs, this is the sum)
+    lost: LossCounts = field(default_factory=LossCounts)
     extra: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
-        d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "extra"}
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k not in ("extra", "lost")}
+        d["lost"] = self.lost.as_dict()
         d.update(self.extra)
         return d
 
@@ -99,6 +230,21 @@ class ImuSource(abc.ABC):
 
         Must not raise on transient faults: count them in ``diagnostics`` and return None.
         """
+
+    def read_block(self, max_samples: int = 64) -> SampleBlock:
+        """Every new sample, at most ``max_samples``, as one block (possibly empty).
+
+        The base implementation calls :meth:`read` (once for a source without backlog, until
+        it returns None otherwise) and packs the samples; sources that read bursts (a FIFO)
+        override it. Must not raise on transient faults, like ``read``.
+        """
+        samples = []
+        for _ in range(max_samples if self.may_have_backlog else 1):
+            sample = self.read()
+            if sample is None:
+                break
+            samples.append(sample)
+        return SampleBlock.from_samples(samples)
 
     def close(self) -> None:
         """Releases the bus."""

@@ -13,12 +13,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from ahrs_service.drivers.base import SourceDiagnostics
 from ahrs_service.drivers.i2c.bus import I2CBus
+
+#: the largest SMBus/I2C block transfer of the Linux i2c-dev interface, bytes
+SMBUS_BLOCK_MAX = 32
 
 #: standard gravity: accelerometer counts are in g
 STANDARD_GRAVITY = 9.80665
@@ -118,6 +122,20 @@ class I2CDevice:
         """``n`` bytes from ``reg`` in one burst (retried); ``reg`` includes any auto-increment bit."""
         return self._transfer(self.bus.read_i2c_block_data, reg, "reading", n)
 
+    def read_fifo_frames(self, fifo: "FifoLayout", frames: int) -> bytes:
+        """``frames`` whole FIFO frames popped from ``fifo.data_register``, oldest first, in as
+        few transfers as the part allows (see :class:`FifoLayout`); each transfer retried."""
+        per = fifo.frames_per_transfer
+        total = frames * fifo.frame_bytes
+        if per == 0:  # a byte stream: any split, full SMBus blocks
+            step = SMBUS_BLOCK_MAX
+        else:
+            step = per * fifo.frame_bytes
+        out = bytearray()
+        while len(out) < total:
+            out += bytes(self.read_block(fifo.data_register, min(step, total - len(out))))
+        return bytes(out)
+
     def write_verified(self, reg: int, value: int, what: str) -> None:
         """Writes a configuration byte and reads it back; a mismatch means a wrong part."""
         self.write_u8(reg, value)
@@ -162,6 +180,62 @@ class I2CDevice:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.bus.name}, 0x{self.address:02X})"
+
+
+# ============================================================================ FIFO
+
+
+@dataclass(frozen=True, slots=True)
+class FifoLayout:
+    """How a part's FIFO is read (from its datasheet).
+
+    depth_frames: frames the FIFO holds (e.g. 32 on the ST parts and the ADXL345, 512 bytes
+        / 12 = 42 accelerometer + gyroscope frames on the MPU-9250).
+    frame_bytes: bytes of one sample in the FIFO.
+    data_register: sub-address a burst reads from (with any auto-increment flag).
+    frames_per_transfer: whole frames one transfer may carry (the ADXL345 pops one entry per
+        multi-byte read of DATAX0…DATAZ1: 1), or 0 for a plain byte stream that may be split
+        anywhere (the MPU-9250's FIFO_R_W: full 32-byte SMBus blocks).
+    """
+
+    depth_frames: int
+    frame_bytes: int
+    data_register: int
+    frames_per_transfer: int = 0
+
+    def transfers(self, frames: int) -> int:
+        """How many bus transfers reading ``frames`` frames takes."""
+        if frames <= 0:
+            return 0
+        if self.frames_per_transfer == 0:
+            return -(-frames * self.frame_bytes // SMBUS_BLOCK_MAX)
+        return -(-frames // self.frames_per_transfer)
+
+
+@dataclass(frozen=True, slots=True)
+class FifoStatus:
+    """One read of a FIFO's status: ``level`` frames waiting, ``overflow`` (the part has
+    overwritten or dropped samples since the last reset)."""
+
+    level: int
+    overflow: bool
+
+
+def overflow_loss(elapsed_ns: int, rate_hz: float, kept: int) -> int:
+    """Samples lost in an overflow, estimated from the sensor clock: the part produced about
+    ``elapsed_ns × rate_hz`` samples since the FIFO was last emptied and ``kept`` of them are
+    in it (parts that only flag an overrun do not count what they dropped). Never negative,
+    and at least 1: the part did report an overflow."""
+    produced = int(round(elapsed_ns * 1e-9 * rate_hz))
+    return max(1, produced - kept)
+
+
+def watermark_frames(rate_hz: float, wakeup_hz: float, depth_frames: int) -> int:
+    """FIFO watermark (frames) for draining at ``wakeup_hz``: rate/wake-up rounded, clipped to
+    1 … depth − 1 (a watermark at the full depth would leave no room for a late read)."""
+    if not wakeup_hz > 0:
+        raise ValueError(f"fifo wake-up rate must be > 0 Hz, got {wakeup_hz}")
+    return min(max(1, int(round(rate_hz / wakeup_hz))), depth_frames - 1)
 
 
 # ============================================================================ simulation
@@ -216,6 +290,9 @@ class SimulatedRegisterDevice:
         self.samples_latched = 0
         self._t0: float | None = None  # start of the measurement schedule
         self._k = 0  # index of the last latched (or skipped) sample
+        #: the part's oscillator error: it samples at (1 + clock_error) × its nominal rate
+        #: (real parts run 0.5–2 % off; the sensor clock recovery must find the true rate)
+        self.clock_error = 0.0
         self.power_on_reset(0.0)
 
     # ----------------------------------------------------------------- state
@@ -260,9 +337,14 @@ class SimulatedRegisterDevice:
         rate = self.rate_hz()
         if not rate:
             return
+        rate *= 1.0 + self.clock_error
         # the tiny epsilon keeps a clock stepped exactly on the sample grid on the right side
         k = math.floor((now - self._t0) * rate + 1e-7)
         if k <= self._k or self.locked():
+            return
+        room = self.fifo_room()
+        if room is not None:
+            self._update_fifo(k, rate, room)
             return
         skipped = k - self._k - 1
         self._k = k
@@ -271,6 +353,34 @@ class SimulatedRegisterDevice:
         self.latched, self.latched_t = phys, t
         self.samples_latched += 1
         self.latch(phys, t, skipped)
+
+    def _update_fifo(self, k: int, rate: float, room: int) -> None:
+        """A part with its FIFO on takes every due sample in order: the ones that fit (plus
+        one, so the part sees its own overflow) are latched; the rest are overflowed, the
+        oldest or the newest ones as the part's FIFO mode keeps (:meth:`fifo_keeps_oldest`)."""
+        due = k - self._k
+        push = min(due, room + 1)
+        first = self._k + 1 if self.fifo_keeps_oldest() else k - push + 1
+        if due > push:
+            self.fifo_dropped(due - push)
+        for j in range(first, first + push):
+            t = self._t0 + j / rate
+            phys = self._physics(t) if self._physics is not None else _ZERO_PHYSICS
+            self.latched, self.latched_t = phys, t
+            self.samples_latched += 1
+            self.latch(phys, t, 0)
+        self._k = k
+
+    def fifo_room(self) -> int | None:
+        """Frames the FIFO can still take, or None while the FIFO is off (hook: FIFO parts)."""
+        return None
+
+    def fifo_keeps_oldest(self) -> bool:
+        """True when a full FIFO refuses new samples, False when it overwrites the oldest."""
+        return True
+
+    def fifo_dropped(self, n: int) -> None:
+        """``n`` samples did not fit in the FIFO (hook: count them, set the overrun flag)."""
 
     def latch(self, phys: dict, t: float, skipped: int) -> None:
         """Writes one sample into the data registers and sets the status bits (hook)."""

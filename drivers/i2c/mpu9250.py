@@ -4,18 +4,33 @@ Register map used (RM-MPU-9250A-00 rev 1.6):
 
 =====  ==============  ======================================================
 0x19   SMPLRT_DIV      ODR = 1 kHz / (1 + div) with the DLPF on
-0x1A   CONFIG          DLPF_CFG 2:0 (1…6 → 1 kHz internal rate; 0, 7 → 8 kHz)
+0x1A   CONFIG          DLPF_CFG 2:0 (1…6 → 1 kHz internal rate; 0, 7 → 8 kHz); bit 6
+                       FIFO_MODE: 1 = a full FIFO takes no more samples, 0 = it overwrites
+                       the oldest (§4.4)
+0x23   FIFO_EN         bits 6:4 GYRO_X/Y/ZOUT, bit 3 ACCEL: what each sample writes to the
+                       FIFO, in register order 0x3B… (accel 6 bytes, gyro 6 bytes) (§4.7)
+0x38   INT_ENABLE      bit 4 FIFO_OFLOW_EN, bit 0 RAW_RDY_EN (§4.17)
 0x1B   GYRO_CONFIG     GYRO_FS_SEL 4:3 ±250/500/1000/2000 °/s, FCHOICE_B 1:0 (00 = DLPF)
 0x1C   ACCEL_CONFIG    ACCEL_FS_SEL 4:3 ±2/4/8/16 g
 0x1D   ACCEL_CONFIG2   ACCEL_FCHOICE_B bit 3, A_DLPFCFG 2:0
 0x37   INT_PIN_CFG     bit 1 BYPASS_EN: the AK8963 (0x0C) appears on the host bus
-0x3A   INT_STATUS      bit 0 RAW_DATA_RDY_INT, cleared by reading INT_STATUS
+0x3A   INT_STATUS      bit 4 FIFO_OFLOW_INT, bit 0 RAW_DATA_RDY_INT, cleared by reading
+                       INT_STATUS (§4.19)
 0x3B…  ACCEL, TEMP,    ACCEL X Y Z, TEMP, GYRO X Y Z — big-endian two's complement,
 0x48   GYRO            contiguous: one 15-byte burst from 0x3A reads status and all data
-0x6A   USER_CTRL       bit 5 I2C_MST_EN (must be 0 for bypass)
+0x6A   USER_CTRL       bit 6 FIFO_EN, bit 5 I2C_MST_EN (must be 0 for bypass), bit 2
+                       FIFO_RST (self-clearing) (§4.23)
 0x6B   PWR_MGMT_1      bit 7 H_RESET, bit 6 SLEEP, CLKSEL 2:0
+0x72   FIFO_COUNTH/L   bytes in the FIFO, 13 bits big-endian (§4.30)
+0x74   FIFO_R_W        each read pops the next FIFO byte; the address does not advance,
+                       so one burst reads a byte stream (§4.31)
 0x75   WHO_AM_I        0x71 (MPU-9250), 0x73 (MPU-9255)
 =====  ==============  ======================================================
+
+FIFO: 512 bytes (product specification PS-MPU-9250A-01 §3.1 / register map §4.30); with
+accelerometer + gyroscope enabled a sample is 12 bytes, so it holds 42 samples (42 ms at
+1 kHz). The driver sets FIFO_MODE = 1: a full FIFO keeps its oldest samples, contiguous with
+the last read, and the overflow flag tells the driver to count the rest and reset it.
 
 Sensitivity: gyro 131 / 65.5 / 32.8 / 16.4 LSB/(°/s), accel 16384 / 8192 / 4096 / 2048
 LSB/g, temperature (TEMP_OUT − 0) / 333.87 + 21 °C. The part holds its user registers while
@@ -35,6 +50,8 @@ from ahrs_service.drivers.i2c.bus import I2CBus
 from ahrs_service.drivers.i2c.device import (
     DEG2RAD,
     STANDARD_GRAVITY,
+    FifoLayout,
+    FifoStatus,
     I2CDevice,
     SimulatedRegisterDevice,
     i16_bytes,
@@ -44,6 +61,16 @@ from ahrs_service.drivers.i2c.device import (
 SMPLRT_DIV, CONFIG, GYRO_CONFIG, ACCEL_CONFIG, ACCEL_CONFIG2 = 0x19, 0x1A, 0x1B, 0x1C, 0x1D
 INT_PIN_CFG, INT_ENABLE, INT_STATUS, ACCEL_XOUT_H = 0x37, 0x38, 0x3A, 0x3B
 USER_CTRL, PWR_MGMT_1, PWR_MGMT_2, WHO_AM_I = 0x6A, 0x6B, 0x6C, 0x75
+FIFO_EN_REG, TEMP_OUT_H, FIFO_COUNTH, FIFO_R_W = 0x23, 0x41, 0x72, 0x74
+FIFO_MODE = 0x40  # CONFIG bit 6
+FIFO_GYRO_ACCEL = 0x78  # FIFO_EN: GYRO_XOUT | GYRO_YOUT | GYRO_ZOUT | ACCEL
+USER_FIFO_EN, USER_FIFO_RST = 0x40, 0x04
+FIFO_OFLOW = 0x10  # INT_STATUS / INT_ENABLE bit 4
+FIFO_BYTES = 512
+FIFO_FRAME_BYTES = 12
+#: how the driver reads the FIFO: a byte stream from FIFO_R_W, split into 32-byte blocks
+FIFO_LAYOUT = FifoLayout(depth_frames=FIFO_BYTES // FIFO_FRAME_BYTES, frame_bytes=FIFO_FRAME_BYTES,
+                         data_register=FIFO_R_W, frames_per_transfer=0)
 WHO_AM_I_VALUES = (0x71, 0x73)
 BYPASS_EN, INT_ANYRD_2CLEAR = 0x02, 0x10
 I2C_MST_EN = 0x20
@@ -71,8 +98,9 @@ class MPU9250(I2CDevice):
     DEFAULT_ADDRESS = 0x68
 
     def __init__(self, bus: I2CBus, address: int | None = None, *, gyro_range_dps: int = 2000,
-                 acc_range_g: int = 8, rate_hz: float = 1000, **kw: Any) -> None:
+                 acc_range_g: int = 8, rate_hz: float = 1000, fifo: bool = False, **kw: Any) -> None:
         super().__init__(bus, address, **kw)
+        self.fifo = bool(fifo)
         if gyro_range_dps not in GYRO_RANGES_DPS:
             raise ValueError(f"MPU-9250 gyro_range_dps must be one of {sorted(GYRO_RANGES_DPS)}, "
                              f"got {gyro_range_dps}")
@@ -104,7 +132,7 @@ class MPU9250(I2CDevice):
         self.bus.sleep(0.1)  # reset takes up to 100 ms
         self.write_u8(PWR_MGMT_1, CLKSEL_PLL)
         self.write_u8(PWR_MGMT_2, 0x00)
-        self.write_u8(CONFIG, self.dlpf_cfg)
+        self.write_u8(CONFIG, self.dlpf_cfg | (FIFO_MODE if self.fifo else 0))
         self.write_u8(SMPLRT_DIV, self.smplrt_div)
         self.write_u8(GYRO_CONFIG, GYRO_RANGES_DPS[self.gyro_range_dps] << 3)
         self.write_u8(ACCEL_CONFIG, ACC_RANGES_G[self.acc_range_g] << 3)
@@ -112,7 +140,35 @@ class MPU9250(I2CDevice):
         # bypass: the AK8963 answers directly on the host bus instead of the MPU's aux master
         self.write_u8(USER_CTRL, 0x00)
         self.write_u8(INT_PIN_CFG, BYPASS_EN)
-        self.write_u8(INT_ENABLE, RAW_DATA_RDY)
+        self.write_u8(INT_ENABLE, RAW_DATA_RDY | (FIFO_OFLOW if self.fifo else 0))
+        if self.fifo:
+            self.write_u8(FIFO_EN_REG, FIFO_GYRO_ACCEL)
+            self.fifo_reset()
+
+    # ---------------------------------------------------------------- FIFO
+    def fifo_reset(self) -> None:
+        """Empties the FIFO and (re)starts filling it (USER_CTRL FIFO_RST + FIFO_EN)."""
+        self.write_u8(USER_CTRL, USER_FIFO_EN | USER_FIFO_RST)
+
+    def fifo_status(self) -> FifoStatus:
+        """Whole samples waiting and the overflow flag (INT_STATUS, then FIFO_COUNT: reading
+        the status first means a sample arriving in between is counted, never lost)."""
+        overflow = bool(self.read_u8(INT_STATUS) & FIFO_OFLOW)
+        hi, lo = self.read_block(FIFO_COUNTH, 2)
+        return FifoStatus(((hi & 0x1F) << 8 | lo) // FIFO_FRAME_BYTES, overflow)
+
+    def read_fifo(self, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        """``frames`` samples from the FIFO, oldest first: (accel counts, gyro counts), each
+        (frames, 3) int64, in ⌈12·frames / 32⌉ transfers."""
+        data = np.frombuffer(self.read_fifo_frames(FIFO_LAYOUT, frames), dtype=">i2")
+        counts = data.reshape(frames, 6).astype(np.int64)
+        return counts[:, 0:3], counts[:, 3:6]
+
+    def read_temperature_counts(self) -> int:
+        """TEMP_OUT (two bytes, big-endian)."""
+        hi, lo = self.read_block(TEMP_OUT_H, 2)
+        v = hi << 8 | lo
+        return v - 0x10000 if v & 0x8000 else v
 
     @property
     def resolution(self) -> float:
@@ -169,6 +225,8 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
 
     def reset_state(self, now: float) -> None:
         self.regs[WHO_AM_I] = self.who_am_i
+        self.fifo = bytearray()
+        self.fifo_overflowed = 0  # samples that did not fit, since power-on (for tests)
         if not self.regs[PWR_MGMT_1] & SLEEP:
             self.restart_measurement(now)  # the MPU-9250 samples from power-on
 
@@ -182,7 +240,68 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
         internal = 1000.0 if 1 <= dlpf <= 6 and not self.regs[GYRO_CONFIG] & 0x03 else 8000.0
         return internal / (1 + self.regs[SMPLRT_DIV])
 
+    # ---------------------------------------------------------------- FIFO
+    def fifo_enabled(self) -> bool:
+        return bool(self.regs[USER_CTRL] & USER_FIFO_EN) and bool(self.regs[FIFO_EN_REG])
+
+    def frame_bytes(self) -> int:
+        """Bytes one sample writes: 6 for the accelerometer, 2 for TEMP, 2 per gyro axis."""
+        en = self.regs[FIFO_EN_REG]
+        return 2 * bin(en & 0x70).count("1") + (6 if en & 0x08 else 0) + (2 if en & 0x80 else 0)
+
+    def fifo_room(self) -> int | None:
+        if not self.fifo_enabled():
+            return None
+        return (FIFO_BYTES - len(self.fifo)) // self.frame_bytes()
+
+    def fifo_keeps_oldest(self) -> bool:
+        return bool(self.regs[CONFIG] & FIFO_MODE)
+
+    def fifo_dropped(self, n: int) -> None:
+        self.fifo_overflowed += n
+        self.regs[INT_STATUS] |= FIFO_OFLOW
+
+    def _fifo_push(self) -> None:
+        """One sample into the FIFO, from the data registers, in register order (§4.7)."""
+        en = self.regs[FIFO_EN_REG]
+        frame = bytearray()
+        if en & 0x08:
+            frame += self.regs[ACCEL_XOUT_H:ACCEL_XOUT_H + 6]
+        if en & 0x80:
+            frame += self.regs[TEMP_OUT_H:TEMP_OUT_H + 2]
+        for bit, reg in ((0x40, 0x43), (0x20, 0x45), (0x10, 0x47)):
+            if en & bit:
+                frame += self.regs[reg:reg + 2]
+        if len(self.fifo) + len(frame) > FIFO_BYTES:
+            self.fifo_dropped(1)
+            if self.fifo_keeps_oldest():
+                return
+            del self.fifo[:len(frame)]  # FIFO_MODE 0: the oldest sample makes room
+        self.fifo += frame
+
+    def read_register(self, reg: int) -> int:
+        if reg == FIFO_R_W:
+            if not self.fifo:
+                return 0xFF  # reading an empty FIFO returns the last byte; 0xFF here
+            v = self.fifo[0]
+            del self.fifo[0]
+            return v
+        if reg == FIFO_COUNTH:
+            return (len(self.fifo) >> 8) & 0x1F
+        if reg == FIFO_COUNTH + 1:
+            return len(self.fifo) & 0xFF
+        return self.regs[reg]
+
+    def next_pointer(self, reg: int) -> int:
+        # a burst at FIFO_R_W keeps popping the FIFO (§4.31)
+        return reg if reg == FIFO_R_W else (reg + 1) & 0xFF
+
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
+        if reg == USER_CTRL and value & USER_FIFO_RST:
+            self.fifo.clear()
+            self.regs[USER_CTRL] = value & ~USER_FIFO_RST  # self-clearing
+            self.regs[INT_STATUS] &= ~FIFO_OFLOW
+            return
         if reg == PWR_MGMT_1 and value & H_RESET:
             self.power_on_reset(now)
         elif reg in (PWR_MGMT_1, CONFIG, SMPLRT_DIV, GYRO_CONFIG) and value != old:
@@ -203,7 +322,10 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
             out.extend(i16_bytes(to_counts(w, g_lsb, -32768, 32767), True))
         self.regs[ACCEL_XOUT_H:ACCEL_XOUT_H + 14] = bytes(out)
         self.regs[INT_STATUS] |= RAW_DATA_RDY
+        if self.fifo_enabled():
+            self._fifo_push()
 
     def on_read(self, regs: list[int], now: float) -> None:
         if INT_STATUS in regs or self.regs[INT_PIN_CFG] & INT_ANYRD_2CLEAR:
+            # FIFO_OFLOW_INT clears on the INT_STATUS read too (§4.19); the FIFO stays as is
             self.regs[INT_STATUS] = 0
