@@ -13,6 +13,7 @@ its ``update`` method: the same compiled step serves both paths.
 from __future__ import annotations
 
 import importlib
+import os
 from typing import Any
 
 import numpy as np
@@ -55,8 +56,16 @@ def get(name: str) -> type[Estimator]:
     return getattr(importlib.import_module(f"{__name__}.{module}"), cls)
 
 
-def create(name: str, **params: float) -> Estimator:
-    """A fresh estimator instance; unknown parameter names raise ValueError."""
+def create(name: str, preset: str | os.PathLike | None = None, **params: float) -> Estimator:
+    """A fresh estimator instance; unknown parameter names raise ValueError.
+
+    ``preset``: a preset file (``ahrs-service tune`` writes them, ``presets.load_preset``)
+    whose parameters the instance starts from; ``params`` override it.
+    """
+    if preset is not None:
+        from ahrs_service.estimators.presets import load_preset
+
+        params = {**load_preset(name, preset), **params}
     return get(name)(**params)
 
 
@@ -68,14 +77,16 @@ def run(
     *,
     rate_hz: float | None = None,
     timestamps: Any = None,
+    preset: str | os.PathLike | None = None,
     **params: float,
 ) -> np.ndarray:
     """Runs estimator ``name`` over a recording and returns (N, 4) q_earth←body (NED).
 
     gyr rad/s, acc m/s² (specific force), mag µT or None, each (N, 3) in the sensor's axes.
-    Time steps come from ``timestamps`` (s) when given, else from ``rate_hz``.
+    Time steps come from ``timestamps`` (s) when given, else from ``rate_hz``. ``preset`` and
+    ``params`` as for :func:`create`.
     """
-    est = create(name, **params)
+    est = create(name, preset, **params)
     n = np.shape(gyr)[0]
     return est.run(gyr, acc, mag, dt=time_steps(n, rate_hz, timestamps))
 
