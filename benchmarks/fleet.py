@@ -39,11 +39,20 @@ def timed_job(job: report.TrialJob) -> Timed:
     return Timed(res, time.perf_counter() - t0)
 
 
+def _warm_up(warm: list[report.TrialJob]) -> None:
+    """Loads the first recording and every estimator's kernels in this process."""
+    for job in warm:
+        report.run_trial_job(job)
+
+
 def measure(workers: int, jobs: list[report.TrialJob], warm: list[report.TrialJob]) -> dict:
     t0 = time.perf_counter()
     with open_runner(workers=workers) as runner:
         start_s = time.perf_counter() - t0
-        runner.map(timed_job, warm * max(1, workers))  # every worker loads caches and kernels
+        if runner.client is not None:  # on every worker, not wherever the scheduler puts them
+            runner.client.run(_warm_up, warm)
+        else:
+            _warm_up(warm)
         t1 = time.perf_counter()
         out = runner.map(timed_job, jobs)
         wall = time.perf_counter() - t1

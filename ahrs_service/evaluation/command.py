@@ -70,8 +70,8 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     t.add_argument("estimator", metavar="ESTIMATOR")
-    t.add_argument("--dataset", choices=["broad", "dido", "both"], default="broad",
-                   help="recordings to tune on (this version: broad)")
+    t.add_argument("--dataset", choices=["broad"], default="broad",
+                   help="recordings to tune on (broad; DIDO flights are not wired in yet)")
     t.add_argument("--data", metavar="DIR", default=None, help=f"BROAD folder (default: ${ENV_VAR}, else ../shared/data/broad)")
     t.add_argument("--trials", default=None, metavar="PATTERN", help="only recordings whose name matches")
     t.add_argument("--budget", type=int, default=50, metavar="N", help="Optuna trials (default 50)")

@@ -180,8 +180,6 @@ def main(args: Any) -> int:
     from ahrs_service.execution import RunnerError, open_runner
 
     try:
-        if args.dataset != "broad":
-            raise ValueError(f"--dataset {args.dataset}: only broad is available in this version")
         data_dir = broad.check_dir(args.data if args.data else broad.default_dir())
         trial_names = broad.list_trials(data_dir, args.trials)
         space = search_space(args.estimator) if not args.space else {}
