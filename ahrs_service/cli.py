@@ -30,9 +30,37 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: top-level modules of the optional dependencies -> the extra that installs them (pyproject.toml)
+OPTIONAL_MODULES = {
+    "h5py": "recordings",
+    "matplotlib": "analysis",
+    "scikit_posthocs": "analysis",
+    "tqdm": "analysis",
+    "vqf": "peers",
+    "imufusion": "peers",
+    "ahrs": "peers",
+}
+
+
+def missing_extra(exc: ModuleNotFoundError) -> str | None:
+    """The extra that would install the module ``exc`` misses, or None if it is none of ours."""
+    return OPTIONAL_MODULES.get((exc.name or "").split(".")[0])
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except ModuleNotFoundError as exc:
+        extra = missing_extra(exc)
+        if extra is None:
+            raise
+        print(
+            f"ahrs-service {args.command}: needs the optional package {exc.name!r}: "
+            f"pip install 'ahrs-service[{extra}]'",
+            file=sys.stderr,
+        )
+        return 2
 
 
 if __name__ == "__main__":

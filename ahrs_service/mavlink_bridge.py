@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from ahrs_service.drivers.base import MAG_NEW
+from ahrs_service.estimators import STATE_HEADER
 from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, ParameterTable, SensorStatus, Telemetry
 from ahrs_service.protocols.mavlink.dialect import mavlink
 
@@ -158,7 +159,7 @@ class MavlinkBridge:
             accel=SensorStatus(True, True, health["accel_healthy"]),
             mag_status=SensorStatus(health["mag_present"], mag_used, health["mag_healthy"]),
             estimator=svc.estimator.name,
-            ahrs_healthy=bool(svc.estimator.state[4]),
+            ahrs_healthy=bool(svc.estimator.state[STATE_HEADER.index.initialised]),
             reduced_mode=pipeline.reduced or not pipeline.use_mag,
             overruns=st.overruns,
             load_percent=svc.last_load_percent,

@@ -20,8 +20,13 @@ import numpy as np
 from ahrs_service.calibration.gyro import GyroBiasResult, gyro_bias_at_rest
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample
 from ahrs_service.drivers.calibration import SensorCalibration, apply_calibration
+from ahrs_service.estimators import SAMPLE_ROW, STATE_HEADER
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.quaternion import quat_from_euler, quat_mul, quat_to_euler
+
+_R = SAMPLE_ROW.slices
+_H = STATE_HEADER.slices
+_DT = SAMPLE_ROW.index.dt
 
 G = 9.80665
 _NO_FIELD = np.full(3, np.nan)
@@ -110,10 +115,10 @@ class EstimationPipeline:
         dt = self.nominal_dt if self._last_t_ns is None else (t_ns - self._last_t_ns) * 1e-9
         self._last_t_ns = t_ns
         flags = sample.flags
-        row[0:3] = sample.gyr if flags & GYR_VALID else np.nan
-        row[3:6] = sample.acc if flags & ACC_VALID else np.nan
-        row[6:9] = self._field_for(sample, t_ns)
-        row[9] = dt
+        row[_R.gyr] = sample.gyr if flags & GYR_VALID else np.nan
+        row[_R.acc] = sample.acc if flags & ACC_VALID else np.nan
+        row[_R.mag] = self._field_for(sample, t_ns)
+        row[_DT] = dt
         self.estimator.update_row(row)
         self.samples += 1
         self.last_sample = sample
@@ -137,7 +142,7 @@ class EstimationPipeline:
     # ------------------------------------------------------------------ outputs
     def published_quaternion(self) -> tuple[float, float, float, float]:
         """q_earth←body against true north: the estimate rotated by the declination."""
-        q = tuple(self.estimator.state[:4].tolist())
+        q = tuple(self.estimator.state[_H.q].tolist())
         if self.declination_deg == 0.0:
             return q  # type: ignore[return-value]
         return quat_mul(self._q_decl, q)
@@ -151,7 +156,7 @@ class EstimationPipeline:
             return [0.0, 0.0, 0.0]
         # plain floats: cheaper than a NumPy subtraction on three elements, once per publish
         gx, gy, gz = np.asarray(self.last_sample.gyr).tolist()
-        bx, by, bz = self.estimator.state[8:11].tolist()
+        bx, by, bz = self.estimator.state[_H.bias].tolist()
         return [gx - bx, gy - by, gz - bz]
 
     # ------------------------------------------------------------------ gyro calibration

@@ -1,6 +1,6 @@
 """Quaternions and rotations shared by every part of the service.
 
-Conventions (../shared/DESIGN.md): Hamilton quaternions ordered [w, x, y, z], unit norm,
+Conventions (docs/design.md): Hamilton quaternions ordered [w, x, y, z], unit norm,
 rotating body-frame (FRD) vectors into the earth frame (NED): v_earth = q ⊗ v_body ⊗ q*.
 Euler angles are the aerospace ZYX sequence (yaw, pitch, roll) in radians.
 

@@ -25,6 +25,7 @@ from typing import Any
 
 from ahrs_service import config as config_mod
 from ahrs_service import estimators
+from ahrs_service.estimators import STATE_HEADER
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID, ImuSource
 from ahrs_service.drivers.calibration import SensorCalibration
 from ahrs_service.calibration.live import LiveCalibrationResult, LiveCalibrator
@@ -33,6 +34,8 @@ from ahrs_service.pipeline import EstimationPipeline
 from ahrs_service.scheduler import FixedRateScheduler, LoopStats
 from ahrs_service.sources import make_source
 from ahrs_service.systemd import Notifier
+
+_H = STATE_HEADER.slices  # the state header every estimator shares
 
 log = logging.getLogger("ahrs_service")
 
@@ -189,8 +192,9 @@ class Service:
                 if cal is not None and writer is not None:
                     state = pipeline.estimator.state
                     writer.write_sample(
-                        cal.t_ns, pipeline.row, cal.flags, state[:4], pipeline.estimator.name, state[8:11], state,
-                        sample.raw, cal.temperature_c, cal.truth_q,
+                        cal.t_ns, pipeline.row, cal.flags, q=state[_H.q], estimator=pipeline.estimator.name,
+                        bias=state[_H.bias], state=state, raw=sample.raw, temperature=cal.temperature_c,
+                        truth_q=cal.truth_q,
                     )
             # one attribute test per tick while no fit runs; done() takes a lock only during one
             if self._live_fit is not None and self._live_fit.done():

@@ -70,7 +70,7 @@ def make_source(source_cfg: dict[str, Any], estimation_hz: float) -> ImuSource:
             return DroneCanImuSource(can_cfg)
         return SimulatedCanSource(can_cfg, simulated_imu(source_cfg), estimation_hz)
     if kind == "recorded":
-        from ahrs_service.logs.source import RecordedSource
+        from ahrs_service.drivers.recorded import RecordedSource
 
         return RecordedSource(source_cfg["recorded_path"], realtime=source_cfg["recorded_realtime"])
     raise ValueError(f"source.type: unknown source {kind!r}")

@@ -23,8 +23,11 @@ import numpy as np
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID
 from ahrs_service.evaluation.broad import CITATION
 from ahrs_service.logs.schemas import raw_message, truth_message
-from ahrs_service.logs.writer import McapLogFile
+from ahrs_service.logs.mcap_file import McapLogFile
 from ahrs_service.quaternion import Q_NED_TO_ENU, quat_conj_array, quat_mul_array
+from ahrs_service.estimators import SAMPLE_ROW
+
+_R = SAMPLE_ROW.slices
 
 
 @dataclass
@@ -66,9 +69,9 @@ def load_broad(path: str | os.PathLike, start_s: float | None = None, duration_s
         ref = np.asarray(h5["opt_quat"][a:b], dtype=np.float64)
         movement = np.asarray(h5["movement"][a:b], dtype=bool)
     n = b - a
-    rows = np.empty((n, 10))
-    rows[:, 0:3], rows[:, 3:6], rows[:, 6:9] = gyr, acc, mag
-    rows[:, 9] = 1.0 / rate
+    rows = np.empty((n, SAMPLE_ROW.end))
+    rows[:, _R.gyr], rows[:, _R.acc], rows[:, _R.mag] = gyr, acc, mag
+    rows[:, SAMPLE_ROW.index.dt] = 1.0 / rate
     index = np.arange(a, b, dtype=np.int64)
     t_ns = np.round(index * (1e9 / rate)).astype(np.int64)
     return BroadSlice(path.stem, rate, rows, t_ns, index, enu_to_ned(ref), movement)
@@ -76,8 +79,8 @@ def load_broad(path: str | os.PathLike, start_s: float | None = None, duration_s
 
 def sample_flags(rows: np.ndarray) -> np.ndarray:
     """(N,) int64 validity bits of (N, 10) recorded rows: a reading is valid when all its values are finite."""
-    ok = np.isfinite(np.asarray(rows)[..., 0:9])
-    gyr, acc, mag = ok[..., 0:3].all(axis=-1), ok[..., 3:6].all(axis=-1), ok[..., 6:9].all(axis=-1)
+    ok = np.isfinite(np.asarray(rows)[..., : _R.mag.stop])
+    gyr, acc, mag = ok[..., _R.gyr].all(axis=-1), ok[..., _R.acc].all(axis=-1), ok[..., _R.mag].all(axis=-1)
     return np.where(gyr, GYR_VALID, 0) | np.where(acc, ACC_VALID, 0) | np.where(mag, MAG_VALID | MAG_NEW, 0)
 
 

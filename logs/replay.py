@@ -27,7 +27,7 @@ from ahrs_service.estimators import offline
 from ahrs_service.evaluation.metrics import error_angles, rmse
 from ahrs_service.logs.reader import MessageSource, RecordedLog
 from ahrs_service.logs.schemas import attitude_message, jsonable, tf_message
-from ahrs_service.logs.writer import McapLogFile
+from ahrs_service.logs.mcap_file import McapLogFile
 
 
 def _effective_start(log: RecordedLog, name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:

@@ -3,7 +3,7 @@
 Every channel is JSON-encoded (MCAP message encoding ``"json"``) and carries a JSON Schema
 (schema encoding ``"jsonschema"``), which is what Foxglove expects for JSON data.
 
-Conventions (../shared/DESIGN.md): earth NED, body FRD, quaternions Hamilton [w, x, y, z]
+Conventions (docs/design.md): earth NED, body FRD, quaternions Hamilton [w, x, y, z]
 q_earth←body, gyroscope rad/s, specific force m/s², field µT, times in ns. Numbers that are
 not finite (NaN: "no magnetometer", an invalid reading) are written as ``null`` because JSON
 has no NaN; readers turn ``null`` back into NaN. Floats are written in their shortest
@@ -39,7 +39,10 @@ from ahrs_service.drivers.base import (
     MAG_SATURATED,
     MAG_VALID,
 )
+from ahrs_service.estimators import SAMPLE_ROW
 from ahrs_service.quaternion import euler_of as euler
+
+_R = SAMPLE_ROW.slices
 
 SCHEMA_ENCODING = "jsonschema"
 MESSAGE_ENCODING = "json"
@@ -319,13 +322,13 @@ def raw_message(
 
     index: the sample's number since the writer started (what /params sample_index counts).
     """
-    mx, my, mz = mag = row[6:9]
+    mx, my, mz = mag = row[_R.mag]
     return {
         "t_ns": int(t_ns),
         "index": index,
-        "dt": row[9],
-        "gyr": row[0:3],
-        "acc": row[3:6],
+        "dt": row[SAMPLE_ROW.index.dt],
+        "gyr": row[_R.gyr],
+        "acc": row[_R.acc],
         "mag": None if (mx != mx and my != my and mz != mz) else mag,  # all NaN: no reading
         "flags": int(flags),
         "valid": _valid(flags),

@@ -1,9 +1,11 @@
 """Flight-log recording to MCAP: a cheap, never-raising writer for the service loop.
 
 :class:`FlightLogWriter` is what the service uses. Its ``write_*`` methods only copy their
-arguments into plain Python values and append them to a bounded queue (about a microsecond
-each); a background thread encodes the messages to JSON and writes them with the ``mcap``
-library. The thread closes the current chunk and ``fsync``\\ s the file at least every
+arguments into plain Python values and append one named record per call to a bounded queue
+(about a microsecond each); a background thread hands each record to its handler, which
+encodes the messages to JSON and writes them to a :class:`~ahrs_service.logs.mcap_file.McapLogFile`
+(the MCAP file layer, ``logs/mcap_file.py``, through the ``mcap`` library's public API). The
+thread closes the current chunk and ``fsync``\\ s the file at least every
 ``flush_interval_s`` seconds, so a crash (power loss, SIGKILL) loses at most about that much
 data; :func:`ahrs_service.logs.recover.recover` turns such a file back into a valid one.
 
@@ -11,23 +13,23 @@ Errors (unwritable directory, disk full, any ``OSError``) never reach the caller
 ``status``/``last_error``, the messages that could not be written are counted in
 ``dropped``, and the writer tries again with a new file every ``retry_interval_s``.
 
-:class:`McapLogFile` is the synchronous layer underneath, used directly by imports, recovery
-and replay, where nothing runs in real time.
-
-Example (the service's estimation loop)::
+Public API (all keyword arguments after the sample's time, row and flags are named)::
 
     log = FlightLogWriter("flight-logs", metadata={"vehicle": "rov-1"})
     log.write_config(t_ns, {"estimator": {"name": "madgwick", "params": est.get_params()}})
     ...
     q = est.update_row(row)                       # row: the (10,) sample row fed to it
-    log.write_raw(t_ns, row, sample.flags, sample.raw, sample.temperature_c)
-    log.write_attitude(t_ns, q, est.name, est.state[8:11], est.diagnostics, state=est.state)
+    log.write_raw(t_ns, row, sample.flags, raw=sample.raw, temperature=sample.temperature_c)
+    log.write_attitude(t_ns, q, est.name, bias=est.gyro_bias, diagnostics=est.diagnostics, state=est.state)
     # or both in one call (and one queue entry), as the service does at its rate:
-    log.write_sample(t_ns, row, sample.flags, q, est.name, est.state[8:11], est.state, sample.raw)
+    log.write_sample(t_ns, row, sample.flags, q=q, estimator=est.name, bias=est.gyro_bias, state=est.state)
     ...
     log.write_param_change(t_ns, None, "beta", old, new, "mavlink")  # after est.set_params
     ...
     log.close()
+
+Adding a message kind: a record class below (``_Record`` subclass), a ``write_*`` method that
+queues it, and a handler registered in ``FlightLogWriter._HANDLERS``.
 """
 
 from __future__ import annotations
@@ -35,22 +37,19 @@ from __future__ import annotations
 import atexit
 import collections
 import datetime as _dt
-import itertools
+import enum
 import json
 import math
 import os
-import struct
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
-from mcap.opcode import Opcode
-from mcap.records import MessageIndex
-from mcap.writer import CompressionType, Writer
 
-from ahrs_service.logs import schemas
+from ahrs_service.logs.mcap_file import McapLogFile
 from ahrs_service.logs.schemas import (
     attitude_message,
     encode,
@@ -60,183 +59,110 @@ from ahrs_service.logs.schemas import (
     truth_message,
 )
 
-LIBRARY = "ahrs-service"
-
-# --------------------------------------------------------------------------- synchronous file
-
-_MESSAGE_HEADER = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, log and publish time
-
-
-class _PackedMessageIndex(MessageIndex):
-    """A chunk's MessageIndex record written with one ``struct`` call for all its entries (the
-    library writes each timestamp and offset on its own: two calls per message)."""
-
-    def write(self, stream: Any) -> None:
-        stream.start_record(Opcode.MESSAGE_INDEX)
-        stream.write2(self.channel_id)
-        stream.write4(len(self.records) * 16)
-        stream.write(struct.pack(f"<{2 * len(self.records)}Q", *itertools.chain.from_iterable(self.records)))
-        stream.finish_record()
-
-
-class _ChunkedWriter(Writer):
-    """``mcap.Writer`` whose ``add_message`` writes the Message record with one ``struct`` call.
-
-    The library builds a ``Message`` object and writes its six fields one by one, about 10 µs
-    a message on the reference machine; the service writes three messages a sample at 1 kHz.
-    This does the same bookkeeping (statistics, chunk times, message index) on the library's
-    own objects and appends the same bytes — tests/test_logs_writer.py checks that whole files
-    come out byte-identical — and falls back to the library's method should a later ``mcap``
-    release lay its internals out differently.
-    """
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        chunk = getattr(self, "_Writer__chunk_builder", None)
-        buffer = getattr(getattr(chunk, "record_writer", None), "_buffer", None)
-        self._chunk_limit = getattr(self, "_Writer__chunk_size", None)
-        self._fast = (
-            chunk is not None
-            and hasattr(buffer, "write")
-            and hasattr(self, "_Writer__statistics")
-            and hasattr(self, "_Writer__finalize_chunk")
-            and isinstance(self._chunk_limit, int)
-            and isinstance(getattr(chunk, "message_indices", None), dict)
-        )
-
-    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
-        if not self._fast:
-            super().add_message(channel_id, log_time, data, publish_time, sequence)
-            return
-        stats = self._Writer__statistics  # type: ignore[attr-defined]
-        if stats.message_count == 0 or log_time < stats.message_start_time:
-            stats.message_start_time = log_time
-        if log_time > stats.message_end_time:
-            stats.message_end_time = log_time
-        stats.channel_message_counts[channel_id] += 1
-        stats.message_count += 1
-        chunk = self._Writer__chunk_builder  # type: ignore[attr-defined]
-        if chunk.num_messages == 0 or log_time < chunk.message_start_time:
-            chunk.message_start_time = log_time
-        if log_time > chunk.message_end_time:
-            chunk.message_end_time = log_time
-        index = chunk.message_indices.get(channel_id)
-        if not index:
-            index = chunk.message_indices[channel_id] = _PackedMessageIndex(channel_id=channel_id, records=[])
-        buffer = chunk.record_writer._buffer
-        index.records.append((log_time, buffer.tell()))
-        chunk.num_messages += 1
-        buffer.write(_MESSAGE_HEADER.pack(Opcode.MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time))
-        buffer.write(data)
-        # the library's __maybe_finalize_chunk, without its three property calls per message
-        if buffer.tell() > self._chunk_limit:
-            self._Writer__finalize_chunk()  # type: ignore[attr-defined]
-
-
-class McapLogFile:
-    """One MCAP file being written, synchronously. Channels are registered on first use.
-
-    Not thread-safe; :class:`FlightLogWriter` owns one on its background thread.
-    """
-
-    def __init__(
-        self,
-        path: str | os.PathLike,
-        *,
-        chunk_size: int = 128 * 1024,
-        metadata: Mapping[str, Any] | None = None,
-        exclusive: bool = False,
-    ) -> None:
-        self.path = Path(path)
-        self._f = open(self.path, "xb" if exclusive else "wb")
-        try:
-            self._w = _ChunkedWriter(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
-            self._w.start(profile="", library=LIBRARY)
-            if metadata:
-                self._w.add_metadata("ahrs-service", {str(k): str(v) for k, v in metadata.items()})
-        except BaseException:
-            self._f.close()
-            raise
-        self._channels: dict[str, int] = {}
-        self._schemas: dict[str, int] = {}
-        self._seq: dict[int, int] = {}
-        self.unflushed = 0  # messages written since the last flush (lost if the process dies now)
-        self.closed = False
-
-    def _new_channel(self, topic: str) -> int:
-        """Registers ``topic``'s channel (and its schema, once) on first use."""
-        name, _ = schemas.CHANNELS[topic]
-        sid = self._schemas.get(name)
-        if sid is None:
-            sid = self._w.register_schema(name, schemas.SCHEMA_ENCODING, schemas.schema_bytes(topic))
-            self._schemas[name] = sid
-        cid = self._w.register_channel(topic, schemas.MESSAGE_ENCODING, sid)
-        self._channels[topic] = cid
-        self._seq[cid] = 0
-        return cid
-
-    def write(self, topic: str, log_time_ns: int, message: Mapping[str, Any], publish_time_ns: int | None = None) -> None:
-        """Writes one message; ``log_time_ns`` is the sample time, publish time the wall clock now."""
-        self.write_encoded(topic, log_time_ns, encode(message), publish_time_ns)
-
-    def write_encoded(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None) -> None:
-        cid = self._channels.get(topic)
-        if cid is None:
-            cid = self._new_channel(topic)
-        seq = self._seq[cid] = self._seq[cid] + 1
-        self._w.add_message(
-            cid, int(log_time_ns), data, time.time_ns() if publish_time_ns is None else int(publish_time_ns), seq
-        )
-        self.unflushed += 1
-
-    def add_metadata(self, name: str, data: Mapping[str, Any]) -> None:
-        self._w.add_metadata(name, {str(k): str(v) for k, v in data.items()})
-
-    def flush(self, fsync: bool = True) -> None:
-        """Closes the current chunk and pushes it to the disk: everything so far survives a crash."""
-        self._w.flush()
-        self._f.flush()
-        if fsync:
-            os.fsync(self._f.fileno())
-        self.unflushed = 0
-
-    @property
-    def size(self) -> int:
-        """Bytes on disk so far (the open chunk not counted)."""
-        return self._f.tell()
-
-    def close(self, fsync: bool = True) -> None:
-        """Finishes the file with its summary and indexes."""
-        if self.closed:
-            return
-        self.closed = True
-        try:
-            self._w.finish()
-            self._f.flush()
-            if fsync:
-                os.fsync(self._f.fileno())
-            self.unflushed = 0
-        finally:
-            self._f.close()
-
-    def abandon(self) -> None:
-        """Closes the handle without finishing (after an I/O error); recover() can still read it."""
-        self.closed = True
-        try:
-            self._f.close()
-        except OSError:
-            pass
-
-    def __enter__(self) -> "McapLogFile":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
 # --------------------------------------------------------------------------- threaded writer
 
-_RAW, _ATT, _TRUTH, _LOOP, _CONFIG, _PARAM, _MAV, _CLOSE, _NEW_FILE, _STATE, _SAMPLE = range(11)
+# Queue entries: one record class per kind, each handled by one FlightLogWriter method. They
+# hold plain Python values (lists, not arrays): the caller may reuse its arrays at once.
+@dataclass(slots=True)
+class _Raw:
+    t_ns: int
+    row: list  # the sample row [gx, gy, gz, ax, ay, az, mx, my, mz, dt]
+    flags: int
+    raw: Any
+    temperature: float | None
+    index: int  # the sample's number since the writer started
+
+
+@dataclass(slots=True)
+class _Attitude:
+    t_ns: int
+    q: list  # q_earth←body [w, x, y, z]
+    estimator: str
+    bias: list | None  # rad/s, body frame
+    diagnostics: dict | None
+
+
+@dataclass(slots=True)
+class _Sample:
+    """/imu/raw + /attitude (+ /attitude/truth) of one sample: the service's per-sample entry."""
+
+    t_ns: int
+    row: list
+    flags: int
+    raw: Any
+    temperature: float | None
+    index: int
+    q: list
+    estimator: str
+    bias: list | None
+    truth_q: list | None
+
+
+@dataclass(slots=True)
+class _Truth:
+    t_ns: int
+    q: list
+    movement: bool | None
+    source: str
+
+
+@dataclass(slots=True)
+class _Loop:
+    t_ns: int
+    stats: dict
+
+
+@dataclass(slots=True)
+class _Config:
+    t_ns: int
+    config: dict
+    reason: str
+
+
+@dataclass(slots=True)
+class _ParamChange:
+    t_ns: int
+    sample_index: int
+    name: str
+    old: Any
+    new: Any
+    source: str
+
+
+@dataclass(slots=True)
+class _Mavlink:
+    t_ns: int
+    counters: dict
+
+
+@dataclass(slots=True)
+class _StateSnapshot:
+    """The estimator state after the sample at ``t_ns``: the first message of a rotated file."""
+
+    t_ns: int
+    state: list
+    estimator: str
+    next_index: int  # number of the first sample the new file holds
+
+
+@dataclass(slots=True)
+class _NewFile:
+    pass
+
+
+@dataclass(slots=True)
+class _Close:
+    pass
+
+
+class _Rotation(enum.IntEnum):
+    """The rotation handshake between the writer thread and the caller's ``write_*``."""
+
+    IDLE = 0  # no rotation pending
+    DUE = 1  # the file is due: the writer thread waits for the caller's state snapshot
+    SNAPSHOT_QUEUED = 2  # a _StateSnapshot is queued; the writer thread rotates when it gets it
+
+
 _IDLE_WAIT_S = 0.2  # longest sleep of an idle writer thread, s
 
 
@@ -328,10 +254,9 @@ class FlightLogWriter:
         self._config: dict[str, Any] | None = None
         self._last_tf_ns: int | None = None
         self._state_seen = False  # the caller passes its estimator state to write_attitude
-        # rotation handshake: 0 none, 1 due (writer thread asks for a state snapshot),
-        # 2 snapshot queued (write_attitude answered; the writer thread rotates when it gets it).
-        # The lock makes write_attitude's 1 -> 2 and the writer thread's cancelling (-> 0) exclusive.
-        self._rotation = 0
+        # rotation handshake (see _Rotation); the lock makes the caller's DUE -> SNAPSHOT_QUEUED
+        # and the writer thread's cancelling (-> IDLE) exclusive
+        self._rotation = _Rotation.IDLE
         self._rotation_lock = threading.Lock()
         self._rotation_since = 0.0
         self._thread = threading.Thread(target=self._run, name="flight-log-writer", daemon=True)
@@ -344,7 +269,7 @@ class FlightLogWriter:
         """Messages lost: queue full, or not written because of an I/O error."""
         return self._dropped_full + self._dropped_io
 
-    def _put(self, item: tuple) -> bool:
+    def _put(self, item: Any) -> bool:
         # one producer (the service loop): len() then append() cannot overshoot by more than one
         n = len(self._q)
         if self._closing or n >= self.queue_size:
@@ -356,10 +281,17 @@ class FlightLogWriter:
         return True
 
     def write_raw(
-        self, t_ns: int, row: np.ndarray, flags: int, raw: Mapping[str, Any] | None = None, temperature: float | None = None
+        self,
+        t_ns: int,
+        row: np.ndarray,
+        flags: int,
+        raw: Mapping[str, Any] | None = None,
+        temperature: float | None = None,
     ) -> None:
-        """One sample row (10,) exactly as fed to the estimator: gyr rad/s, acc m/s², mag µT (NaN: none), dt s."""
-        self._put((_RAW, t_ns, row.tolist(), flags, raw, temperature, self.samples))
+        """One sample row (10,) exactly as fed to the estimator: gyr rad/s, acc m/s², mag µT
+        (NaN: none), dt s; ``flags`` the sample's validity bits, ``raw`` the driver's raw
+        counts, ``temperature`` °C."""
+        self._put(_Raw(t_ns, row.tolist(), flags, raw, temperature, self.samples))
         self.samples += 1
 
     def write_attitude(
@@ -378,7 +310,7 @@ class FlightLogWriter:
             every file replays exactly; without it, a later file replays from a fresh estimator.
         """
         diag = None if diagnostics is None else dict(diagnostics)
-        self._put((_ATT, t_ns, _tolist(q), estimator, None if bias is None else _tolist(bias), diag))
+        self._put(_Attitude(t_ns, _tolist(q), estimator, None if bias is None else _tolist(bias), diag))
         if state is not None:
             self._offer_state(t_ns, state, estimator)
 
@@ -387,6 +319,7 @@ class FlightLogWriter:
         t_ns: int,
         row: np.ndarray,
         flags: int,
+        *,
         q: np.ndarray,
         estimator: str,
         bias: np.ndarray | None = None,
@@ -397,10 +330,10 @@ class FlightLogWriter:
     ) -> None:
         """``write_raw`` + ``write_attitude`` (+ ``write_truth`` when ``truth_q`` is given) of one
         sample as one queue entry: the service's per-sample call, a third of the caller's cost.
-        Same arguments and units as those three; the file holds the same messages."""
+        Same arguments and units as those three (keywords after ``flags``); the file holds
+        the same messages."""
         self._put(
-            (
-                _SAMPLE,
+            _Sample(
                 t_ns,
                 row.tolist(),
                 flags,
@@ -419,26 +352,26 @@ class FlightLogWriter:
 
     def _offer_state(self, t_ns: int, state: np.ndarray, estimator: str) -> None:
         self._state_seen = True
-        if self._rotation == 1:
+        if self._rotation == _Rotation.DUE:
             with self._rotation_lock:
-                if self._rotation == 1:
+                if self._rotation == _Rotation.DUE:
                     # the file ends after this sample; the next starts from this very state
-                    self._rotation = 2
-                    if not self._put((_STATE, t_ns, state.tolist(), estimator, self.samples)):
-                        self._rotation = 1  # queue full: ask again with a later sample
+                    self._rotation = _Rotation.SNAPSHOT_QUEUED
+                    if not self._put(_StateSnapshot(t_ns, state.tolist(), estimator, self.samples)):
+                        self._rotation = _Rotation.DUE  # queue full: ask again with a later sample
 
     def write_truth(self, t_ns: int, q: Any, movement: bool | None = None, source: str = "") -> None:
         """Ground-truth q_earth←body [w, x, y, z] (NED) for the sample at ``t_ns``."""
-        self._put((_TRUTH, t_ns, _tolist(q), movement, source))
+        self._put(_Truth(t_ns, _tolist(q), movement, source))
 
     def write_loop(self, t_ns: int, stats: Mapping[str, Any]) -> None:
         """Scheduler statistics (period/jitter s, overruns, load, sensor fault counters)."""
-        self._put((_LOOP, t_ns, dict(stats)))
+        self._put(_Loop(t_ns, dict(stats)))
 
     def write_config(self, t_ns: int, config: Mapping[str, Any], reason: str = "start") -> None:
         """The effective configuration, with config['estimator'] = {'name': …, 'params': {…}}."""
         # a deep copy the caller cannot change any more; unknown types (paths …) become strings
-        self._put((_CONFIG, t_ns, json.loads(json.dumps(jsonable(config), default=str)), reason))
+        self._put(_Config(t_ns, json.loads(json.dumps(jsonable(config), default=str)), reason))
 
     def write_param_change(
         self, t_ns: int, sample_index: int | None, name: str, old: Any, new: Any, source: str = ""
@@ -447,11 +380,11 @@ class FlightLogWriter:
         samples fed to the estimator before the change (None: ``samples``, the count of
         ``write_raw`` calls so far — right when every fed sample is written)."""
         index = self.samples if sample_index is None else int(sample_index)
-        self._put((_PARAM, t_ns, index, name, old, new, source))
+        self._put(_ParamChange(t_ns, index, name, old, new, source))
 
     def write_mavlink(self, t_ns: int, counters: Mapping[str, Any]) -> None:
         """MAVLink traffic counters."""
-        self._put((_MAV, t_ns, dict(counters)))
+        self._put(_Mavlink(t_ns, dict(counters)))
 
     def new_file(self) -> None:
         """Finishes the current file; the next message starts a new one (with the configuration).
@@ -459,7 +392,7 @@ class FlightLogWriter:
         Call it before ``write_config`` when the estimator is rebuilt (another filter, new
         calibration): each file then starts with a fresh estimator and replays exactly.
         """
-        self._put((_NEW_FILE, 0))
+        self._put(_NewFile())
 
     def stats(self) -> dict[str, Any]:
         """Counters for /loop and the service's health report."""
@@ -481,7 +414,7 @@ class FlightLogWriter:
             self._thread.join(timeout)
             return
         self._closing = True
-        self._q.append((_CLOSE,))
+        self._q.append(_Close())
         self._wake.set()
         self._thread.join(timeout)
         try:
@@ -501,7 +434,7 @@ class FlightLogWriter:
         while True:
             if q:
                 item = q.popleft()
-                if item[0] == _CLOSE:
+                if type(item) is _Close:
                     break
                 try:
                     self._handle(item)
@@ -608,66 +541,106 @@ class FlightLogWriter:
         except Exception as exc:  # noqa: BLE001
             self._fail(exc)
 
-    def _handle(self, item: tuple) -> None:
-        kind, t_ns = item[0], item[1]
-        if kind == _NEW_FILE:
-            self._cancel_rotation()  # the new file replaces a pending rotation
-            if self._file is not None:
-                self._finish_for_rotation()
+    def _handle(self, item: Any) -> None:
+        """Hands one queue record to the handler of its kind."""
+        self._HANDLERS[type(item)](self, item)
+
+    # one handler per record kind (_HANDLERS maps each record class to its handler)
+    def _ensure_file(self, messages: int, reason: str | None = None) -> bool:
+        """True when a file is open (opening one if needed); else counts ``messages`` as lost."""
+        if self._file is None and not self._open(reason):
+            self._dropped_io += messages
+            return False
+        return True
+
+    def _rotate_if_due(self) -> None:
+        """At a sample boundary: rotates, or asks the caller for a state snapshot first."""
+        if self._file is None or not self._should_rotate():
             return
-        if kind == _CONFIG:
-            self._config = {"t_ns": int(t_ns), "config": item[2], "reason": item[3]}
-        elif kind == _PARAM:
-            self._fold_param(item[3], item[5])
-        if kind == _STATE:
-            if self._rotation:  # else stale: new_file() or a rotation without it already made a new file
-                self._rotate_with_state(item)
-            return
-        if self._file is not None and (kind == _RAW or kind == _SAMPLE) and self._should_rotate():
-            now = time.monotonic()
-            if not self._state_seen or (self._rotation == 1 and now - self._rotation_since > 2.0):
-                # no state snapshot coming (or it stopped coming): rotate here, without one
-                self._cancel_rotation()
-                self._finish_for_rotation()
-            elif self._rotation == 0:
-                self._rotation, self._rotation_since = 1, now
+        now = time.monotonic()
+        if not self._state_seen or (self._rotation == _Rotation.DUE and now - self._rotation_since > 2.0):
+            # no state snapshot coming (or it stopped coming): rotate here, without one
+            self._cancel_rotation()
+            self._finish_for_rotation()
+        elif self._rotation == _Rotation.IDLE:
+            self._rotation, self._rotation_since = _Rotation.DUE, now
+
+    def _on_new_file(self, item: _NewFile) -> None:
+        self._cancel_rotation()  # the new file replaces a pending rotation
+        if self._file is not None:
+            self._finish_for_rotation()
+
+    def _on_config(self, item: _Config) -> None:
+        self._config = {"t_ns": int(item.t_ns), "config": item.config, "reason": item.reason}
         if self._file is None:
-            if not self._open(self._config["reason"] if kind == _CONFIG else None):
-                self._dropped_io += 1 if kind != _SAMPLE else 2 + (item[10] is not None)
-                return
-            if kind == _CONFIG:
-                return  # _open just wrote this configuration as the file's first message
-        if kind == _SAMPLE:
-            # (_SAMPLE, t_ns, row, flags, raw, temperature, index, q, estimator, bias, truth_q)
-            self._write("/imu/raw", t_ns, raw_message(t_ns, *item[2:7]))
-            self._write_attitude(t_ns, item[7], item[8], item[9], None)
-            if item[10] is not None:
-                if self._file is None:  # a write before failed: _fail counted what the file held
-                    self._dropped_io += 1
-                else:
-                    self._write("/attitude/truth", t_ns, truth_message(t_ns, item[10]))
-        elif kind == _RAW:
-            self._write("/imu/raw", t_ns, raw_message(t_ns, *item[2:7]))
-        elif kind == _ATT:
-            self._write_attitude(t_ns, *item[2:6])
-        elif kind == _TRUTH:
-            self._write("/attitude/truth", t_ns, truth_message(t_ns, *item[2:5]))
-        elif kind == _LOOP:
-            self._write("/loop", t_ns, {"t_ns": int(t_ns), **jsonable(item[2])})
-        elif kind == _CONFIG:
-            self._write("/config", t_ns, self._config)
-        elif kind == _PARAM:
-            msg = {
-                "t_ns": int(t_ns),
-                "sample_index": item[2],
-                "name": str(item[3]),
-                "old": jsonable(item[4]),
-                "new": jsonable(item[5]),
-                "source": str(item[6]),
-            }
-            self._write("/params", t_ns, msg)
-        elif kind == _MAV:
-            self._write("/mavlink", t_ns, {"t_ns": int(t_ns), "counters": jsonable(item[2])})
+            self._ensure_file(1, item.reason)  # _open writes the configuration as the file's first message
+            return
+        self._write("/config", item.t_ns, self._config)
+
+    def _on_param_change(self, item: _ParamChange) -> None:
+        self._fold_param(item.name, item.new)
+        if not self._ensure_file(1):
+            return
+        msg = {
+            "t_ns": int(item.t_ns),
+            "sample_index": item.sample_index,
+            "name": str(item.name),
+            "old": jsonable(item.old),
+            "new": jsonable(item.new),
+            "source": str(item.source),
+        }
+        self._write("/params", item.t_ns, msg)
+
+    def _on_state_snapshot(self, item: _StateSnapshot) -> None:
+        if self._rotation:  # else stale: new_file() or a rotation without it already made a new file
+            self._rotate_with_state(item)
+
+    def _on_raw(self, item: _Raw) -> None:
+        self._rotate_if_due()
+        if self._ensure_file(1):
+            self._write("/imu/raw", item.t_ns, raw_message(item.t_ns, item.row, item.flags, item.raw, item.temperature, item.index))
+
+    def _on_sample(self, item: _Sample) -> None:
+        self._rotate_if_due()
+        if not self._ensure_file(2 + (item.truth_q is not None)):
+            return
+        t_ns = item.t_ns
+        self._write("/imu/raw", t_ns, raw_message(t_ns, item.row, item.flags, item.raw, item.temperature, item.index))
+        self._write_attitude(t_ns, item.q, item.estimator, item.bias, None)
+        if item.truth_q is not None:
+            if self._file is None:  # a write before failed: _fail counted what the file held
+                self._dropped_io += 1
+            else:
+                self._write("/attitude/truth", t_ns, truth_message(t_ns, item.truth_q))
+
+    def _on_attitude(self, item: _Attitude) -> None:
+        if self._ensure_file(1):
+            self._write_attitude(item.t_ns, item.q, item.estimator, item.bias, item.diagnostics)
+
+    def _on_truth(self, item: _Truth) -> None:
+        if self._ensure_file(1):
+            self._write("/attitude/truth", item.t_ns, truth_message(item.t_ns, item.q, item.movement, item.source))
+
+    def _on_loop(self, item: _Loop) -> None:
+        if self._ensure_file(1):
+            self._write("/loop", item.t_ns, {"t_ns": int(item.t_ns), **jsonable(item.stats)})
+
+    def _on_mavlink(self, item: _Mavlink) -> None:
+        if self._ensure_file(1):
+            self._write("/mavlink", item.t_ns, {"t_ns": int(item.t_ns), "counters": jsonable(item.counters)})
+
+    _HANDLERS: dict[type, Callable[[FlightLogWriter, Any], None]] = {
+        _NewFile: _on_new_file,
+        _Config: _on_config,
+        _ParamChange: _on_param_change,
+        _StateSnapshot: _on_state_snapshot,
+        _Raw: _on_raw,
+        _Sample: _on_sample,
+        _Attitude: _on_attitude,
+        _Truth: _on_truth,
+        _Loop: _on_loop,
+        _Mavlink: _on_mavlink,
+    }
 
     def _write_attitude(self, t_ns: int, q: list[float], estimator: str, bias: Any, diagnostics: Any) -> None:
         if self._file is None:  # the write before this one failed: _fail counted it, retry later
@@ -685,18 +658,22 @@ class FlightLogWriter:
     def _cancel_rotation(self) -> None:
         # a snapshot write_attitude queues after this finds no rotation pending and is ignored
         with self._rotation_lock:
-            self._rotation = 0
+            self._rotation = _Rotation.IDLE
 
-    def _rotate_with_state(self, item: tuple) -> None:
-        _, t_ns, state, estimator, next_index = item
+    def _rotate_with_state(self, item: _StateSnapshot) -> None:
         self._cancel_rotation()
         if self._file is not None:
             self._finish_for_rotation()
         if not self._open():
             self._dropped_io += 1
             return
-        msg = {"t_ns": int(t_ns), "sample_index": int(next_index), "estimator": str(estimator), "state": state}
-        self._write("/estimator/state", t_ns, msg)
+        msg = {
+            "t_ns": int(item.t_ns),
+            "sample_index": int(item.next_index),
+            "estimator": str(item.estimator),
+            "state": item.state,
+        }
+        self._write("/estimator/state", item.t_ns, msg)
 
     def _fold_param(self, name: str, new: Any) -> None:
         # a new file must start from the parameters in force, or its replay would not match

@@ -1,4 +1,4 @@
-"""What every estimator promises (../shared/DESIGN.md): the same compiled step per sample and
+"""What every estimator promises (docs/design.md): the same compiled step per sample and
 in batch, each sample's own dt, and a clear error for an unknown parameter."""
 
 from __future__ import annotations

@@ -258,7 +258,10 @@ def test_writer_output_is_the_encoded_message(tmp_path, one_call) -> None:
         bias = [1, 0, 0] if i == 11 else s[8:11]  # write_attitude turns a list into floats
         diag = None
         if one_call:
-            w.write_sample(t_ns, r, 0x07 | (i % 128), q, "madgwick", bias, s, raw, 20.0 + i / 7, q)
+            w.write_sample(
+                t_ns, r, 0x07 | (i % 128), q=q, estimator="madgwick", bias=bias, state=s, raw=raw,
+                temperature=20.0 + i / 7, truth_q=q,
+            )
         else:
             w.write_raw(t_ns, r, 0x07 | (i % 128), raw, 20.0 + i / 7)
             diag = {"n": i} if i % 2 else None

@@ -104,7 +104,7 @@ def test_cli_replay_with_recorded_settings_keeps_the_live_change(recording, tmp_
 @pytest.mark.parametrize("one_call", [False, True], ids=["three calls", "write_sample"])
 def test_every_rotated_file_replays_exactly_from_its_state_snapshot(tmp_path, one_call):
     path, q_live, t_ns, rows, _ = make_fixtures.record_analytic(
-        tmp_path, seconds=3.0, pace_every=10, chunk_size=8192, rotate_bytes=30_000, flush_interval_s=0.05,
+        tmp_path, seconds=3.0, pace_every=10, chunk_size=8192, rotate_bytes=15_000, flush_interval_s=0.05,
         one_call=one_call,
     )
     files = sorted(tmp_path.glob("flight-*.mcap"), key=lambda p: read_log(p).index[0])

@@ -15,9 +15,10 @@ import pytest
 from mcap.reader import make_reader
 
 from ahrs_service.drivers.base import ACC_VALID, GYR_SATURATED, GYR_VALID, MAG_NEW, MAG_VALID
-from ahrs_service.logs import schemas, writer as writer_mod
+from ahrs_service.logs import mcap_file as mcap_file_mod, schemas, writer as writer_mod
 from ahrs_service.logs.reader import read_log
-from ahrs_service.logs.writer import FlightLogWriter, McapLogFile
+from ahrs_service.logs.mcap_file import McapLogFile
+from ahrs_service.logs.writer import FlightLogWriter
 
 RNG = np.random.default_rng(3)
 
@@ -157,7 +158,7 @@ def test_unwritable_directory_is_reported_not_raised_and_retried(tmp_path):
 
 
 def test_disk_full_drops_counts_and_continues_in_a_new_file(tmp_path, monkeypatch):
-    original = writer_mod.McapLogFile.flush
+    original = mcap_file_mod.McapLogFile.flush
     state = {"fail": True}
 
     def flush(self, fsync=True):
@@ -165,7 +166,7 @@ def test_disk_full_drops_counts_and_continues_in_a_new_file(tmp_path, monkeypatc
             raise OSError(errno.ENOSPC, "No space left on device")
         return original(self, fsync)
 
-    monkeypatch.setattr(writer_mod.McapLogFile, "flush", flush)
+    monkeypatch.setattr(mcap_file_mod.McapLogFile, "flush", flush)
     w = FlightLogWriter(tmp_path, flush_interval_s=0.05, retry_interval_s=0.05)
     w.write_config(0, {"estimator": {"name": "madgwick", "params": {"beta": 0.1}}})
     for i in range(20):
@@ -313,14 +314,13 @@ def test_new_file_during_a_pending_rotation_leaves_no_one_sample_file(tmp_path, 
     # a rotation (by duration) is due and waits for the loop's state snapshot when the service
     # calls new_file(): the new file must not be rotated again by that snapshot after one sample
     gate = threading.Event()
-    handle = FlightLogWriter._handle
+    handle = FlightLogWriter._HANDLERS[writer_mod._NewFile]
 
     def gated_handle(self, item):
-        if item[0] == writer_mod._NEW_FILE:
-            gate.wait(10.0)
+        gate.wait(10.0)
         handle(self, item)
 
-    monkeypatch.setattr(FlightLogWriter, "_handle", gated_handle)
+    monkeypatch.setitem(FlightLogWriter._HANDLERS, writer_mod._NewFile, gated_handle)
     w = FlightLogWriter(tmp_path, rotate_seconds=3600.0, tf_rate_hz=None)
     state = np.arange(4.0)
 
@@ -354,33 +354,45 @@ def test_new_file_during_a_pending_rotation_leaves_no_one_sample_file(tmp_path, 
     assert w._rotation == 0 and w.dropped == 0
 
 
-def test_fast_message_path_writes_the_same_file_as_the_mcap_library():
-    """_ChunkedWriter (Message and MessageIndex records) against mcap's own Writer:
-    byte-identical files over several chunks, channels, out-of-order log times and a flush in
-    the middle."""
+def test_log_file_writes_the_same_bytes_as_the_mcap_library(tmp_path):
+    """McapLogFile (logs/mcap_file.py) against mcap's own Writer driven by hand: byte-identical
+    files over several chunks, channels registered on first use, out-of-order log times and a
+    flush in the middle, so the file layer adds nothing the library would not write."""
     import io
 
     from mcap.writer import CompressionType, Writer
 
-    from ahrs_service.logs.writer import _ChunkedWriter
+    from ahrs_service.logs import schemas
+    from ahrs_service.logs.mcap_file import LIBRARY
 
-    files = []
-    for cls in (Writer, _ChunkedWriter):
-        out = io.BytesIO()
-        w = cls(out, chunk_size=4096, compression=CompressionType.ZSTD)
-        if cls is _ChunkedWriter:
-            assert w._fast  # the installed mcap has the layout the fast path expects
-        w.start(profile="", library="test")
-        sid = w.register_schema("s", "jsonschema", b"{}")
-        channels = [w.register_channel(f"/c{i}", "json", sid) for i in range(3)]
-        t = 1_000_000
-        r = np.random.default_rng(3)
-        for i in range(2000):
-            t += int(r.integers(-3_000, 1_000_000))  # now and then a message older than the last
-            data = bytes(r.integers(0, 256, size=int(r.integers(0, 300)), dtype=np.uint8))
-            w.add_message(channels[i % 3], t, data, t + 17, i)
+    topics = ["/imu/raw", "/attitude", "/loop"]
+    r = np.random.default_rng(3)
+    messages = []
+    t = 1_000_000
+    for i in range(2000):
+        t += int(r.integers(-3_000, 1_000_000))  # now and then a message older than the last
+        messages.append((topics[i % 3], t, bytes(r.integers(0, 256, size=int(r.integers(0, 300)), dtype=np.uint8))))
+
+    path = tmp_path / "ours.mcap"
+    with McapLogFile(path, chunk_size=4096, metadata={"k": 1}) as f:
+        for i, (topic, t, data) in enumerate(messages):
+            f.write_encoded(topic, t, data, t + 17)
             if i == 1234:
-                w.flush()
-        w.finish()
-        files.append(out.getvalue())
-    assert len(files[0]) > 100_000 and files[0] == files[1]
+                f.flush(fsync=False)
+
+    out = io.BytesIO()
+    w = Writer(out, chunk_size=4096, compression=CompressionType.ZSTD)
+    w.start(profile="", library=LIBRARY)
+    w.add_metadata("ahrs-service", {"k": "1"})
+    channels, seq = {}, {}
+    for i, (topic, t, data) in enumerate(messages):
+        if topic not in channels:
+            sid = w.register_schema(schemas.CHANNELS[topic][0], schemas.SCHEMA_ENCODING, schemas.schema_bytes(topic))
+            channels[topic] = w.register_channel(topic, schemas.MESSAGE_ENCODING, sid)
+        seq[topic] = seq.get(topic, 0) + 1
+        w.add_message(channels[topic], t, data, t + 17, seq[topic])
+        if i == 1234:
+            w.flush()
+    w.finish()
+    ours = path.read_bytes()
+    assert len(ours) > 100_000 and ours == out.getvalue()

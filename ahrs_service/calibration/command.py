@@ -36,6 +36,9 @@ from ahrs_service.calibration.magnetometer import fit_magnetometer
 from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
 from ahrs_service.drivers.base import MAG_NEW, MAG_VALID
 from ahrs_service.drivers.calibration import SensorCalibration
+from ahrs_service.estimators import SAMPLE_ROW
+
+_R = SAMPLE_ROW.slices
 
 EXIT_ACCEPTED, EXIT_REFUSED, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -109,9 +112,9 @@ def load_npz(path: Path) -> RawRecording:
 def _unapply(rows: np.ndarray, cal: SensorCalibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sensor-axes raw readings of body-frame calibrated rows (N, 10) — the inverse of apply_calibration."""
     Mt = cal.mounting.T
-    gyr = rows[:, 0:3] @ Mt.T + cal.gyro_bias
-    acc = rows[:, 3:6] @ (np.linalg.inv(cal.acc_scale) @ Mt).T + cal.acc_bias
-    mag = rows[:, 6:9] @ (np.linalg.inv(cal.mag_soft_iron) @ Mt).T + cal.mag_hard_iron
+    gyr = rows[:, _R.gyr] @ Mt.T + cal.gyro_bias
+    acc = rows[:, _R.acc] @ (np.linalg.inv(cal.acc_scale) @ Mt).T + cal.acc_bias
+    mag = rows[:, _R.mag] @ (np.linalg.inv(cal.mag_soft_iron) @ Mt).T + cal.mag_hard_iron
     return gyr, acc, mag
 
 
@@ -147,9 +150,9 @@ def load_mcap(path: Path) -> RawRecording:
             gyr[lo:hi], acc[lo:hi], mag[lo:hi] = _unapply(rows[lo:hi], cal)
     fresh = (log.flags & MAG_NEW) != 0
     if not fresh.any():  # a writer without MAG_NEW: take every change of value as fresh
-        fresh = np.concatenate([[True], np.any(np.diff(rows[:, 6:9], axis=0) != 0, axis=1)])
+        fresh = np.concatenate([[True], np.any(np.diff(rows[:, _R.mag], axis=0) != 0, axis=1)])
     fresh &= (log.flags & MAG_VALID) != 0
-    has_mag = np.isfinite(rows[:, 6:9]).any()
+    has_mag = np.isfinite(rows[:, _R.mag]).any()
     return RawRecording(gyr, acc, mag if has_mag else None, fresh if has_mag else None, _rate_from_times(t), cal, t)
 
 

@@ -8,6 +8,9 @@
 per sample. Inputs are (N, 3) arrays in the sensor's own axes: gyroscope rad/s, specific
 force m/s², magnetic field µT. For one sample at a time use ``create(name, **params)`` and
 its ``update`` method: the same compiled step serves both paths.
+
+``SAMPLE_ROW`` and ``STATE_HEADER`` name the columns of a sample row and the state slots
+every estimator shares (``state[STATE_HEADER.slices.bias]``); see ``layout``.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from ahrs_service.estimators._cache import drop_stale_kernels
 
 drop_stale_kernels()  # before any kernel is loaded from the cache
 
+from ahrs_service.estimators._kernel import SAMPLE_ROW, STATE_HEADER  # noqa: E402
 from ahrs_service.estimators.base import Estimator, stack_rows, time_steps  # noqa: E402
 
 # name -> (module, class). Order: first paper, second paper, third paper, then the project's own.
@@ -77,18 +81,22 @@ def run(
     *,
     rate_hz: float | None = None,
     timestamps: Any = None,
+    recover_clock: bool = True,
     preset: str | os.PathLike | None = None,
     **params: float,
 ) -> np.ndarray:
     """Runs estimator ``name`` over a recording and returns (N, 4) q_earth←body (NED).
 
     gyr rad/s, acc m/s² (specific force), mag µT or None, each (N, 3) in the sensor's axes.
-    Time steps come from ``timestamps`` (s) when given, else from ``rate_hz``. ``preset`` and
-    ``params`` as for :func:`create`.
+    Time steps come from ``timestamps`` (s) when given, else from ``rate_hz``. Host stamps are
+    first recovered onto the sensor's steady clock (``ahrs_service.sample_clock``, causal;
+    uniform stamps pass unchanged); ``recover_clock=False`` integrates the raw steps instead.
+    Stamps that cannot be seconds (NaN, not increasing, steps over a second) raise ValueError.
+    ``preset`` and ``params`` as for :func:`create`.
     """
     est = create(name, preset, **params)
     n = np.shape(gyr)[0]
-    return est.run(gyr, acc, mag, dt=time_steps(n, rate_hz, timestamps))
+    return est.run(gyr, acc, mag, dt=time_steps(n, rate_hz, timestamps, recover_clock=recover_clock))
 
 
-__all__ = ["Estimator", "create", "get", "names", "run", "stack_rows", "time_steps"]
+__all__ = ["SAMPLE_ROW", "STATE_HEADER", "Estimator", "create", "get", "names", "run", "stack_rows", "time_steps"]

@@ -6,8 +6,10 @@ rad/s, specific force m/s², magnetic field µT (NaN when there is no magnetomet
 time step in seconds since the previous sample. The per-sample service path fills one such
 row; batch runs stack them into an (N, 10) array — both go through the same step function.
 
-Every estimator state is a float64 array whose first ``HEADER`` entries mean the same
-everywhere, so the service, logs and diagnostics read them without knowing the estimator.
+Every estimator state is a float64 array whose first ``HEADER`` entries (``STATE_HEADER``)
+mean the same everywhere, so the service, logs and diagnostics read them without knowing the
+estimator. Code outside the kernels reads rows and headers through ``ROW_SLICES`` and
+``HEADER_SLICES`` (or the ``Estimator`` properties), never by number.
 """
 
 from __future__ import annotations
@@ -16,20 +18,40 @@ import math
 
 from numba import njit
 
+from ahrs_service.estimators.layout import Layout, Slot
 from ahrs_service.quaternion import quat_from_gravity_and_field, vec_is_usable
 
-# sample row columns
-GYR, ACC, MAG, DT = 0, 3, 6, 9
-ROW = 10
+#: the sample row: one sample's three sensors and its time step
+SAMPLE_ROW = Layout(
+    "sample row",
+    [
+        Slot("gyr", 3, "gyroscope, rad/s, sensor axes"),
+        Slot("acc", 3, "specific force, m/s², sensor axes"),
+        Slot("mag", 3, "magnetic field, µT, sensor axes (NaN: no new field)"),
+        Slot("dt", 1, "time since the previous sample, s"),
+    ],
+)
+GYR, ACC, MAG, DT = SAMPLE_ROW.index  # first columns, constants in compiled code
+ROW = SAMPLE_ROW.end  # row length
 
-# state header
-Q = 0  # 0..3: q_earth←body [w, x, y, z]
-INITIALISED = 4  # 1.0 once the attitude was set from gravity (and field)
-ACC_SKIPPED = 5  # count of samples whose accelerometer correction was skipped
-MAG_SKIPPED = 6  # count of samples whose magnetometer correction was skipped (includes "no magnetometer")
-GYR_SKIPPED = 7  # count of samples whose gyro/dt could not be integrated
-BIAS = 8  # 8..10: gyro-bias estimate, rad/s, body frame (zero where not estimated)
-HEADER = 11
+#: the state header every estimator's state array starts with
+STATE_HEADER = Layout(
+    "state header",
+    [
+        Slot("q", 4, "q_earth←body [w, x, y, z]"),
+        Slot("initialised", 1, "1.0 once the attitude was set from gravity (and field)"),
+        Slot("acc_skipped", 1, "count of samples whose accelerometer correction was skipped"),
+        Slot("mag_skipped", 1, "count of samples whose magnetometer correction was skipped (includes no magnetometer)"),
+        Slot("gyr_skipped", 1, "count of samples whose gyro/dt could not be integrated"),
+        Slot("bias", 3, "gyro-bias estimate, rad/s, body frame (zero where not estimated)"),
+    ],
+)
+Q, INITIALISED, ACC_SKIPPED, MAG_SKIPPED, GYR_SKIPPED, BIAS = STATE_HEADER.index
+HEADER = STATE_HEADER.end  # where an estimator's own slots start
+
+#: slices for Python code outside the kernels: ``state[HEADER_SLICES.bias]``, ``row[ROW_SLICES.mag]``
+HEADER_SLICES = STATE_HEADER.slices
+ROW_SLICES = SAMPLE_ROW.slices
 
 _jit = njit(cache=True, inline="always")
 
@@ -71,16 +93,16 @@ def initialise_from_sample(s, x, acc_ok, mag_ok):
     if not acc_ok:
         return WAITING
     q = quat_from_gravity_and_field(x[3], x[4], x[5], x[6], x[7], x[8], mag_ok)
-    s[0], s[1], s[2], s[3] = q
+    s[Q], s[Q + 1], s[Q + 2], s[Q + 3] = q
     s[INITIALISED] = 1.0
     return STARTED
 
 
 @_jit
 def store_quat(s, q):
-    s[0], s[1], s[2], s[3] = q
+    s[Q], s[Q + 1], s[Q + 2], s[Q + 3] = q
 
 
 @_jit
 def load_quat(s):
-    return (s[0], s[1], s[2], s[3])
+    return (s[Q], s[Q + 1], s[Q + 2], s[Q + 3])

@@ -25,6 +25,9 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 
+_H = K.HEADER_SLICES
+_R = K.ROW_SLICES
+
 
 class Estimator:
     """Base of all attitude estimators.
@@ -49,7 +52,7 @@ class Estimator:
         self.state = self.initial_state()
         # the hot path avoids attribute and slice work: a bound kernel and a fixed view of q
         self._step = type(self).step
-        self._q = self.state[:4]
+        self._q = self.state[_H.q]
 
     # ---------------------------------------------------------------- parameters
     def _pack(self, params: Any) -> np.ndarray:
@@ -82,12 +85,12 @@ class Estimator:
     @property
     def quaternion(self) -> np.ndarray:
         """Current q_earth←body [w, x, y, z] (a copy)."""
-        return self.state[:4].copy()
+        return self.state[_H.q].copy()
 
     @property
     def gyro_bias(self) -> np.ndarray:
         """Current gyro-bias estimate, rad/s, body frame (zeros where not estimated)."""
-        return self.state[K.BIAS : K.BIAS + 3].copy()
+        return self.state[_H.bias].copy()
 
     @property
     def diagnostics(self) -> dict[str, float]:
@@ -107,12 +110,12 @@ class Estimator:
         Returns the new q_earth←body (a view into the state; copy it to keep it).
         """
         row = self._row
-        row[0:3] = gyr
-        row[3:6] = acc
+        row[_R.gyr] = gyr
+        row[_R.acc] = acc
         if mag is None:
-            row[6:9] = np.nan
+            row[_R.mag] = np.nan
         else:
-            row[6:9] = mag
+            row[_R.mag] = mag
         row[K.DT] = dt
         return self.update_row(row)
 
@@ -167,22 +170,33 @@ def _fill_rows(rows, gyr, acc, mag, dt):
     # one pass row by row: a third of the time of four strided column copies
     for i in range(rows.shape[0]):
         for k in range(3):
-            rows[i, k] = gyr[i, k]
-            rows[i, 3 + k] = acc[i, k]
-            rows[i, 6 + k] = mag[i, k]
+            rows[i, K.GYR + k] = gyr[i, k]
+            rows[i, K.ACC + k] = acc[i, k]
+            rows[i, K.MAG + k] = mag[i, k]
         rows[i, K.DT] = dt[i]
 
 
-def time_steps(n: int, rate_hz: float | None = None, timestamps: Any = None) -> np.ndarray:
+def time_steps(
+    n: int, rate_hz: float | None = None, timestamps: Any = None, *, recover_clock: bool = True
+) -> np.ndarray:
     """Per-sample time steps (s) from timestamps (s, monotonic) or a nominal rate.
 
     The first sample's dt is the nominal period (the median step when only timestamps are
-    given). Timestamps win over the rate when both are given.
+    given). Timestamps win over the rate when both are given. With ``recover_clock`` (the
+    default) the stamps first go through ``sample_clock.recover_times`` (causal; exactly
+    uniform stamps pass unchanged; ``rate_hz``, when given, is the nominal rate): host stamps
+    jitter, and integrating each jittered step as true costs accuracy (docs/timing.md).
+    Implausible stamps raise ValueError (``check_timestamps``).
     """
     if timestamps is not None:
         t = np.asarray(timestamps, dtype=np.float64)
         if t.shape != (n,):
             raise ValueError(f"timestamps must have shape ({n},), got {t.shape}")
+        check_timestamps(t, allow_equal=recover_clock)
+        if recover_clock and n > 1:
+            from ahrs_service.sample_clock import recover_times
+
+            t = recover_times(t, nominal_rate_hz=rate_hz)
         dt = np.empty(n)
         if n == 0:
             return dt
@@ -197,6 +211,45 @@ def time_steps(n: int, rate_hz: float | None = None, timestamps: Any = None) -> 
     if not rate_hz > 0:
         raise ValueError(f"rate_hz must be positive, got {rate_hz}")
     return np.full(n, 1.0 / float(rate_hz))
+
+
+#: Steps longer than this (s) are not an IMU's sampling: the stamps are in another unit.
+MAX_STEP_S = 1.0
+
+
+def check_timestamps(t: np.ndarray, *, allow_equal: bool = False) -> None:
+    """ValueError naming the problem when ``t`` (s) cannot be an IMU's sample times: NaN or
+    infinite stamps, stamps that go backwards (or repeat, unless ``allow_equal``: a burst of
+    samples read at once, which clock recovery spreads out), or a median step over a second
+    (milliseconds, microseconds or nanoseconds given where seconds are expected)."""
+    if t.size == 0:
+        return
+    bad = ~np.isfinite(t)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(
+            f"timestamps: {int(bad.sum())} NaN or infinite value(s), first at sample {i}; "
+            "expected finite sample times in seconds"
+        )
+    if t.size < 2:
+        return
+    steps = np.diff(t)
+    back = steps < 0 if allow_equal else steps <= 0
+    if back.any():
+        i = int(np.argmax(back))
+        what = "negative" if allow_equal else "zero or negative"
+        order = "non-decreasing" if allow_equal else "strictly increasing"
+        raise ValueError(
+            f"timestamps: not increasing at sample {i + 1} ({float(t[i]):.9g} s then {float(t[i + 1]):.9g} s), "
+            f"{int(back.sum())} step(s) {what}; expected {order} sample times in seconds"
+        )
+    median = float(np.median(steps))
+    if median > MAX_STEP_S:
+        guess = "nanoseconds" if median > 1e5 else ("microseconds" if median > 100 else "milliseconds")
+        raise ValueError(
+            f"timestamps: median step {median:g} is over {MAX_STEP_S:g} s; these look like "
+            f"{guess}, expected seconds (divide by {1e9 if guess == 'nanoseconds' else 1e6 if guess == 'microseconds' else 1e3:g})"
+        )
 
 
 def _make_params(params_cls: type, values: dict[str, Any], name: str) -> Any:

@@ -50,11 +50,17 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.quaternion import quat_from_euler, quat_integrate, quat_to_euler
 
-# state after the common header: the filtered Euler angles Θ̂ (rad)
-PHI, THETA, PSI = K.HEADER, K.HEADER + 1, K.HEADER + 2
-STATE_SIZE = K.HEADER + 3
+# state after the common header: the filtered Euler angles Θ̂
+STATE = Layout(
+    "complementary state",
+    [Slot("phi", 1, "roll φ̂, rad"), Slot("theta", 1, "pitch θ̂, rad"), Slot("psi", 1, "yaw ψ̂, rad")],
+    start=K.HEADER,
+)
+PHI, THETA, PSI = STATE.index
+STATE_SIZE = STATE.end
 
 #: standard gravity, m/s²
 
@@ -181,14 +187,20 @@ def _complementary_update(s, x, omega0, declination, acc_gate, use_mag):
     _store_euler(s, phi, theta, psi)
 
 
+_PR = param_index(ComplementaryReducedParams)  # indices of the packed parameter vector, by field name
+
+
 @njit(cache=True)
 def complementary_reduced_step(s, p, x):
-    _complementary_update(s, x, p[0], 0.0, p[1], False)
+    _complementary_update(s, x, p[_PR.omega0], 0.0, p[_PR.acc_gate], False)
+
+
+_PF = param_index(ComplementaryFullParams)  # indices of the packed parameter vector, by field name
 
 
 @njit(cache=True)
 def complementary_full_step(s, p, x):
-    _complementary_update(s, x, p[0], p[1], p[2], True)
+    _complementary_update(s, x, p[_PF.omega0], p[_PF.declination], p[_PF.acc_gate], True)
 
 
 @njit(cache=True)

@@ -40,19 +40,27 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.quaternion import quat_normalize, quat_rotate, quat_rotate_inv
 
 N = 7  # state dimension: quaternion (4) + gyro bias (3)
 # layout after the common header: covariance, then scratch (contents meaningless between steps)
-P0 = K.HEADER  # P, 7 × 7, row-major
-FQ = P0 + N * N  # top four rows of F (the bias rows are identity), 4 × 7
-M = FQ + 4 * N  # F·P, 7 × 7
-PHT = M + N * N  # P·Hᵀ, 7 × 3
-KG = PHT + N * 3  # Kalman gain, 7 × 3
-HQ = KG + N * 3  # H's quaternion columns (bias columns are zero), 3 × 4
-MAG_NORM_REF = HQ + 3 * 4  # reference field magnitude, µT (0 until the first field sample)
-MAG_DIP_REF = MAG_NORM_REF + 1  # reference sine of the field's dip below the horizon
-STATE_SIZE = MAG_DIP_REF + 1
+STATE = Layout(
+    "ekf state",
+    [
+        Slot("p", N * N, "P, 7 × 7, row-major"),
+        Slot("fq", 4 * N, "top four rows of F (the bias rows are identity), 4 × 7"),
+        Slot("m", N * N, "F·P, 7 × 7"),
+        Slot("pht", N * 3, "P·Hᵀ, 7 × 3"),
+        Slot("kg", N * 3, "Kalman gain, 7 × 3"),
+        Slot("hq", 3 * 4, "H's quaternion columns (bias columns are zero), 3 × 4"),
+        Slot("mag_norm_ref", 1, "reference field magnitude, µT (0 until the first field sample)"),
+        Slot("mag_dip_ref", 1, "reference sine of the field's dip below the horizon"),
+    ],
+    start=K.HEADER,
+)
+P0, FQ, M, PHT, KG, HQ, MAG_NORM_REF, MAG_DIP_REF = STATE.index
+STATE_SIZE = STATE.end
 
 #: time constant with which the field reference follows accepted samples, s
 MAG_REF_TAU = 10.0
@@ -317,9 +325,12 @@ def _magnetometer_update(s, x, mag_noise, mag_gate, dt):
     _apply(s, mx - h0, my - h1, mz - h2)
 
 
+_P = param_index(QuaternionEKFParams)  # indices of the packed parameter vector, by field name
+
+
 @njit(cache=True)
 def ekf_step(s, p, x):
-    gyro_noise, bias_noise, acc_noise, mag_noise = p[0], p[1], p[2], p[3]
+    gyro_noise, bias_noise, acc_noise, mag_noise = p[_P.gyro_noise], p[_P.bias_noise], p[_P.acc_noise], p[_P.mag_noise]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
         return
@@ -327,7 +338,7 @@ def ekf_step(s, p, x):
     if acc_ok:
         _accelerometer_update(s, x, acc_noise)
     if mag_ok:
-        _magnetometer_update(s, x, mag_noise, p[6], x[K.DT])
+        _magnetometer_update(s, x, mag_noise, p[_P.mag_gate], x[K.DT])
 
 
 @njit(cache=True)

@@ -36,13 +36,21 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.triad import align_down, down_direction
 from ahrs_service.quaternion import quat_from_rotvec, quat_mul, quat_normalize, quat_rotate_inv
 
-Z = K.HEADER  # z: estimate of r₃ (body frame, ≈ unit)
-ETA2 = K.HEADER + 3  # η₂ = ξ̂ + γ₂ ν
-ETA3 = K.HEADER + 6  # η₃ = μ̂_a + γ₃ ν
-STATE_SIZE = K.HEADER + 9
+STATE = Layout(
+    "immersion_invariance state",
+    [
+        Slot("z", 3, "z: estimate of r₃ (body frame, ≈ unit)"),
+        Slot("eta2", 3, "η₂ = ξ̂ + γ₂ ν"),
+        Slot("eta3", 3, "η₃ = μ̂_a + γ₃ ν"),
+    ],
+    start=K.HEADER,
+)
+Z, ETA2, ETA3 = STATE.index
+STATE_SIZE = STATE.end
 
 
 @dataclass
@@ -73,9 +81,13 @@ class ImmersionInvarianceParams:
             raise ValueError(f"mu_bar must be >= 0, got {self.mu_bar}")
 
 
+_P = param_index(ImmersionInvarianceParams)  # indices of the packed parameter vector, by field name
+
+
 @njit(cache=True)
 def immersion_invariance_step(s, p, x):
-    g1, g2, g3, xi_bar, mu_bar = p[0], p[1], p[2], p[3], p[4]
+    g1, g2, g3 = p[_P.gamma1], p[_P.gamma2], p[_P.gamma3]
+    xi_bar, mu_bar = p[_P.xi_bar], p[_P.mu_bar]
     gyro_ok, acc_ok, _ = K.check_sample(s, x, False)
     phase = K.initialise_from_sample(s, x, acc_ok, False)
     if phase == K.STARTED:

@@ -25,11 +25,16 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.quaternion import quat_from_euler, quat_to_euler
 
-ROLL = K.HEADER  # roll, pitch, yaw (rad), then the variances of roll and pitch (rad²)
-P_ROLL = K.HEADER + 3
-STATE_SIZE = K.HEADER + 5
+STATE = Layout(
+    "kalman_roll_pitch state",
+    [Slot("euler", 3, "roll, pitch, yaw, rad"), Slot("p_roll_pitch", 2, "variances of roll and pitch, rad²")],
+    start=K.HEADER,
+)
+ROLL, P_ROLL = STATE.index
+STATE_SIZE = STATE.end
 
 # |cos θ| floor of eq. 7 at gimbal lock: a finite rate instead of a division by zero
 _COS_MIN = 1e-6
@@ -64,9 +69,12 @@ class KalmanRollPitchParams:
             raise ValueError(f"sigma_xi must be > 0, got {self.sigma_xi}")
 
 
+_P = param_index(KalmanRollPitchParams)  # indices of the packed parameter vector, by field name
+
+
 @njit(cache=True)
 def kalman_roll_pitch_step(s, p, x):
-    sigma_zeta, sigma_xi = p[0], p[1]
+    sigma_zeta, sigma_xi = p[_P.sigma_zeta], p[_P.sigma_xi]
     r_meas = sigma_xi * sigma_xi
     gyro_ok, acc_ok, _ = K.check_sample(s, x, False)
     phase = K.initialise_from_sample(s, x, acc_ok, False)

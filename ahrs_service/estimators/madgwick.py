@@ -19,6 +19,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.layout import param_index
 from ahrs_service.estimators.presets import SearchRange
 from ahrs_service.quaternion import quat_mul, quat_normalize, quat_rotate
 
@@ -39,9 +40,12 @@ class MadgwickParams:
             raise ValueError(f"beta must be >= 0, got {self.beta}")
 
 
+_P = param_index(MadgwickParams)  # indices of the packed parameter vector, by field name
+
+
 @njit(cache=True)
 def madgwick_step(s, p, x):
-    beta = p[0]
+    beta = p[_P.beta]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
         return

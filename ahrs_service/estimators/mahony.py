@@ -32,6 +32,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.layout import param_index
 from ahrs_service.estimators.triad import down_direction
 from ahrs_service.quaternion import quat_from_rotvec, quat_integrate, quat_rotate, quat_rotate_inv, vec_cross
 
@@ -63,9 +64,12 @@ class MahonyParams:
                 raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
 
 
+_P = param_index(MahonyParams)  # indices of the packed parameter vector, by field name
+
+
 @njit(cache=True, inline="always")
 def _mahony_step(s, p, x, direct):
-    kp, ki, w_acc, w_mag = p[0], p[1], p[2], p[3]
+    kp, ki, w_acc, w_mag = p[_P.kp], p[_P.ki], p[_P.w_acc], p[_P.w_mag]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
         return

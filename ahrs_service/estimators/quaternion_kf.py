@@ -26,14 +26,24 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.quest import DIP, learn_dip, quest_quat
+from ahrs_service.estimators.quest import STATE as QUEST_STATE
 from ahrs_service.estimators.triad import align_down, down_direction
 from ahrs_service.quaternion import quat_normalize
 
-P = DIP + 2  # 4×4 covariance, row-major, after the learned dip
-G = P + 16  # 4×4 work area: the Kalman gain
-L = G + 16  # 4×4 work area: A P, then the Cholesky factor of C P Cᵀ + R
-STATE_SIZE = L + 16
+# after QUEST's learned dip (the start-up is QUEST's)
+STATE = Layout(
+    "quaternion_kf state",
+    [
+        Slot("p", 16, "4×4 covariance, row-major"),
+        Slot("g", 16, "4×4 work area: the Kalman gain"),
+        Slot("l", 16, "4×4 work area: A P, then the Cholesky factor of C P Cᵀ + R"),
+    ],
+    start=QUEST_STATE.end,
+)
+P, G, L = STATE.index
+STATE_SIZE = STATE.end
 
 
 @dataclass
@@ -63,9 +73,12 @@ class QuaternionKFParams:
                 raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
 
 
+_P = param_index(QuaternionKFParams)  # indices of the packed parameter vector, by field name
+
+
 @njit(cache=True)
 def quaternion_kf_step(s, p, x):
-    sigma_zeta, sigma_xi, w_acc, w_mag = p[0], p[1], p[3], p[4]
+    sigma_zeta, sigma_xi, w_acc, w_mag = p[_P.sigma_zeta], p[_P.sigma_xi], p[_P.w_acc], p[_P.w_mag]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if s[DIP] == 0.0 and s[DIP + 1] == 0.0 and acc_ok and mag_ok:
         learn_dip(s, x)

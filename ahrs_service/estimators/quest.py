@@ -27,14 +27,16 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.triad import align_down, down_direction
 from ahrs_service.quaternion import quat_integrate, quat_mul, quat_normalize
 
 _inline = njit(cache=True, inline="always")
 
-# state after the header: the earth field direction (cos δ, sin δ) learned at start-up
-DIP = K.HEADER
-STATE_SIZE = K.HEADER + 2
+# state after the header: the earth field direction learned at start-up
+STATE = Layout("quest state", [Slot("dip", 2, "earth field direction (cos δ, sin δ), δ the dip")], start=K.HEADER)
+(DIP,) = STATE.index
+STATE_SIZE = STATE.end
 
 
 @_inline
@@ -158,9 +160,12 @@ class QuestParams:
             raise ValueError(f"w_mag must be > 0, got {self.w_mag}")
 
 
+_P = param_index(QuestParams)  # indices of the packed parameter vector, by field name
+
+
 @njit(cache=True)
 def quest_step(s, p, x):
-    w_acc, w_mag = p[0], p[1]
+    w_acc, w_mag = p[_P.w_acc], p[_P.w_mag]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if s[DIP] == 0.0 and s[DIP + 1] == 0.0 and acc_ok and mag_ok:
         learn_dip(s, x)

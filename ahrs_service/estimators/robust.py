@@ -1,10 +1,16 @@
-"""The project's robust real-time attitude estimator ("robust"): GIMLET.
+"""The robust real-time attitude estimator ("robust"): GIMLET.
 
 GIMLET — *Gyro-consistent Inertial-frame filter with Magnetic Learning of hard iron and
-Extended rejection* — is a causal, one-sample-at-a-time estimator built on the structure of
-VQF (D. Laidig, T. Seel, "VQF: Highly accurate IMU orientation estimation with bias
-estimation and magnetic disturbance rejection", Information Fusion 91, 2023, doi:
-10.1016/j.inffus.2022.10.014). The attitude is factored as (VQF eq. 3)
+Extended rejection* — is a causal, one-sample-at-a-time estimator built on VQF (D. Laidig,
+T. Seel, "VQF: Highly accurate IMU orientation estimation with bias estimation and magnetic
+disturbance rejection", Information Fusion 91, 2023, doi: 10.1016/j.inffus.2022.10.014).
+
+Credit: this module's start-up, rest detection, inclination correction (with its q_w guard)
+and gyro-bias Kalman filter (covariance in (0.01 °/s)², its noise scaling) follow VQF's
+reference implementation (github.com/dlaidig/vqf, vqf/cpp/vqf.cpp, MIT, © 2021 Daniel
+Laidig; notice in THIRD_PARTY_NOTICES), in places statement by statement, re-expressed for
+NED/FRD. The project's own: the output lead and the magnetic features marked so in
+``robust_mag``. The attitude is factored as (VQF eq. 3)
 
     q_E←S = q_δ ⊗ q_a ⊗ q_g
 
@@ -48,8 +54,8 @@ time since the last field sample is kept, so a magnetometer slower than the gyro
 Modules: this one (start-up, rest detection, inclination, bias, the step and the class),
 ``robust_layout`` (parameters and state slots), ``robust_mag`` (the magnetic features),
 ``robust_blocks`` (filters and small linear algebra). The state array starts with the common
-header of ``_kernel`` (q, flags, counters, gyro bias at 8..10); ``robust_layout`` lists the
-rest. Earth frame NED, body frame FRD or the sensor's own axes; units rad/s, m/s², µT, s.
+header of ``_kernel`` (q, flags, counters, gyro bias); ``robust_layout.STATE`` declares the
+rest by name and size (``s[ST.gq]``, ``p[P.tau_acc]``). Earth frame NED, body frame FRD or the sensor's own axes; units rad/s, m/s², µT, s.
 """
 
 from __future__ import annotations
@@ -62,7 +68,7 @@ from numba import njit
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators import robust_blocks as B
 from ahrs_service.estimators.base import Estimator
-from ahrs_service.estimators.robust_layout import *  # noqa: F403 - slot and parameter indices
+from ahrs_service.estimators.robust_layout import DEG, N_PARAMS, P, ST, STATE, STATE_SIZE, RobustParams
 from ahrs_service.estimators.robust_mag import hard_iron_and_consistency, heading
 from ahrs_service.quaternion import quat_integrate, quat_mul, quat_normalize, quat_rotate
 
@@ -73,39 +79,39 @@ _jit = njit(cache=True, inline="always")
 def _update_coefficients(s, p, dt):
     """Recomputes the cached low-pass coefficients when dt or a time constant changed."""
     if (
-        s[COEF_DT] != dt
-        or s[COEF_TAU_ACC] != p[P_TAU_ACC]
-        or s[COEF_TAU_REST] != p[P_REST_TAU]
-        or s[COEF_TAU_ACC_REST] != p[P_TAU_ACC_REST]
+        s[ST.coef_dt] != dt
+        or s[ST.coef_tau_acc] != p[P.tau_acc]
+        or s[ST.coef_tau_rest] != p[P.rest_filter_tau]
+        or s[ST.coef_tau_acc_rest] != p[P.tau_acc_rest]
     ):
-        B.butter2_coefficients(s, CA, dt, p[P_TAU_ACC])
-        B.butter2_coefficients(s, CR, dt, p[P_REST_TAU])
-        B.butter2_coefficients(s, CAR, dt, p[P_TAU_ACC_REST])
-        s[COEF_DT], s[COEF_TAU_ACC], s[COEF_TAU_REST] = dt, p[P_TAU_ACC], p[P_REST_TAU]
-        s[COEF_TAU_ACC_REST] = p[P_TAU_ACC_REST]
+        B.butter2_coefficients(s, ST.ca, dt, p[P.tau_acc])
+        B.butter2_coefficients(s, ST.cr, dt, p[P.rest_filter_tau])
+        B.butter2_coefficients(s, ST.car, dt, p[P.tau_acc_rest])
+        s[ST.coef_dt], s[ST.coef_tau_acc], s[ST.coef_tau_rest] = dt, p[P.tau_acc], p[P.rest_filter_tau]
+        s[ST.coef_tau_acc_rest] = p[P.tau_acc_rest]
 
 
 @_jit
 def _start(s, x):
     """First usable sample: q_g from gravity (and field), q_a = 1, δ = 0, filters at steady state."""
-    s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3] = s[0], s[1], s[2], s[3]
-    s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3] = 1.0, 0.0, 0.0, 0.0
-    s[DELTA] = 0.0
-    s[DELTA_C], s[DELTA_S] = 1.0, 0.0
+    s[ST.gq], s[ST.gq + 1], s[ST.gq + 2], s[ST.gq + 3] = s[0], s[1], s[2], s[3]
+    s[ST.aq], s[ST.aq + 1], s[ST.aq + 2], s[ST.aq + 3] = 1.0, 0.0, 0.0, 0.0
+    s[ST.delta] = 0.0
+    s[ST.delta_c], s[ST.delta_s] = 1.0, 0.0
     a_i = quat_rotate(K.load_quat(s), (x[3], x[4], x[5]))
     r = B.quat_to_matrix(K.load_quat(s))
     for k in range(3):
-        B.butter2_reset(s, CA, ACC_LP, 3, k, a_i[k])
-        B.butter2_reset(s, CR, REST_GYR, 3, k, x[k])
-        B.butter2_reset(s, CR, REST_ACC, 3, k, x[3 + k])
-        s[GYR_LP + k] = x[k]
+        B.butter2_reset(s, ST.ca, ST.acc_lp, 3, k, a_i[k])
+        B.butter2_reset(s, ST.cr, ST.rest_gyr, 3, k, x[k])
+        B.butter2_reset(s, ST.cr, ST.rest_acc, 3, k, x[3 + k])
+        s[ST.gyr_lp + k] = x[k]
     for k in range(9):
-        B.butter2_reset(s, CA, R_LP, 9, k, r[k])
+        B.butter2_reset(s, ST.ca, ST.r_lp, 9, k, r[k])
     for k in range(2):
-        B.butter2_reset(s, CA, BIAS_LP, 2, k, 0.0)
-    s[MAG_N] = 0.0
-    s[MAG_T] = 0.0
-    s[HI_PREV_OK] = 0.0
+        B.butter2_reset(s, ST.ca, ST.bias_lp, 2, k, 0.0)
+    s[ST.mag_n] = 0.0
+    s[ST.mag_t] = 0.0
+    s[ST.hi_prev_ok] = 0.0
 
 
 @_jit
@@ -115,21 +121,21 @@ def _rest_detection(s, p, x, dt):
     dev_a = 0.0
     lp2 = 0.0
     for k in range(3):
-        g = B.butter2_step(s, CR, REST_GYR, 3, k, x[k])
-        s[GYR_LP + k] = g
-        a = B.butter2_step(s, CR, REST_ACC, 3, k, x[3 + k])
+        g = B.butter2_step(s, ST.cr, ST.rest_gyr, 3, k, x[k])
+        s[ST.gyr_lp + k] = g
+        a = B.butter2_step(s, ST.cr, ST.rest_acc, 3, k, x[3 + k])
         dev_g += (x[k] - g) ** 2
         dev_a += (x[3 + k] - a) ** 2
         lp2 += g * g
-    th_g = p[P_REST_TH_GYR] * DEG
-    clip = p[P_BIAS_CLIP] * DEG
-    if dev_g >= th_g * th_g or lp2 > clip * clip or dev_a >= p[P_REST_TH_ACC] ** 2:
-        s[REST_T] = 0.0
-        s[REST] = 0.0
+    th_g = p[P.rest_th_gyr] * DEG
+    clip = p[P.bias_clip] * DEG
+    if dev_g >= th_g * th_g or lp2 > clip * clip or dev_a >= p[P.rest_th_acc] ** 2:
+        s[ST.rest_t] = 0.0
+        s[ST.rest] = 0.0
     else:
-        s[REST_T] += dt
-        if s[REST_T] >= p[P_REST_MIN_T]:
-            s[REST] = 1.0
+        s[ST.rest_t] += dt
+        if s[ST.rest_t] >= p[P.rest_min_t]:
+            s[ST.rest] = 1.0
 
 
 @_jit
@@ -144,11 +150,11 @@ def _inclination_and_bias(s, p, x, dt, qg, rg):
         rg[3] * ax + rg[4] * ay + rg[5] * az,
         rg[6] * ax + rg[7] * ay + rg[8] * az,
     )
-    ca = CAR if s[REST] != 0.0 else CA  # at rest nothing needs rejecting: converge faster
-    lp0 = B.butter2_step(s, ca, ACC_LP, 3, 0, a_i[0])
-    lp1 = B.butter2_step(s, ca, ACC_LP, 3, 1, a_i[1])
-    lp2 = B.butter2_step(s, ca, ACC_LP, 3, 2, a_i[2])
-    qa = (s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3])
+    ca = ST.car if s[ST.rest] != 0.0 else ST.ca  # at rest nothing needs rejecting: converge faster
+    lp0 = B.butter2_step(s, ca, ST.acc_lp, 3, 0, a_i[0])
+    lp1 = B.butter2_step(s, ca, ST.acc_lp, 3, 1, a_i[1])
+    lp2 = B.butter2_step(s, ca, ST.acc_lp, 3, 2, a_i[2])
+    qa = (s[ST.aq], s[ST.aq + 1], s[ST.aq + 2], s[ST.aq + 3])
     a_e = quat_rotate(qa, (lp0, lp1, lp2))
     n = math.sqrt(a_e[0] ** 2 + a_e[1] ** 2 + a_e[2] ** 2)
     # down direction u = −f/|f| must become NED z: rotate u onto (0, 0, 1) (VQF eq. 9–10).
@@ -164,52 +170,52 @@ def _inclination_and_bias(s, p, x, dt, qg, rg):
     else:
         corr = (0.0, 1.0, 0.0, 0.0)
     qa = quat_normalize(quat_mul(corr, qa))
-    s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3] = qa
+    s[ST.aq], s[ST.aq + 1], s[ST.aq + 2], s[ST.aq + 3] = qa
 
     # ---- gyro bias (VQF section 3.3): P in (0.01 °/s)², bias in rad/s
-    clip = p[P_BIAS_CLIP] * DEG
+    clip = p[P.bias_clip] * DEG
     q6 = quat_mul(qa, qg)
     r = B.quat_to_matrix(q6)  # R(q_a ⊗ q_g), E6←S
     b0, b1, b2 = s[K.BIAS], s[K.BIAS + 1], s[K.BIAS + 2]
     rb0 = r[0] * b0 + r[1] * b1 + r[2] * b2
     rb1 = r[3] * b0 + r[4] * b1 + r[5] * b2
     rl = (
-        B.butter2_step(s, CA, R_LP, 9, 0, r[0]), B.butter2_step(s, CA, R_LP, 9, 1, r[1]),
-        B.butter2_step(s, CA, R_LP, 9, 2, r[2]), B.butter2_step(s, CA, R_LP, 9, 3, r[3]),
-        B.butter2_step(s, CA, R_LP, 9, 4, r[4]), B.butter2_step(s, CA, R_LP, 9, 5, r[5]),
-        B.butter2_step(s, CA, R_LP, 9, 6, r[6]), B.butter2_step(s, CA, R_LP, 9, 7, r[7]),
-        B.butter2_step(s, CA, R_LP, 9, 8, r[8]),
+        B.butter2_step(s, ST.ca, ST.r_lp, 9, 0, r[0]), B.butter2_step(s, ST.ca, ST.r_lp, 9, 1, r[1]),
+        B.butter2_step(s, ST.ca, ST.r_lp, 9, 2, r[2]), B.butter2_step(s, ST.ca, ST.r_lp, 9, 3, r[3]),
+        B.butter2_step(s, ST.ca, ST.r_lp, 9, 4, r[4]), B.butter2_step(s, ST.ca, ST.r_lp, 9, 5, r[5]),
+        B.butter2_step(s, ST.ca, ST.r_lp, 9, 6, r[6]), B.butter2_step(s, ST.ca, ST.r_lp, 9, 7, r[7]),
+        B.butter2_step(s, ST.ca, ST.r_lp, 9, 8, r[8]),
     )  # fmt: skip
-    blp0 = B.butter2_step(s, CA, BIAS_LP, 2, 0, rb0)
-    blp1 = B.butter2_step(s, CA, BIAS_LP, 2, 1, rb1)
+    blp0 = B.butter2_step(s, ST.ca, ST.bias_lp, 2, 0, rb0)
+    blp1 = B.butter2_step(s, ST.ca, ST.bias_lp, 2, 1, rb1)
 
     # process noise: the variance grows by (0.1 °/s)² per forgetting time, up to its initial value
-    v = 100.0 * dt / p[P_BIAS_FORGET]
-    p0 = (p[P_BIAS_INIT] * 100.0) ** 2
+    v = 100.0 * dt / p[P.bias_forgetting_time]
+    p0 = (p[P.bias_sigma_init] * 100.0) ** 2
     for k in range(3):
-        if s[BIAS_P + 4 * k] < p0:
-            s[BIAS_P + 4 * k] += v
-    if s[REST] != 0.0 and p[P_BIAS_REST] > 0.0:
+        if s[ST.bias_p + 4 * k] < p0:
+            s[ST.bias_p + 4 * k] += v
+    if s[ST.rest] != 0.0 and p[P.bias_sigma_rest] > 0.0:
         # at rest the low-passed gyro is the bias itself: H = I
-        pr = (p[P_BIAS_REST] * 100.0) ** 2
+        pr = (p[P.bias_sigma_rest] * 100.0) ** 2
         w = pr * pr / v + pr
         e = (
-            min(clip, max(-clip, s[GYR_LP] - b0)),
-            min(clip, max(-clip, s[GYR_LP + 1] - b1)),
-            min(clip, max(-clip, s[GYR_LP + 2] - b2)),
+            min(clip, max(-clip, s[ST.gyr_lp] - b0)),
+            min(clip, max(-clip, s[ST.gyr_lp + 1] - b1)),
+            min(clip, max(-clip, s[ST.gyr_lp + 2] - b2)),
         )
-        B.bias_kalman_update(s, BIAS_P, K.BIAS, SCRATCH, (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), e, (w, w, w), 3)
-    elif p[P_BIAS_MOTION] > 0.0:
+        B.bias_kalman_update(s, ST.bias_p, K.BIAS, ST.scratch, (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), e, (w, w, w), 3)
+    elif p[P.bias_sigma_motion] > 0.0:
         # in motion the horizontal correction rate −r/dt is what the bias error turned the
         # estimate by: R b_true ≈ −r/dt + LP(R b̂) on the two horizontal rows
-        pm = (p[P_BIAS_MOTION] * 100.0) ** 2
+        pm = (p[P.bias_sigma_motion] * 100.0) ** 2
         w = pm * pm / v + pm
         e = (
             min(clip, max(-clip, -uy / dt + blp0 - (rl[0] * b0 + rl[1] * b1 + rl[2] * b2))),
             min(clip, max(-clip, ux / dt + blp1 - (rl[3] * b0 + rl[4] * b1 + rl[5] * b2))),
             0.0,
         )
-        B.bias_kalman_update(s, BIAS_P, K.BIAS, SCRATCH, rl, e, (w, w, w), 2)
+        B.bias_kalman_update(s, ST.bias_p, K.BIAS, ST.scratch, rl, e, (w, w, w), 2)
     for k in range(3):
         s[K.BIAS + k] = min(clip, max(-clip, s[K.BIAS + k]))
     return q6
@@ -237,7 +243,7 @@ def _first_sample(s, params, x, gyro_ok, acc_ok, mag_ok):
     _update_coefficients(s, p, dt0)
     _start(s, x)
     if mag_ok:
-        s[MAG_DT] = dt0
+        s[ST.mag_dt] = dt0
         heading(s, p, x, (s[0], s[1], s[2], s[3]))  # q_a = 1: q_a ⊗ q_g = q_g = q
 
 
@@ -247,24 +253,24 @@ def _update(s, params, x, acc_ok, mag_ok):
     p = B.load_tuple(params, N_PARAMS)
     dt = x[K.DT]
     _update_coefficients(s, p, dt)
-    s[MAG_DT] += dt
-    s[HI_T] += dt
+    s[ST.mag_dt] += dt
+    s[ST.hi_t] += dt
     # strapdown integration of the bias-corrected rate (VQF eq. 4)
     wx, wy, wz = x[0] - s[K.BIAS], x[1] - s[K.BIAS + 1], x[2] - s[K.BIAS + 2]
-    qg = quat_integrate((s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3]), wx, wy, wz, dt)
-    s[GQ], s[GQ + 1], s[GQ + 2], s[GQ + 3] = qg
+    qg = quat_integrate((s[ST.gq], s[ST.gq + 1], s[ST.gq + 2], s[ST.gq + 3]), wx, wy, wz, dt)
+    s[ST.gq], s[ST.gq + 1], s[ST.gq + 2], s[ST.gq + 3] = qg
     # R(q_g) once: it rotates the accelerometer into I and feeds the hard-iron block means
     rg = B.quat_to_matrix(qg)
     if acc_ok:
         _rest_detection(s, p, x, dt)
         q6 = _inclination_and_bias(s, p, x, dt, qg, rg)
     else:
-        q6 = quat_mul((s[AQ], s[AQ + 1], s[AQ + 2], s[AQ + 3]), qg)
+        q6 = quat_mul((s[ST.aq], s[ST.aq + 1], s[ST.aq + 2], s[ST.aq + 3]), qg)
     if mag_ok:
         hard_iron_and_consistency(s, p, x, dt, rg)
         heading(s, p, x, q6)
-    q = quat_mul((s[DELTA_C], 0.0, 0.0, s[DELTA_S]), q6)
-    lead = 0.5 * p[P_LEAD]
+    q = quat_mul((s[ST.delta_c], 0.0, 0.0, s[ST.delta_s]), q6)
+    lead = 0.5 * p[P.output_lead]
     if lead > 0.0:
         # q ⊗ exp(ω̂ t_lead / 2) to first order: the lead angle is a few mrad, the neglected
         # terms (angle³/24) far below a microradian. |q ⊗ v| = |v| for a unit q, so scaling
@@ -314,9 +320,9 @@ class RobustEstimator(Estimator):
     def initial_state(self) -> np.ndarray:
         s = super().initial_state()
         p0 = (self.params.bias_sigma_init * 100.0) ** 2
-        s[BIAS_P] = s[BIAS_P + 4] = s[BIAS_P + 8] = p0
-        s[COEF_DT] = -1.0  # forces the first coefficient computation
-        s[GAIN_DT] = -1.0  # and the first gain computation
+        s[ST.bias_p] = s[ST.bias_p + 4] = s[ST.bias_p + 8] = p0  # diagonal of the 3 × 3 covariance
+        s[ST.coef_dt] = -1.0  # forces the first coefficient computation
+        s[ST.gain_dt] = -1.0  # and the first gain computation
         return s
 
     @property
@@ -324,13 +330,13 @@ class RobustEstimator(Estimator):
         s = self.state
         return {
             **super().diagnostics,
-            "rest": bool(s[REST]),
-            "mag_disturbed": bool(s[MAG_DIST]),
-            "mag_used": int(s[MAG_USED]),
-            "mag_ref_norm_ut": float(s[MAG_REF_NORM]),
-            "mag_ref_dip_deg": float(np.degrees(s[MAG_REF_DIP])),
-            "hard_iron_ut": s[HI_H : HI_H + 3].copy(),
-            "hard_iron_trusted": bool(s[HI_OK]),
+            "rest": bool(s[ST.rest]),
+            "mag_disturbed": bool(s[ST.mag_dist]),
+            "mag_used": int(s[ST.mag_used]),
+            "mag_ref_norm_ut": float(s[ST.mag_ref_norm]),
+            "mag_ref_dip_deg": float(np.degrees(s[ST.mag_ref_dip])),
+            "hard_iron_ut": s[STATE.slices.hi_h].copy(),
+            "hard_iron_trusted": bool(s[ST.hi_ok]),
             # residual / tolerance of the gyro-consistency test (< 1: consistent), no unit
-            "consistency_ratio": float(np.sqrt(max(s[CONS], 0.0))),
+            "consistency_ratio": float(np.sqrt(max(s[ST.cons], 0.0))),
         }

@@ -9,6 +9,10 @@ and magnetic disturbance rejection", Information Fusion 91, 2023 (section 3 and 
 a second-order Butterworth low-pass parametrised by a time constant τ, whose cut-off
 frequency is f_c = √2 / (2π τ), so that its step response settles like a first-order
 filter of time constant τ.
+
+Credit: ``butter2_*`` and the bias Kalman update follow VQF's reference implementation
+(github.com/dlaidig/vqf, vqf/cpp/vqf.cpp: filterCoeffs, filterInitialState, the bias update;
+MIT, © 2021 Daniel Laidig; notice in THIRD_PARTY_NOTICES).
 """
 
 from __future__ import annotations

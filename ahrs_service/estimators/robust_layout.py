@@ -1,8 +1,10 @@
 """Parameters and state layout of the robust estimator (``robust.py``).
 
-``RobustParams`` holds every tuning parameter with its unit and default; the ``P_*``
-constants index the packed parameter vector and the upper-case slot names index the state
-array after the common header of ``_kernel`` (q, flags, counters, gyro bias at 8..10).
+``RobustParams`` holds every tuning parameter with its unit and default; ``P`` names the
+indices of the packed parameter vector (``p[P.tau_acc]``), ``STATE`` declares the state
+array's slots after the common header of ``_kernel`` (q, flags, counters, gyro bias) and
+``ST`` names their first indices (``s[ST.hi_h]``). No offset is counted by hand: the
+``Layout`` computes them from the slot sizes.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import math
 from dataclasses import dataclass
 
 from ahrs_service.estimators import _kernel as K
+from ahrs_service.estimators.layout import Layout, Slot, param_index
 
 DEG = math.pi / 180.0
 
@@ -133,72 +136,87 @@ class RobustParams:
             raise ValueError(f"mag_rejection_factor must be >= 1, got {self.mag_rejection_factor}")
 
 
-# parameter vector indices (the order of the dataclass fields)
-_P = {f.name: i for i, f in enumerate(dataclasses.fields(RobustParams))}
-P_TAU_ACC, P_REST_MIN_T, P_REST_TAU = _P["tau_acc"], _P["rest_min_t"], _P["rest_filter_tau"]
-P_TAU_ACC_REST, P_MAG_ROT, P_LEAD = _P["tau_acc_rest"], _P["mag_rot_rate"], _P["output_lead"]
-P_REST_TH_GYR, P_REST_TH_ACC = _P["rest_th_gyr"], _P["rest_th_acc"]
-P_BIAS_INIT, P_BIAS_FORGET, P_BIAS_CLIP = _P["bias_sigma_init"], _P["bias_forgetting_time"], _P["bias_clip"]
-P_BIAS_MOTION, P_BIAS_REST = _P["bias_sigma_motion"], _P["bias_sigma_rest"]
-P_TAU_MAG, P_MAG_CUR_TAU, P_MAG_REF_TAU = _P["tau_mag"], _P["mag_current_tau"], _P["mag_ref_tau"]
-P_MAG_NORM_TH, P_MAG_DIP_TH, P_MAG_MIN_UNDIST = _P["mag_norm_th"], _P["mag_dip_th"], _P["mag_min_undisturbed_time"]
-P_MAG_MAX_REJ, P_MAG_REJ_FACTOR = _P["mag_max_rejection_time"], _P["mag_rejection_factor"]
-P_MAG_NEW_TIME, P_MAG_NEW_GYR, P_MAG_INIT_TIME = _P["mag_new_time"], _P["mag_new_min_gyr"], _P["mag_init_time"]
-P_MAG_NEW_FIRST = _P["mag_new_first_time"]
-P_BLOCK, P_CONS_TAU, P_CONS_TH = _P["block_time"], _P["consistency_tau"], _P["consistency_th"]
-P_CONS_REL = _P["consistency_rel"]
-P_HI_TAU, P_HI_INFO, P_HI_MIN, P_HI_MAX, P_HI_HUBER = (
-    _P["hard_iron_tau"], _P["hard_iron_min_info"], _P["hard_iron_min"], _P["hard_iron_max"], _P["hard_iron_huber"],
-)  # fmt: skip
-P_HI_RESET = _P["hard_iron_reset"]
-N_PARAMS = len(_P)  # length of the parameter vector
+#: indices of the packed parameter vector, named like the fields: ``p[P.tau_acc]``
+P = param_index(RobustParams)
+N_PARAMS = len(P)  # length of the parameter vector
 
-# ------------------------------------------------------------------ state layout (after the header)
-GQ = K.HEADER  # 11..14 q_g, I←S
-AQ = GQ + 4  # 15..18 q_a, E6←I
-DELTA = AQ + 4  # 19 heading offset δ, rad (rotation about NED down)
-COEF_DT, COEF_TAU_ACC, COEF_TAU_REST = DELTA + 1, DELTA + 2, DELTA + 3  # keys of the cached coefficients
-CA = DELTA + 4  # (b0, a1, a2) for τ_acc
-CR = CA + 3  # (b0, a1, a2) for rest_filter_tau
-ACC_LP = CR + 3  # 2 × 3 filter states of the accelerometer in I
-REST_GYR = ACC_LP + 6  # 2 × 3 states, gyro low-pass for rest detection
-REST_ACC = REST_GYR + 6  # 2 × 3 states, accelerometer low-pass for rest detection
-GYR_LP = REST_ACC + 6  # 3: low-passed gyro, rad/s
-REST_T = GYR_LP + 3  # time the rest tests have passed, s
-REST = REST_T + 1  # 1.0 while at rest
-BIAS_P = REST + 1  # 9: bias covariance, (0.01 °/s)²
-R_LP = BIAS_P + 9  # 2 × 9 states: low-pass of R(q_a ⊗ q_g)
-BIAS_LP = R_LP + 18  # 2 × 2 states: low-pass of the first two rows of R b
-MAG_REF_NORM, MAG_REF_DIP = BIAS_LP + 4, BIAS_LP + 5  # learned reference, µT and rad
-MAG_ND = BIAS_LP + 6  # 4: low-passed (norm, dip) of the raw and of the hard-iron-corrected field
-MAG_UNDIST_T = MAG_ND + 4  # time the field has passed the tests, s
-MAG_DIST = MAG_UNDIST_T + 1  # 1.0 while a disturbance is detected
-MAG_REJECT_T = MAG_DIST + 1  # rejection clock, s
-MAG_CAND_NORM, MAG_CAND_DIP, MAG_CAND_T = MAG_REJECT_T + 1, MAG_REJECT_T + 2, MAG_REJECT_T + 3
-MAG_N = MAG_CAND_T + 1  # number of field samples used so far
-MAG_T = MAG_N + 1  # time since start of the heading (for mag_init_time), s
-MAG_DT = MAG_T + 1  # time since the last field sample, s
-MAG_USED = MAG_DT + 1  # which field fed the heading: 0 none (rejected), 1 raw, 2 hard-iron corrected
-HI_H = MAG_USED + 1  # 3: hard-iron estimate, µT, body frame
-HI_A = HI_H + 3  # 9: information matrix Σ λ ΔR̄ᵀΔR̄
-HI_G = HI_A + 9  # 3: Σ λ ΔR̄ᵀ Δȳ
-HI_SUM_M = HI_G + 3  # 3: running sum of R_g m in the current block
-HI_SUM_R = HI_SUM_M + 3  # 9: running sum of R_g in the current block
-HI_N, HI_T = HI_SUM_R + 9, HI_SUM_R + 10  # samples and time in the current block
-HI_PREV_M = HI_T + 1  # 3: mean of R_g m in the previous block
-HI_PREV_R = HI_PREV_M + 3  # 9: mean of R_g in the previous block
-HI_PREV_OK = HI_PREV_R + 9  # 1.0 once a previous block exists
-HI_OK = HI_PREV_OK + 1  # 1.0 while the hard-iron estimate is trusted (observed, sane)
-CONS = HI_OK + 1  # consistency statistic: low-passed block residual² / tolerance² (< 1: consistent)
-SCRATCH = CONS + 1  # 36 slots for the Kalman and least-squares algebra
-CAR = SCRATCH + 36  # (b0, a1, a2) for tau_acc_rest
-COEF_TAU_ACC_REST = CAR + 3
-MAG_CONFIRMED = CAR + 4  # 1.0 once the start-up field was confirmed while turning
-HI_PENDING = CAR + 5  # 1.0 from a detected offset change until the estimate is trusted again
-GAIN_DT, GAIN_TAU_MAG, GAIN_CUR, GAIN_REF, GAIN_MAG = CAR + 6, CAR + 7, CAR + 8, CAR + 9, CAR + 10  # cached gains
-GAIN_TAU_CUR, GAIN_TAU_REF = CAR + 11, CAR + 12
-DELTA_C, DELTA_S = CAR + 13, CAR + 14  # cos(δ/2), sin(δ/2): q_δ, updated with δ
-STATE_SIZE = CAR + 15
+#: the state after the common header of ``_kernel`` (q, flags, counters, gyro bias). The
+#: order is that of earlier releases (slots were appended, never moved), so state snapshots
+#: in older logs still replay.
+STATE = Layout(
+    "robust state",
+    [
+        Slot("gq", 4, "q_g, I←S: strapdown integration of the bias-corrected gyro"),
+        Slot("aq", 4, "q_a, E6←I: inclination correction"),
+        Slot("delta", 1, "heading offset δ, rad (rotation about NED down)"),
+        Slot("coef_dt", 1, "dt the cached low-pass coefficients were computed for, s"),
+        Slot("coef_tau_acc", 1, "tau_acc of the cached coefficients, s"),
+        Slot("coef_tau_rest", 1, "rest_filter_tau of the cached coefficients, s"),
+        Slot("ca", 3, "(b0, a1, a2) of the low-pass for tau_acc"),
+        Slot("cr", 3, "(b0, a1, a2) of the low-pass for rest_filter_tau"),
+        Slot("acc_lp", 6, "2 × 3 filter states: accelerometer low-pass in I"),
+        Slot("rest_gyr", 6, "2 × 3 filter states: gyro low-pass for rest detection"),
+        Slot("rest_acc", 6, "2 × 3 filter states: accelerometer low-pass for rest detection"),
+        Slot("gyr_lp", 3, "low-passed gyro, rad/s"),
+        Slot("rest_t", 1, "time the rest tests have passed, s"),
+        Slot("rest", 1, "1.0 while at rest"),
+        Slot("bias_p", 9, "gyro-bias covariance, (0.01 °/s)², row-major 3 × 3"),
+        Slot("r_lp", 18, "2 × 9 filter states: low-pass of R(q_a ⊗ q_g)"),
+        Slot("bias_lp", 4, "2 × 2 filter states: low-pass of the first two rows of R b"),
+        Slot("mag_ref_norm", 1, "learned reference field norm, µT"),
+        Slot("mag_ref_dip", 1, "learned reference dip, rad"),
+        Slot("mag_nd", 4, "low-passed (norm, dip) of the raw and of the hard-iron-corrected field"),
+        Slot("mag_undist_t", 1, "time the field has passed the tests, s"),
+        Slot("mag_dist", 1, "1.0 while a disturbance is detected"),
+        Slot("mag_reject_t", 1, "rejection clock, s"),
+        Slot("mag_cand_norm", 1, "candidate new field: norm, µT"),
+        Slot("mag_cand_dip", 1, "candidate new field: dip, rad"),
+        Slot("mag_cand_t", 1, "time the candidate was seen steady while turning, s"),
+        Slot("mag_n", 1, "number of field samples used so far"),
+        Slot("mag_t", 1, "time since the start of the heading (for mag_init_time), s"),
+        Slot("mag_dt", 1, "time since the last field sample, s"),
+        Slot("mag_used", 1, "which field fed the heading: 0 none (rejected), 1 raw, 2 hard-iron corrected"),
+        Slot("hi_h", 3, "hard-iron estimate, µT, body frame"),
+        Slot("hi_a", 9, "information matrix Σ λ ΔR̄ᵀΔR̄"),
+        Slot("hi_g", 3, "Σ λ ΔR̄ᵀ Δȳ"),
+        Slot("hi_sum_m", 3, "running sum of R_g m in the current block"),
+        Slot("hi_sum_r", 9, "running sum of R_g in the current block"),
+        Slot("hi_n", 1, "samples in the current block"),
+        Slot("hi_t", 1, "time in the current block, s"),
+        Slot("hi_prev_m", 3, "mean of R_g m in the previous block"),
+        Slot("hi_prev_r", 9, "mean of R_g in the previous block"),
+        Slot("hi_prev_ok", 1, "1.0 once a previous block exists"),
+        Slot("hi_ok", 1, "1.0 while the hard-iron estimate is trusted (observed, sane)"),
+        Slot("cons", 1, "consistency statistic: low-passed block residual² / tolerance² (< 1: consistent)"),
+        Slot("scratch", 36, "work space of the Kalman and least-squares algebra (see HI_SCRATCH)"),
+        Slot("car", 3, "(b0, a1, a2) of the low-pass for tau_acc_rest"),
+        Slot("coef_tau_acc_rest", 1, "tau_acc_rest of the cached coefficients, s"),
+        Slot("mag_confirmed", 1, "1.0 once the start-up field was confirmed while turning"),
+        Slot("hi_pending", 1, "1.0 from a detected offset change until the estimate is trusted again"),
+        Slot("gain_dt", 1, "field-sample dt the cached heading gains were computed for, s"),
+        Slot("gain_tau_mag", 1, "tau_mag of the cached gains, s"),
+        Slot("gain_cur", 1, "cached gain for mag_current_tau"),
+        Slot("gain_ref", 1, "cached gain for mag_ref_tau"),
+        Slot("gain_mag", 1, "cached gain for tau_mag"),
+        Slot("gain_tau_cur", 1, "mag_current_tau of the cached gains, s"),
+        Slot("gain_tau_ref", 1, "mag_ref_tau of the cached gains, s"),
+        Slot("delta_c", 1, "cos(δ/2) of q_δ, updated with δ"),
+        Slot("delta_s", 1, "sin(δ/2) of q_δ, updated with δ"),
+    ],
+    start=K.HEADER,
+)
+ST = STATE.index  # first index of each slot, constant in compiled code: ``s[ST.hi_h + 2]``
+STATE_SIZE = STATE.end
 
-#: what ``from robust_layout import *`` brings: the parameters, DEG, and every index constant
-__all__ = ["RobustParams", "DEG"] + [n for n in dir() if n.isupper() and n not in ("DEG", "K") and not n.startswith("_")]
+#: the hard-iron update's use of the scratch space (the Kalman update uses all of it in its
+#: own way, see ``robust_blocks.bias_kalman_update``; the two never run interleaved)
+HI_SCRATCH = Layout(
+    "hard-iron scratch",
+    [
+        Slot("d_r", 9, "ΔR̄: change of the block mean of R_g, row-major"),
+        Slot("d_y", 3, "Δȳ: change of the block mean of R_g m, µT"),
+        Slot("a_inv", 9, "A⁻¹, inverse of the information matrix"),
+    ],
+    start=ST.scratch,
+    within=(ST.scratch, 36),
+).index

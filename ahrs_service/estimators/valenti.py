@@ -44,6 +44,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.layout import param_index
 from ahrs_service.quaternion import quat_mul, quat_normalize, quat_rotate
 
 #: the threshold on the delta's scalar part above which LERP replaces SLERP (eq. 54–56)
@@ -139,9 +140,13 @@ def _per_sample(gain, dt, rate):
     return 1.0 - (1.0 - gain) ** (dt * rate)
 
 
+_P = param_index(ValentiParams)  # indices of the packed parameter vector, by field name
+
+
 @njit(cache=True)
 def valenti_step(s, p, x):
-    alpha, beta, rate, t_low, t_high = p[0], p[1], p[2], p[3], p[4]
+    alpha, beta, rate = p[_P.alpha], p[_P.beta], p[_P.gain_rate_hz]
+    t_low, t_high = p[_P.adaptive_low], p[_P.adaptive_high]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
         return

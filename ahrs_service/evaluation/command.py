@@ -6,6 +6,7 @@ import argparse
 
 from ahrs_service import execution
 from ahrs_service.evaluation.broad import ENV_VAR
+from ahrs_service.evaluation.dido import ENV_VAR as DIDO_ENV_VAR
 
 
 def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
@@ -20,10 +21,18 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument(
+        "--dataset",
+        choices=("broad", "dido"),
+        default="broad",
+        help="broad: handheld recordings with optical truth (default); dido: quadrotor flights "
+        "(K. Zhang et al., DIDO, RA-L 2022), recorded stamps, inclination only",
+    )
+    p.add_argument(
         "--data",
         metavar="DIR",
         default=None,
-        help=f"folder of the BROAD *.hdf5 files and trials.json (default: ${ENV_VAR}, else ../shared/data/broad)",
+        help=f"folder of the data set's *.hdf5 files (default: ${ENV_VAR} / ${DIDO_ENV_VAR}, "
+        "else ../shared/data/broad or ../shared/data/dido)",
     )
     p.add_argument("--estimators", default="all", metavar="LIST", help="comma-separated names, or all (default)")
     p.add_argument(

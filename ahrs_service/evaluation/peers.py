@@ -106,7 +106,11 @@ def _vqf(gyr, acc, mag, rate_hz, **params):
     from vqf import VQF
 
     est = VQF(1.0 / rate_hz, **params)
-    q_enu = est.updateBatch(gyr, acc, mag)["quat9D"]
+    if np.isnan(mag).all():
+        # no magnetometer recorded (DIDO): VQF's 6D output, gyro and accelerometer only
+        q_enu = est.updateBatch(gyr, acc)["quat6D"]
+    else:
+        q_enu = est.updateBatch(gyr, acc, mag)["quat9D"]
     return quat_mul_array(Q_NED_TO_ENU, q_enu)
 
 
@@ -196,7 +200,7 @@ def _ahrs_quest(gyr, acc, mag, rate_hz, **params):
 PEERS: dict[str, Peer] = {
     p.name: p
     for p in (
-        Peer("vqf", "vqf", True, _vqf, "VQF (Laidig & Seel 2023), defaults, 9D output, updateBatch"),
+        Peer("vqf", "vqf", True, _vqf, "VQF (Laidig & Seel 2023), defaults, 9D output (6D without magnetometer), updateBatch"),
         Peer("vqf.offline", "vqf", True, _vqf_offline, "VQF's own offline (non-causal) mode, offlineVQF, defaults", False),
         Peer("imufusion", "imufusion", True, _imufusion, "Fusion AHRS (x-io), its README's example settings, per-sample"),
         Peer("ahrs.madgwick", "ahrs", True, _ahrs_madgwick, "ahrs package: Madgwick, MARG"),

@@ -1,6 +1,6 @@
 """PNG plots of an evaluation (matplotlib, Agg backend): error over time and per-group bars.
 
-Every figure carries the BROAD citation in its footer.
+Every figure carries the citation of its data set (BROAD or DIDO) in its footer.
 """
 
 from __future__ import annotations
@@ -29,11 +29,13 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text)
 
 
-def _footer(fig) -> None:
-    fig.text(0.01, 0.005, "Data: " + CITATION, fontsize=6, ha="left", va="bottom", wrap=True, color="0.3")
+def _footer(fig, citation: str = CITATION) -> None:
+    fig.text(0.01, 0.005, "Data: " + citation, fontsize=6, ha="left", va="bottom", wrap=True, color="0.3")
 
 
-def error_over_time(trial: Any, errors: dict[str, dict[str, np.ndarray]], columns: list[Any], out_dir: Path) -> str:
+def error_over_time(
+    trial: Any, errors: dict[str, dict[str, np.ndarray]], columns: list[Any], out_dir: Path, citation: str = CITATION
+) -> str:
     """One figure per trial: inclination error of every column, heading error of those with heading.
 
     ``errors``: column → {"heading", "inclination", ...} → (N,) degrees. Samples outside
@@ -63,7 +65,7 @@ def error_over_time(trial: Any, errors: dict[str, dict[str, np.ndarray]], column
     if axes[1].lines:
         axes[1].legend(fontsize=7, ncol=4, loc="upper right")
     fig.tight_layout(rect=(0, 0.03, 1, 1))
-    _footer(fig)
+    _footer(fig, citation)
     name = f"error_{_slug(trial.name)}.png"
     fig.savefig(out_dir / name, dpi=100)
     plt.close(fig)
@@ -90,7 +92,7 @@ def group_bars(results: dict, out_dir: Path) -> list[str]:
         ax.grid(True, axis="y", alpha=0.3)
         ax.legend(fontsize=8)
         fig.tight_layout(rect=(0, 0.05, 1, 1))
-        _footer(fig)
+        _footer(fig, results.get("citation", CITATION))
         name = f"group_{_slug(gname)}.png"
         fig.savefig(out_dir / name, dpi=100)
         plt.close(fig)

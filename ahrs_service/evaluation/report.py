@@ -29,9 +29,29 @@ import numpy as np
 from ahrs_service import estimators
 from ahrs_service.estimators import offline as offline_mode
 from ahrs_service.estimators.base import stack_rows, time_steps
-from ahrs_service.evaluation import broad, metrics, peers, stats
+from ahrs_service.evaluation import broad, dido, metrics, peers, stats
 from ahrs_service.execution import Runner, RunnerError, open_runner, worker_cache
+
+#: ``--dataset`` name → the module that reads it (same functions: default_dir, check_dir,
+#: list_trials, list_groups, load_trial, CITATION).
+DATASETS = {"broad": broad, "dido": dido}
+
+#: Title of each data set in the report.
+TITLES = {"broad": "BROAD", "dido": "DIDO (quadrotor flights)"}
+
+
+def has_mag(trial: Any) -> bool:
+    """False for recordings without a magnetometer (DIDO): scored on inclination only."""
+    return not bool(np.isnan(trial.mag).all())
+
+
+def stamps_of(trial: Any) -> np.ndarray | None:
+    """The recording's own sample times (s) when it has them (DIDO), else None (BROAD: rate)."""
+    return getattr(trial, "timestamps", None)
 from ahrs_service.quaternion import ned_to_enu_array
+from ahrs_service.estimators import SAMPLE_ROW
+
+_R = SAMPLE_ROW.slices
 
 
 @dataclass
@@ -164,13 +184,14 @@ def _run_offline(col: Column, trial: broad.Trial) -> np.ndarray:
     if col.kind == "estimator":
         return offline_mode.smooth(
             col.base, trial.gyr, trial.acc, mag,
-            rate_hz=trial.rate_hz, params=col.params, blend_time_s=col.blend_time_s,
+            rate_hz=trial.rate_hz if stamps_of(trial) is None else None, timestamps=stamps_of(trial),
+            params=col.params, blend_time_s=col.blend_time_s,
         )
     # a peer takes whole arrays at a fixed rate: the reversed rows' dt column is not needed
     rows = stack_rows(trial.gyr, trial.acc, trial.mag, time_steps(len(trial), trial.rate_hz))
 
     def run_rows(r: np.ndarray) -> np.ndarray:
-        return peers.run(col.base, r[:, 0:3], r[:, 3:6], r[:, 6:9], rate_hz=trial.rate_hz, **col.params)
+        return peers.run(col.base, r[:, _R.gyr], r[:, _R.acc], r[:, _R.mag], rate_hz=trial.rate_hz, **col.params)
 
     return offline_mode.smooth_rows(run_rows, rows, blend_time_s=col.blend_time_s, align=not col.observes_heading).q
 
@@ -184,7 +205,12 @@ def _run_column(col: Column, trial: broad.Trial) -> tuple[np.ndarray, float]:
         return q, time.perf_counter() - t0
     if col.kind == "estimator":
         t0 = time.perf_counter()
-        q = estimators.run(col.name, trial.gyr, trial.acc, mag, rate_hz=trial.rate_hz, **col.params)
+        # recorded stamps when the recording has them (recovered onto the sensor's clock by
+        # estimators.run, docs/timing.md); a peer library takes a constant rate: the fitted one
+        # (the fitted rate is a whole-flight figure: not given to a causal run as its nominal)
+        stamps = stamps_of(trial)
+        rate = trial.rate_hz if stamps is None else None
+        q = estimators.run(col.name, trial.gyr, trial.acc, mag, rate_hz=rate, timestamps=stamps, **col.params)
         return q, time.perf_counter() - t0
     t0 = time.perf_counter()
     q = peers.run(col.name, trial.gyr, trial.acc, trial.mag, rate_hz=trial.rate_hz, **col.params)
@@ -207,6 +233,7 @@ class TrialJob:
     trial: str
     column: Column
     with_errors: bool  # also return the per-sample errors (the plots want them)
+    dataset: str = "broad"  # a key of DATASETS
 
 
 @dataclass
@@ -220,22 +247,24 @@ class TrialResult:
     errors: dict[str, np.ndarray] | None = None
 
 
-def _load(data_dir: str, name: str) -> broad.Trial:
-    return worker_cache(("broad", data_dir, name), lambda: broad.load_trial(data_dir, name))
+def _load(dataset: str, data_dir: str, name: str) -> Any:
+    return worker_cache((dataset, data_dir, name), lambda: DATASETS[dataset].load_trial(data_dir, name))
 
 
 def run_trial_job(job: TrialJob) -> TrialResult:
     """Runs and scores one column over one trial; the same code serial or as a Dask task."""
-    trial = _load(job.data_dir, job.trial)
+    trial = _load(job.dataset, job.data_dir, job.trial)
     col = job.column
     # once per process and estimator: compile outside the measured run
     worker_cache(("warm", col.kind, col.base), lambda: _warm_up(col, trial) or True)
     delay = worker_cache(
-        ("delay", job.data_dir, job.trial),
+        ("delay", job.dataset, job.data_dir, job.trial),
         lambda: metrics.imu_delay(trial.gyr, trial.ref, trial.rate_hz, trial.movement),
     )
     q, seconds = _run_column(col, trial)
-    score = metrics.score(q, trial.ref, trial.movement, rate_hz=trial.rate_hz, with_heading=col.scores_heading)
+    score = metrics.score(
+        q, trial.ref, trial.movement, rate_hz=trial.rate_hz, with_heading=col.scores_heading and has_mag(trial)
+    )
     row = score.as_dict()
     row["us_per_sample"] = seconds / len(trial) * 1e6
     errors = None
@@ -253,6 +282,7 @@ def evaluate(
     *,
     progress: bool = False,
     on_trial: Callable[[broad.Trial, dict[str, dict[str, np.ndarray]]], None] | None = None,
+    dataset: str = "broad",
     runner: Runner | None = None,
 ) -> dict:
     """Runs every column over every trial and returns the results dict.
@@ -262,15 +292,19 @@ def evaluate(
     gathered in trial-then-column order, so they equal the serial run's whatever the runner
     (except the measured ``us_per_sample``).
 
+    ``dataset``: "broad" (handheld, optical truth) or "dido" (quadrotor flights: recorded
+    stamps, no magnetometer, inclination only, first 10 % of each flight not scored).
+
     ``on_trial(trial, errors)`` is called after each trial with per-column per-sample errors in
     degrees ({"total", "heading", "inclination"} → (N,) arrays) — the plots use it.
     """
+    source = DATASETS[dataset]
     if not trial_names:
         raise ValueError("no trial selected")
     if not columns:
         raise ValueError("nothing to evaluate: no estimator and no peer selected")
     data_dir = str(Path(data_dir).resolve())
-    jobs = [TrialJob(data_dir, t, c, on_trial is not None) for t in trial_names for c in columns]
+    jobs = [TrialJob(data_dir, t, c, on_trial is not None, dataset) for t in trial_names for c in columns]
     runner = runner or Runner()
     results = runner.map(run_trial_job, jobs, progress=progress, desc="evaluate")
     per_trial: dict[str, dict[str, dict]] = {c.name: {} for c in columns}
@@ -280,10 +314,10 @@ def evaluate(
         imu_delays[res.trial] = res.imu_delay
     if on_trial is not None:
         for i, tname in enumerate(trial_names):
-            trial = _load(data_dir, tname)  # the plots draw the recording's own signals too
+            trial = _load(dataset, data_dir, tname)  # the plots draw the recording's own signals too
             on_trial(trial, {r.column: r.errors for r in results[i * len(columns):(i + 1) * len(columns)]})
 
-    groups = broad.list_groups(data_dir, trial_names)
+    groups = source.list_groups(data_dir, trial_names)
     per_group: dict[str, dict[str, dict]] = {}
     for col in columns:
         per_group[col.name] = {}
@@ -298,12 +332,17 @@ def evaluate(
             {c.name: [per_trial[c.name][t]["inclination_rmse"] for t in trial_names] for c in columns}, trial_names
         ).as_dict(),
         "total": stats.rank_test(
-            {c.name: [per_trial[c.name][t]["total_rmse"] for t in trial_names] for c in columns if c.scores_heading},
+            {
+                c.name: [per_trial[c.name][t]["total_rmse"] for t in trial_names]
+                for c in columns
+                if c.scores_heading and all(per_trial[c.name][t]["total_rmse"] is not None for t in trial_names)
+            },
             trial_names,
         ).as_dict(),
     }
     return {
-        "citation": broad.CITATION,
+        "dataset": dataset,
+        "citation": source.CITATION,
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "data_dir": str(Path(data_dir).resolve()),
         "trials": trial_names,
@@ -354,13 +393,23 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
     meta = {c["name"]: c for c in results["columns"]}
     trials = results["trials"]
     pt, pg = results["per_trial"], results["per_group"]
+    dataset = results.get("dataset", "broad")
+    citation = results.get("citation", broad.CITATION)
+    scope = (
+        "Errors in degrees, RMSE over the `movement` samples (reference gaps skipped); a group's "
+        if dataset == "broad"
+        else "Flights have no magnetometer: inclination only (the angle between the estimated and "
+        "the true gravity direction in the IMU frame), RMSE over each flight after its first 10 %. "
+        "Our estimators take the recorded stamps (recovered onto the sensor's clock, "
+        "docs/timing.md); peers take the flight's fitted rate (VQF: its 6D output). A group's "
+    )
     out = [
-        "# Attitude estimator evaluation on BROAD",
+        f"# Attitude estimator evaluation on {TITLES.get(dataset, dataset)}",
         "",
-        f"Data: {broad.CITATION}",
+        f"Data: {citation}",
         "",
         f"Created {results['created']} from `{results['data_dir']}`, {len(trials)} trial(s). "
-        "Errors in degrees, RMSE over the `movement` samples (reference gaps skipped); a group's "
+        + scope +
         "figure is the mean of its trials' RMSEs. Estimators without heading are scored on "
         "inclination only (total and heading n/a). L2: the second paper's index "
         "√(1/(t−t₀)∫|e|dt) of the scored error, √deg. µs/sample: wall time of the batch run "
@@ -448,7 +497,7 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
 
     if plots:
         out += ["## Plots", ""] + [f"- [{p}]({p})" for p in plots] + [""]
-    out += ["---", "", f"Data: {broad.CITATION}", ""]
+    out += ["---", "", f"Data: {citation}", ""]
     return "\n".join(out)
 
 
@@ -457,9 +506,13 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
 
 def main(args: Any) -> int:
     """Entry of ``ahrs-service evaluate`` (arguments from ``command.add_subcommands``)."""
+    dataset = getattr(args, "dataset", "broad") or "broad"
     try:
-        data_dir = broad.check_dir(args.data if args.data else broad.default_dir())
-        trial_names = broad.list_trials(data_dir, args.trials)
+        if dataset not in DATASETS:
+            raise ValueError(f"--dataset {dataset!r}: choose from {', '.join(DATASETS)}")
+        source = DATASETS[dataset]
+        data_dir = source.check_dir(args.data if args.data else source.default_dir())
+        trial_names = source.list_trials(data_dir, args.trials)
         if not trial_names:
             raise ValueError(f"no trial in {str(data_dir)!r} matches {args.trials!r}")
         est_names, skipped = select_estimators(args.estimators)
@@ -485,7 +538,7 @@ def main(args: Any) -> int:
     plot_files: list[str] = []
 
     def on_trial(trial, errors):
-        plot_files.append(plots.error_over_time(trial, errors, columns, out_dir))
+        plot_files.append(plots.error_over_time(trial, errors, columns, out_dir, source.CITATION))
 
     progress = not args.quiet and sys.stderr.isatty()
     try:
@@ -494,7 +547,9 @@ def main(args: Any) -> int:
         print(f"ahrs-service evaluate: error: {exc}", file=sys.stderr)
         return 2
     with runner:
-        results = evaluate(data_dir, columns, trial_names, progress=progress, on_trial=on_trial, runner=runner)
+        results = evaluate(
+            data_dir, columns, trial_names, progress=progress, on_trial=on_trial, dataset=dataset, runner=runner
+        )
     plot_files += plots.group_bars(results, out_dir)
     results["plots"] = plot_files
     if skipped:

@@ -2,7 +2,7 @@
 
 A :class:`Trajectory` gives the true state of the body at any time ``t`` (seconds from the
 start of the simulation). Earth frame NED, body frame FRD, quaternions q_earth←body
-[w, x, y, z] (see ../shared/DESIGN.md).
+[w, x, y, z] (see docs/design.md).
 
 The angular rate and the specific force are the *exact* derivatives of the attitude and the
 position (analytic, not finite differences), so an estimator fed a perfect simulated IMU

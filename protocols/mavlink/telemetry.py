@@ -1,6 +1,6 @@
 """What the service hands the MAVLink component at each publish: one attitude snapshot.
 
-Frames and units follow ../shared/DESIGN.md: q is q_earth←body, Hamilton [w, x, y, z], earth
+Frames and units follow docs/design.md: q is q_earth←body, Hamilton [w, x, y, z], earth
 NED, body FRD; Euler angles ZYX in rad with yaw in (−π, π]; body rates in rad/s about the FRD
 axes (p, q, r), bias-corrected. Raw IMU values, when given, are calibrated and in the body
 frame: gyroscope rad/s, specific force m/s², magnetic field µT, temperature °C.

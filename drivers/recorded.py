@@ -16,6 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from ahrs_service.drivers.base import ImuSample, ImuSource
+from ahrs_service.estimators import SAMPLE_ROW
+
+_R = SAMPLE_ROW.slices
 
 
 class RecordedSource(ImuSource):
@@ -76,7 +79,7 @@ class RecordedSource(ImuSource):
             self.rows, self.t_ns, self.truth, self.flags = log.rows, log.t_ns, log.truth, log.flags
             self.damage = log.damage
             self.calibrated = True
-        self.has_mag = bool(np.isfinite(self.rows[:, 6:9]).any())
+        self.has_mag = bool(np.isfinite(self.rows[:, _R.mag]).any())
         self._precompute()
         self._i = 0
         self._t0_host = None
@@ -93,7 +96,7 @@ class RecordedSource(ImuSource):
         self._t_list = t.tolist()
         self._offsets = (t - t[0]).tolist() if len(t) else []
         self._flags_list = self.flags.tolist()
-        self._mag_ok = np.isfinite(self.rows[:, 6:9]).all(axis=1).tolist()
+        self._mag_ok = np.isfinite(self.rows[:, _R.mag]).all(axis=1).tolist()
         self._truth_ok = None if self.truth is None else np.isfinite(self.truth).all(axis=1).tolist()
 
     def __len__(self) -> int:
@@ -124,9 +127,9 @@ class RecordedSource(ImuSource):
         self.diagnostics.samples += 1
         return ImuSample(
             t_ns=self._t0_host + offsets[i] if self.rebase_time else self._t_list[i],
-            gyr=row[0:3],
-            acc=row[3:6],
-            mag=row[6:9] if self._mag_ok[i] else None,
+            gyr=row[_R.gyr],
+            acc=row[_R.acc],
+            mag=row[_R.mag] if self._mag_ok[i] else None,
             flags=self._flags_list[i],
             truth_q=self.truth[i].copy() if truth_ok else None,
         )
@@ -134,4 +137,4 @@ class RecordedSource(ImuSource):
     @property
     def last_dt(self) -> float:
         """The dt (s) recorded with the sample read last: feed it for a bit-exact re-run."""
-        return float(self.rows[max(self._i - 1, 0), 9])
+        return float(self.rows[max(self._i - 1, 0), SAMPLE_ROW.index.dt])
