@@ -39,6 +39,9 @@ OPTIONAL_MODULES = {
     "vqf": "peers",
     "imufusion": "peers",
     "ahrs": "peers",
+    "spidev": "hardware",
+    "gpiod": "hardware",
+    "foxglove": "live",
 }
 
 

@@ -19,8 +19,8 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-SOURCE_TYPES = ("simulated_i2c", "simulated_can", "simulated", "i2c", "can", "recorded")
-BOARDS = ("gy80", "minimu9v2", "mpu9250")
+SOURCE_TYPES = ("simulated_i2c", "simulated_spi", "simulated_can", "simulated", "i2c", "spi", "can", "recorded")
+BOARDS = ("gy80", "minimu9v2", "mpu9250", "icm42688p", "icm20948", "bmi088")
 PROFILES = ("static", "validation", "figure8")
 IDENTITIES = ("standalone", "companion")
 
@@ -108,6 +108,15 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "type": ("simulated_i2c", _choice(SOURCE_TYPES)),
         "board": ("gy80", _choice(BOARDS)),
         "i2c_bus": (1, _number(0, 255, integer=True)),
+        # the I2C clock the rate check assumes (FIFO boards): 100 kHz standard, 400 kHz fast mode
+        "i2c_speed_hz": (400_000, _number(10_000, 3_400_000, integer=True)),
+        # SPI boards: /dev/spidev<spi_bus>.<spi_device>, clock mode 0-3, clock in Hz
+        "spi_bus": (0, _number(0, 255, integer=True)),
+        "spi_device": (0, _number(0, 255, integer=True)),
+        "spi_mode": (3, _number(0, 3, integer=True)),
+        "spi_speed_hz": (8_000_000, _number(10_000, 50_000_000, integer=True)),
+        # FIFO watermark interrupt line "<chip>:<line>", e.g. "gpiochip0:17"; "" = timer polling
+        "drdy_gpio": ("", _string),
         # board options (addresses, ranges, rates), e.g. {gyro_rate_hz = 800}: docs/drivers.md
         "board_options": ({}, _table),
         "profile": ("validation", _choice(PROFILES)),
@@ -159,6 +168,16 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "directory": ("flight-logs", _string),
         "rotate_mb": (0.0, _number(0.0, None)),
         "rotate_minutes": (0.0, _number(0.0, None)),
+        # the estimator's diagnostics (rest, rejections, form) in /attitude this often, Hz
+        "diagnostics_hz": (10.0, _number(0.0, 1000.0)),
+    },
+    # Foxglove WebSocket live view (extra "live"): docs/live.md
+    "live": {
+        "enabled": (False, _boolean),
+        "host": ("127.0.0.1", _string),
+        "port": (8765, _number(0, 65535, integer=True)),
+        # viewers get the per-sample channels (/imu/raw, /attitude, /tf) at most this often, Hz
+        "rate_hz": (30.0, _number(1.0, 200.0)),
     },
 }
 
@@ -242,7 +261,25 @@ def _check_estimator_params(section: dict[str, Any]) -> None:
 
 
 def _check_source(section: dict[str, Any]) -> None:
-    if section["board_options"] and section["type"] in ("i2c", "simulated_i2c"):
+    from ahrs_service.drivers.boards import TRANSPORT_BOARDS, buses_of
+
+    bus = section["type"].removeprefix("simulated_")
+    if bus in ("i2c", "spi") and bus not in buses_of(section["board"]):
+        raise ConfigError(f"source.board: {section['board']!r} cannot be wired on {bus}; "
+                          f"it supports {', '.join(buses_of(section['board']))}")
+    if section["drdy_gpio"]:
+        from ahrs_service.drivers.gpio.drdy import parse_line_spec
+
+        if section["board"] not in TRANSPORT_BOARDS or not TRANSPORT_BOARDS[section["board"]][0].HAS_WATERMARK_LINE:
+            raise ConfigError(f"source.drdy_gpio: board {section['board']!r} has no FIFO watermark "
+                              f"line; leave drdy_gpio empty (timer polling)")
+        try:
+            parse_line_spec(section["drdy_gpio"])
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+    if section["board"] in TRANSPORT_BOARDS and bus in ("i2c", "spi"):
+        _check_fifo_board(section, bus)
+    elif section["board_options"] and section["type"] in ("i2c", "simulated_i2c"):
         from ahrs_service.drivers.i2c.boards import board_class
 
         try:
@@ -251,6 +288,32 @@ def _check_source(section: dict[str, Any]) -> None:
             raise ConfigError(f"source.board_options: {exc}") from None
     if section["type"] == "recorded" and not section["recorded_path"]:
         raise ConfigError("source.recorded_path: required when source.type = 'recorded' (an .mcap log or a BROAD .hdf5 file)")
+
+
+def _check_fifo_board(section: dict[str, Any], bus: str) -> None:
+    """Options and the bus-rate check of a FIFO board, on a simulated bus of the configured clock."""
+    from ahrs_service.drivers.boards import make_transport_board
+    from ahrs_service.drivers.sim.clock import ManualClock
+
+    class _Quiet:  # a simulated part that only has to exist for the checks
+        clock = ManualClock()
+
+        @staticmethod
+        def physics(t: float) -> dict:
+            return {"gyr": (0.0, 0.0, 0.0), "acc": (0.0, 0.0, 0.0), "mag": (0.0, 0.0, 0.0)}
+
+    try:
+        real = not section["type"].startswith("simulated")
+        name = (f"/dev/spidev{section['spi_bus']}" if bus == "spi" else f"/dev/i2c-{section['i2c_bus']}")
+        make_transport_board(section["board"], bus, simulated_imu=_Quiet(), sim_bus_name=name if real else None,
+                             spi_bus=section["spi_bus"], spi_device=section["spi_device"],
+                             spi_speed_hz=section["spi_speed_hz"],
+                             i2c_speed_hz=section["i2c_speed_hz"], **dict(section["board_options"]))
+    except ValueError as exc:
+        msg = str(exc)
+        raise ConfigError(msg if msg.startswith("source.") else f"source.board_options: {msg}") from None
+    except TypeError as exc:
+        raise ConfigError(f"source.board_options: {exc}") from None
 
 
 def _check_calibration(given: dict[str, Any]) -> dict[str, Any]:

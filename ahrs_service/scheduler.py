@@ -145,3 +145,29 @@ class FixedRateScheduler:
             lateness_p99_us=_percentile_of_sorted(np.sort(self._lateness[last]), 99) / 1e3,
             load_percent=float(100.0 * self._busy[last].mean() / self.period_ns),
         )
+
+
+class DataReadyScheduler(FixedRateScheduler):
+    """Paces the loop by a data-ready (FIFO watermark) line instead of a timer.
+
+    :meth:`wait` blocks on ``line`` (a :class:`~ahrs_service.drivers.gpio.drdy.DataReadyLine`)
+    for at most ``timeout_periods`` periods of ``rate_hz`` (the watermark rate), then returns
+    like a timer tick: an unwired or silent line degrades to polling at that timeout, never
+    to a stall. ``rate_hz`` is the expected wake-up rate (for jitter and load figures);
+    ``edges`` / ``timeouts`` are on the line.
+    """
+
+    def __init__(self, line, rate_hz: float, *, timeout_periods: float = 2.0) -> None:
+        super().__init__(rate_hz)
+        self.line = line
+        self.timeout_periods = float(timeout_periods)
+
+    def wait(self) -> int:
+        self.line.wait(self.timeout_periods / self.rate_hz)
+        now = time.monotonic_ns()
+        i = self.ticks % _WINDOW
+        self._lateness[i] = 0
+        self._period[i] = (now - self._wake) if self.ticks else self.period_ns
+        self._wake = now
+        self.ticks += 1
+        return now

@@ -31,7 +31,7 @@ from ahrs_service.drivers.calibration import SensorCalibration
 from ahrs_service.calibration.live import LiveCalibrationResult, LiveCalibrator
 from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
 from ahrs_service.pipeline import EstimationPipeline
-from ahrs_service.scheduler import FixedRateScheduler, LoopStats
+from ahrs_service.scheduler import DataReadyScheduler, FixedRateScheduler, LoopStats
 from ahrs_service.sources import make_source
 from ahrs_service.systemd import Notifier
 
@@ -68,6 +68,7 @@ class Service:
         self.source: ImuSource | None = None
         self.mavlink = None
         self.log_writer = None
+        self.live = None  # the Foxglove live view (live_view.LiveView) when [live] enabled
         self.live_calibration = LiveCalibrator(max_rate_hz=cfg.rates["estimation_hz"])
         # the running fit of a live calibration (see apply_live_calibration) and its kind
         self._live_fit: Future[LiveCalibrationResult] | None = None
@@ -84,9 +85,23 @@ class Service:
             log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
         self.source = make_source(cfg.source, cfg.rates["estimation_hz"])
         self.source.open()
+        if not self.source.has_mag:
+            # a part without magnetometer (ICM-42688-P, BMI088): no start waiting for a field
+            self.pipeline.use_mag = False
+        line = getattr(self.source, "data_ready_line", None)
+        if line is not None:
+            # the FIFO watermark wakes the loop; the timer stays the fallback (DataReadyScheduler)
+            self.scheduler = DataReadyScheduler(line, self.source.wakeup_rate_hz)
         self._use_source_calibration()
         self._open_log(cfg)
         self._open_mavlink(cfg)
+        self._open_live(cfg)
+
+    def _open_live(self, cfg: config_mod.Config) -> None:
+        if cfg.live["enabled"]:
+            from ahrs_service.live_view import open_live_view
+
+            self.live = open_live_view(self, cfg.live)
 
     def _build_estimation(self, cfg: config_mod.Config) -> None:
         est_cfg = cfg.estimator
@@ -97,6 +112,7 @@ class Service:
             mag_timeout_s=est_cfg["mag_timeout_s"],
             declination_deg=self.declination_deg(cfg),
             nominal_dt=1.0 / cfg.rates["estimation_hz"],
+            use_mag=self.source is None or self.source.has_mag,
         )
 
     def declination_deg(self, cfg: config_mod.Config) -> float:
@@ -160,10 +176,35 @@ class Service:
         signal.signal(signal.SIGHUP, self.request_reload)
 
     def report(self, text: str, severity: int = 6) -> None:
-        """A health message: STATUSTEXT on MAVLink and the service log."""
-        log.log(logging.WARNING if severity <= 4 else logging.INFO, text)
+        """A health message: STATUSTEXT on MAVLink, the service log and /log."""
         if self.mavlink is not None:
             self.mavlink.statustext(severity, text)
+        self.log_event(text, severity)
+
+    def log_event(self, text: str, severity: int = 6) -> None:
+        """A health event for the journal and /log (flight log and live view), not STATUSTEXT:
+        rejections and parameter changes, too frequent or too minor for the ground station.
+        ``severity``: MAVLink's, 0 emergency … 7 debug."""
+        log.log(logging.WARNING if severity <= 4 else logging.INFO, text)
+        now = time.monotonic_ns()
+        if self.log_writer is not None:
+            self.log_writer.write_log(now, severity, text)
+        if self.live is not None:
+            self.live.log_event(now, severity, text)
+
+    def diagnostics(self) -> dict[str, Any]:
+        """The estimator's diagnostics (rest, rejections, bias trust …) and the form it runs in."""
+        return dict(self.estimator.diagnostics, reduced=self.pipeline.reduced)
+
+    def _diagnostics_for_log(self) -> dict[str, Any]:
+        """:meth:`diagnostics` at the configured rate; reports a magnetometer rejection starting or ending."""
+        diag = self.diagnostics()
+        rejected = bool(diag.get("mag_disturbed", False))
+        if rejected != self._mag_rejected:
+            self._mag_rejected = rejected
+            self.log_event("magnetometer rejected: disturbed field" if rejected else "magnetometer accepted again",
+                           4 if rejected else 6)
+        return diag
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> int:
@@ -178,6 +219,10 @@ class Service:
         end_ns = None if self.duration_s is None else time.monotonic_ns() + int(self.duration_s * 1e9)
         next_io = next_housekeeping = time.monotonic_ns()
         next_watchdog = next_io
+        diag_ns = int(1e9 / self.cfg.log["diagnostics_hz"]) if self.cfg.log["diagnostics_hz"] else None
+        next_diag = next_io
+        diag_due = False  # the next logged sample carries the estimator's diagnostics
+        live = self.live
         ready_sent = False
         was_reduced = pipeline.reduced
         while not self._stop:
@@ -194,8 +239,9 @@ class Service:
                     writer.write_sample(
                         cal.t_ns, pipeline.row, cal.flags, q=state[_H.q], estimator=pipeline.estimator.name,
                         bias=state[_H.bias], state=state, raw=sample.raw, temperature=cal.temperature_c,
-                        truth_q=cal.truth_q,
+                        truth_q=cal.truth_q, diagnostics=self._diagnostics_for_log() if diag_due else None,
                     )
+                    diag_due = False
             # one attribute test per tick while no fit runs; done() takes a lock only during one
             if self._live_fit is not None and self._live_fit.done():
                 self.apply_live_calibration()
@@ -204,6 +250,11 @@ class Service:
                 if now > next_io:
                     next_io = now + IO_PERIOD_NS
                 self.mavlink.tick(now)
+                if live is not None:
+                    live.tick(now)
+                if diag_ns is not None and now >= next_diag:
+                    next_diag = now + diag_ns
+                    diag_due = True
                 if not ready_sent and pipeline.samples > 0:
                     self.notifier.ready(self.status_line())
                     ready_sent = True
@@ -223,7 +274,7 @@ class Service:
             if self._reload:
                 self._reload = False
                 self.reload()
-                sched, pipeline, writer = self.scheduler, self.pipeline, self.log_writer
+                sched, pipeline, writer, live = self.scheduler, self.pipeline, self.log_writer, self.live
                 was_reduced = pipeline.reduced  # a new pipeline starts in full form
                 _freeze_heap()
             if end_ns is not None and now >= end_ns:
@@ -255,8 +306,11 @@ class Service:
         if lost != self._last_lost:
             self._last_lost = lost
             self.report(f"sensor lost: {diag.get('last_error', '')}" if lost else "sensor back", 3 if lost else 6)
-        if self.log_writer is not None:
+        if self.live is not None or self.log_writer is not None:
             loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced)
+            if self.live is not None:
+                self.live.publish("/loop", now, loop)
+        if self.log_writer is not None:
             self.log_writer.write_loop(now, loop)
             if self.mavlink is not None:
                 self.log_writer.write_mavlink(now, self.mavlink.stats())
@@ -270,6 +324,7 @@ class Service:
                 self._log_failed_before |= status == "error"
 
     _last_overruns: int | None = None
+    _mag_rejected = False
     _last_lost = False
     _last_log_status = "ok"
     _log_failed_before = False
@@ -368,8 +423,15 @@ class Service:
         old = self.estimator.get_params()[name]
         self.estimator.set_params(**{name: value})
         new = self.estimator.get_params()[name]
+        now = time.monotonic_ns()
         if self.log_writer is not None:
-            self.log_writer.write_param_change(time.monotonic_ns(), self.pipeline.samples, name, old, new, source)
+            self.log_writer.write_param_change(now, self.pipeline.samples, name, old, new, source)
+        if self.live is not None:
+            self.live.publish("/params", now, {"t_ns": now, "sample_index": self.pipeline.samples, "name": name,
+                                               "old": old, "new": new, "source": source})
+            if source != "foxglove":  # the live view tells its clients about its own sets
+                self.live.params_changed()
+        self.log_event(f"parameter {name}: {old} -> {new} ({source}, from sample {self.pipeline.samples})", 6)
         return new
 
     def reload(self) -> None:
@@ -400,7 +462,9 @@ class Service:
             self._use_source_calibration()
             if self.log_writer is not None and new.log == old_cfg.log:
                 self.log_writer.new_file()  # a fresh estimator: its own file replays exactly
-        if new.rates["estimation_hz"] != old_cfg.rates["estimation_hz"]:
+        # a data-ready scheduler runs at the part's watermark rate, not estimation_hz
+        if new.rates["estimation_hz"] != old_cfg.rates["estimation_hz"] \
+                and not isinstance(self.scheduler, DataReadyScheduler):
             self.scheduler.set_rate(new.rates["estimation_hz"])
         if new.log != old_cfg.log:
             if self.log_writer is not None:
@@ -412,6 +476,13 @@ class Service:
             # another filter has other EST_* parameters: the table is rebuilt with the component
             self.mavlink.close()
             self._open_mavlink(new)
+        if new.live != old_cfg.live:  # a new address, rate, or switched on or off
+            if self.live is not None:
+                self.live.close()
+                self.live = None
+            self._open_live(new)
+        elif self.live is not None:
+            self.live.params_changed()
         self.report("configuration reloaded", 6)
         self.notifier.ready(self.status_line())
 
@@ -424,7 +495,7 @@ class Service:
             self._settle_live_fit(LIVE_FIT_CLOSE_WAIT_S)
         except Exception as exc:  # applying it must not keep the parts below open
             log.warning("live calibration at shutdown: %s", exc)
-        for part in (self.mavlink, self.log_writer, self.source):
+        for part in (self.live, self.mavlink, self.log_writer, self.source):
             if part is None:
                 continue
             try:

@@ -15,6 +15,7 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run until SIGTERM/SIGINT)")
     run.add_argument("--log-dir", help="override log.directory")
     run.add_argument("--no-log", action="store_true", help="do not write an MCAP log")
+    run.add_argument("--live", action="store_true", help="serve the Foxglove live view (sets live.enabled; extra 'live')")
     run.add_argument("-v", "--verbose", action="store_true")
     run.set_defaults(func=cmd_run)
 
@@ -23,6 +24,16 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     group.add_argument("--check", metavar="FILE", help="validate FILE and print the effective configuration")
     group.add_argument("--print-default", action="store_true", help="print the embedded default configuration")
     cfg.set_defaults(func=cmd_config)
+
+    lay = sub.add_parser("foxglove-layout", help="print the Foxglove layout for the live view and the logs (JSON)")
+    lay.set_defaults(func=cmd_foxglove_layout)
+
+
+def cmd_foxglove_layout(args: argparse.Namespace) -> int:
+    from ahrs_service.foxglove_layout import shipped_layout_json
+
+    sys.stdout.write(shipped_layout_json())
+    return 0
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -47,7 +58,12 @@ def cmd_run(args: argparse.Namespace) -> int:
             log_overrides["directory"] = args.log_dir
         if args.no_log:
             log_overrides["enabled"] = False
-        cfg = config_mod.load(args.config, {"log": log_overrides} if log_overrides else None)
+        overrides: dict[str, dict[str, object]] = {}
+        if log_overrides:
+            overrides["log"] = log_overrides
+        if args.live:
+            overrides["live"] = {"enabled": True}
+        cfg = config_mod.load(args.config, overrides or None)
     except config_mod.ConfigError as exc:
         print(f"ahrs-service: configuration error: {exc}", file=sys.stderr)
         return 2

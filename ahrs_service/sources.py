@@ -6,6 +6,10 @@
   bus, fed by the motion simulator flying ``source.profile``; the very driver code that runs
   on hardware reads it.
 * ``i2c`` — the real board on ``/dev/i2c-<source.i2c_bus>``.
+* ``spi`` / ``simulated_spi`` — a FIFO board (``icm42688p``, ``icm20948``, ``bmi088``) on ``/dev/spidev<spi_bus>.<spi_device>``
+  or on the simulated SPI bus with its twin; I2C FIFO boards take ``i2c`` / ``simulated_i2c``.
+  ``source.drdy_gpio`` ("gpiochip0:17") wakes the loop on the FIFO watermark line (a
+  simulated line on the simulated buses).
 * ``simulated_can`` — a simulated DroneCAN IMU node on a python-can bus in this process.
 * ``can`` — a DroneCAN IMU on ``source.can_interface`` / ``source.can_channel``.
 * ``simulated`` — the motion simulator without any bus.
@@ -23,6 +27,9 @@ _BOARD_PARTS = {
     "gy80": ("L3G4200D", "ADXL345", "HMC5883L"),
     "minimu9v2": ("L3GD20", "LSM303DLHC_ACC", "LSM303DLHC_MAG"),
     "mpu9250": ("MPU9250_GYRO", "MPU9250_ACC", "AK8963"),
+    "icm42688p": ("ICM42688P_GYRO", "ICM42688P_ACC", "ideal"),  # no magnetometer
+    "icm20948": ("ICM20948_GYRO", "ICM20948_ACC", "AK09916"),
+    "bmi088": ("BMI088_GYRO", "BMI088_ACC", "ideal"),  # no magnetometer
 }
 
 
@@ -45,6 +52,9 @@ def simulated_imu(source_cfg: dict[str, Any]):
 def make_source(source_cfg: dict[str, Any], estimation_hz: float) -> ImuSource:
     """An unopened source for the ``[source]`` section of the configuration."""
     kind = source_cfg["type"]
+    if kind in ("spi", "simulated_spi") or (kind in ("i2c", "simulated_i2c")
+                                             and source_cfg["board"] in _transport_boards()):
+        return make_fifo_source(source_cfg)
     if kind == "simulated_i2c":
         from ahrs_service.drivers.i2c.boards import make_simulated_board
 
@@ -74,6 +84,40 @@ def make_source(source_cfg: dict[str, Any], estimation_hz: float) -> ImuSource:
 
         return RecordedSource(source_cfg["recorded_path"], realtime=source_cfg["recorded_realtime"])
     raise ValueError(f"source.type: unknown source {kind!r}")
+
+
+def _transport_boards() -> dict:
+    from ahrs_service.drivers.boards import TRANSPORT_BOARDS
+
+    return TRANSPORT_BOARDS
+
+
+def make_fifo_source(source_cfg: dict[str, Any]) -> ImuSource:
+    """A FIFO board on SPI or I2C, real or simulated, with its data-ready line if configured."""
+    from ahrs_service.drivers.boards import make_transport_board
+
+    kind = source_cfg["type"]
+    simulated = kind.startswith("simulated")
+    imu = simulated_imu(source_cfg) if simulated else None
+    board = make_transport_board(
+        source_cfg["board"], kind.removeprefix("simulated_"), simulated_imu=imu,
+        spi_bus=source_cfg["spi_bus"], spi_device=source_cfg["spi_device"],
+        spi_mode=source_cfg["spi_mode"], spi_speed_hz=source_cfg["spi_speed_hz"],
+        i2c_bus=source_cfg["i2c_bus"], i2c_speed_hz=source_cfg["i2c_speed_hz"],
+        **source_cfg["board_options"])
+    spec = source_cfg["drdy_gpio"]
+    if spec:
+        if simulated:
+            from ahrs_service.drivers.gpio.drdy import SimulatedDataReadyLine
+            from ahrs_service.drivers.imu.boards import _twin
+
+            # the line carries the watermark of the part that drives the rows (BMI088: the gyro's INT3)
+            board.data_ready_line = SimulatedDataReadyLine(_twin(board.transport), imu.clock, name=spec)
+        else:
+            from ahrs_service.drivers.gpio.drdy import GpiodLine
+
+            board.data_ready_line = GpiodLine(spec)
+    return board
 
 
 class SimulatedCanSource(ImuSource):

@@ -1,4 +1,4 @@
-"""Command-line subcommands for flight logs: ``log recover|info|import-broad`` and ``replay``."""
+"""Command-line subcommands for flight logs: ``log recover|info|import-broad|plot`` and ``replay``."""
 
 from __future__ import annotations
 
@@ -44,6 +44,11 @@ def add_subcommands(subparsers: Any) -> None:
     p.add_argument("--duration", type=float, default=None, metavar="S", help="seconds to import")
     p.set_defaults(func=_import_broad)
 
+    p = sub.add_parser("plot", help="quick-look figure of a log: attitude, sensors, loop timing, rejections")
+    p.add_argument("log", type=Path)
+    p.add_argument("--out", type=Path, required=True, help="figure file: .png, .pdf or .svg")
+    p.set_defaults(func=_plot)
+
     p = subparsers.add_parser(
         "replay",
         help="re-run an estimator over a recorded log (or a fleet of logs) and compare",
@@ -76,6 +81,12 @@ def add_subcommands(subparsers: Any) -> None:
     p.add_argument("--json", action="store_true", help="print the comparison as JSON")
     execution.add_arguments(p)
     p.set_defaults(func=_replay)
+
+
+def _plot(args: argparse.Namespace) -> int:
+    from ahrs_service.logs.plot import cmd_plot
+
+    return cmd_plot(args)
 
 
 def _recover(args: argparse.Namespace) -> int:

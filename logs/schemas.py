@@ -233,6 +233,26 @@ FRAME_TRANSFORM = {
     "required": ["timestamp", "parent_frame_id", "child_frame_id", "translation", "rotation"],
 }
 
+LOG = {
+    "title": "foxglove.Log",
+    "description": "A health event (sensor fault, reduced form, rejection, overrun, calibration, "
+    "parameter change): Foxglove's own log schema, shown by its Log panel",
+    "type": "object",
+    "properties": {
+        "timestamp": FRAME_TRANSFORM["properties"]["timestamp"],
+        "level": {
+            "type": "integer",
+            "enum": [0, 1, 2, 3, 4, 5],
+            "description": "0 unknown, 1 debug, 2 info, 3 warning, 4 error, 5 fatal",
+        },
+        "message": {"type": "string"},
+        "name": {"type": "string", "description": "who logged it (ahrs-service)"},
+        "file": {"type": "string"},
+        "line": {"type": "integer", "minimum": 0},
+    },
+    "required": ["timestamp", "level", "message", "name", "file", "line"],
+}
+
 #: topic -> (schema name, JSON Schema)
 CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
     "/imu/raw": ("ahrs.ImuRaw", IMU_RAW),
@@ -245,6 +265,7 @@ CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
     "/mavlink": ("ahrs.MavlinkStats", MAVLINK),
     "/estimator/state": ("ahrs.EstimatorState", ESTIMATOR_STATE),
     "/tf": ("foxglove.FrameTransform", FRAME_TRANSFORM),
+    "/log": ("foxglove.Log", LOG),
 }
 
 
@@ -376,6 +397,30 @@ def tf_message(t_ns: int, q: list[float]) -> dict[str, Any]:
         "child_frame_id": "body",
         "translation": {"x": 0.0, "y": 0.0, "z": 0.0},
         "rotation": {"x": q[1], "y": q[2], "z": q[3], "w": q[0]},
+    }
+
+
+# MAVLink STATUSTEXT severity (MAV_SEVERITY, 0 EMERGENCY … 7 DEBUG) -> foxglove.Log level
+# (1 DEBUG, 2 INFO, 3 WARNING, 4 ERROR, 5 FATAL). The three "act now" severities all map to
+# FATAL, NOTICE joins INFO: Foxglove has five levels for MAVLink's eight (docs/live.md).
+LOG_LEVEL_OF_SEVERITY: tuple[int, ...] = (5, 5, 5, 4, 3, 2, 2, 1)
+LOG_NAME = "ahrs-service"
+
+
+def log_level(severity: int) -> int:
+    """The foxglove.Log level of a MAVLink severity (out-of-range severities: 0, unknown)."""
+    return LOG_LEVEL_OF_SEVERITY[severity] if 0 <= severity < len(LOG_LEVEL_OF_SEVERITY) else 0
+
+
+def log_message(t_ns: int, severity: int, text: str) -> dict[str, Any]:
+    """The /log message (foxglove.Log) of a health event reported with a MAVLink severity."""
+    return {
+        "timestamp": {"sec": int(t_ns) // 1_000_000_000, "nsec": int(t_ns) % 1_000_000_000},
+        "level": log_level(int(severity)),
+        "message": str(text),
+        "name": LOG_NAME,
+        "file": "",
+        "line": 0,
     }
 
 

@@ -54,6 +54,7 @@ from ahrs_service.logs.schemas import (
     attitude_message,
     encode,
     jsonable,
+    log_message,
     raw_message,
     tf_message,
     truth_message,
@@ -96,6 +97,7 @@ class _Sample:
     estimator: str
     bias: list | None
     truth_q: list | None
+    diagnostics: dict | None  # the estimator's, at the service's diagnostics rate; else None
 
 
 @dataclass(slots=True)
@@ -133,6 +135,15 @@ class _ParamChange:
 class _Mavlink:
     t_ns: int
     counters: dict
+
+
+@dataclass(slots=True)
+class _Log:
+    """A health event for /log (foxglove.Log)."""
+
+    t_ns: int
+    severity: int  # MAVLink's, 0 emergency … 7 debug
+    text: str
 
 
 @dataclass(slots=True)
@@ -327,11 +338,13 @@ class FlightLogWriter:
         raw: Mapping[str, Any] | None = None,
         temperature: float | None = None,
         truth_q: np.ndarray | None = None,
+        diagnostics: Mapping[str, Any] | None = None,
     ) -> None:
         """``write_raw`` + ``write_attitude`` (+ ``write_truth`` when ``truth_q`` is given) of one
         sample as one queue entry: the service's per-sample call, a third of the caller's cost.
         Same arguments and units as those three (keywords after ``flags``); the file holds
-        the same messages."""
+        the same messages. ``diagnostics`` (the estimator's, copied here) fills this sample's
+        /attitude ``diagnostics``; the service passes it at its diagnostics rate, else None ({})."""
         self._put(
             _Sample(
                 t_ns,
@@ -344,6 +357,7 @@ class FlightLogWriter:
                 estimator,
                 None if bias is None else _tolist(bias),
                 None if truth_q is None else _tolist(truth_q),
+                None if diagnostics is None else dict(diagnostics),
             )
         )
         self.samples += 1
@@ -381,6 +395,11 @@ class FlightLogWriter:
         ``write_raw`` calls so far — right when every fed sample is written)."""
         index = self.samples if sample_index is None else int(sample_index)
         self._put(_ParamChange(t_ns, index, name, old, new, source))
+
+    def write_log(self, t_ns: int, severity: int, text: str) -> None:
+        """A health event on /log (foxglove.Log); ``severity`` is MAVLink's (0 emergency … 7
+        debug), mapped to Foxglove's level by :func:`~ahrs_service.logs.schemas.log_level`."""
+        self._put(_Log(t_ns, int(severity), str(text)))
 
     def write_mavlink(self, t_ns: int, counters: Mapping[str, Any]) -> None:
         """MAVLink traffic counters."""
@@ -606,7 +625,7 @@ class FlightLogWriter:
             return
         t_ns = item.t_ns
         self._write("/imu/raw", t_ns, raw_message(t_ns, item.row, item.flags, item.raw, item.temperature, item.index))
-        self._write_attitude(t_ns, item.q, item.estimator, item.bias, None)
+        self._write_attitude(t_ns, item.q, item.estimator, item.bias, item.diagnostics)
         if item.truth_q is not None:
             if self._file is None:  # a write before failed: _fail counted what the file held
                 self._dropped_io += 1
@@ -629,6 +648,10 @@ class FlightLogWriter:
         if self._ensure_file(1):
             self._write("/mavlink", item.t_ns, {"t_ns": int(item.t_ns), "counters": jsonable(item.counters)})
 
+    def _on_log(self, item: _Log) -> None:
+        if self._ensure_file(1):
+            self._write("/log", item.t_ns, log_message(item.t_ns, item.severity, item.text))
+
     _HANDLERS: dict[type, Callable[[FlightLogWriter, Any], None]] = {
         _NewFile: _on_new_file,
         _Config: _on_config,
@@ -640,6 +663,7 @@ class FlightLogWriter:
         _Truth: _on_truth,
         _Loop: _on_loop,
         _Mavlink: _on_mavlink,
+        _Log: _on_log,
     }
 
     def _write_attitude(self, t_ns: int, q: list[float], estimator: str, bias: Any, diagnostics: Any) -> None:

@@ -219,6 +219,23 @@ PART_MODELS: dict[str, SensorErrorModel] = {
     # AKM AK8963 (in the MPU-9250), 16 bit: 0.15 µT/LSB, ±4912 µT; no noise density in the
     # datasheet, ≈0.3 µT rms at 100 Hz ODR assumed → 0.042 µT/√Hz
     "AK8963": _mag(0.042, 0.15, 4912.0),
+    # TDK ICM-42688-P gyro (DS-000347 Table 1), FS ±2000 dps (hi-res FIFO): 0.0028 dps/√Hz,
+    # ZRO ±0.5 dps, 1/131 dps per LSB (19-bit FIFO data), ±0.005 dps/°C
+    "ICM42688P_GYRO": _gyro(0.0028, 0.5, 1000.0 / 131.0, 2000.0, 0.005),
+    # TDK ICM-42688-P accelerometer (Table 2), FS ±16 g (hi-res FIFO): 70 µg/√Hz, zero-g
+    # ±20 mg, 8192 LSB/g (18-bit FIFO data), ±0.15 mg/°C
+    "ICM42688P_ACC": _acc(70.0, 20.0, 1000.0 / 8192.0, 16.0, 0.15),
+    # Bosch BMI088 gyro (BST-BMI088-DS001 Table 2), ±2000 dps: 0.014 dps/√Hz, zero-rate ±1 dps,
+    # 16.384 LSB/dps, ±0.015 dps/K
+    "BMI088_GYRO": _gyro(0.014, 1.0, 1000.0 / 16.384, 2000.0, 0.015),
+    # Bosch BMI088 accelerometer (Table 1), ±24 g: 230 µg/√Hz, zero-g ±20 mg, 1365 LSB/g, ±0.2 mg/K
+    "BMI088_ACC": _acc(230.0, 20.0, 1000.0 / 1365.33, 24.0, 0.2),
+    # TDK ICM-20948 gyro (DS-000189 Table 1), ±2000 dps: 0.015 dps/√Hz, ZRO ±5 dps, 16.4 LSB/dps
+    "ICM20948_GYRO": _gyro(0.015, 5.0, 1000.0 / 16.4, 2000.0, 0.05),
+    # TDK ICM-20948 accelerometer (Table 2), ±16 g: 230 µg/√Hz, zero-g ±25 mg, 2048 LSB/g
+    "ICM20948_ACC": _acc(230.0, 25.0, 1000.0 / 2048.0, 16.0, 0.8),
+    # AKM AK09916 (in the ICM-20948): 0.15 µT/LSB, ±4912 µT; noise taken like the AK8963's
+    "AK09916": _mag(0.042, 0.15, 4912.0),
 }
 
 

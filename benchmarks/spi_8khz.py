@@ -1,0 +1,202 @@
+"""8 kHz ICM-42688-P over the simulated SPI bus: what the service's own work costs.
+
+    python benchmarks/spi_8khz.py [--seconds 20] [--odr 8000] [--loop-hz 1000] [--estimator madgwick]
+                                  [--publish 200] [--drdy] [--stall-ms 0]
+
+What runs, in this process: the service (scheduler, driver reading the FIFO in bursts over the
+simulated SPI bus, estimator on every sample, MCAP log of every sample, ATTITUDE and
+ATTITUDE_QUATERNION at ``--publish`` Hz over UDP to a pymavlink peer on 127.0.0.1). The
+simulated part is fed from a **precomputed recording** of the simulator (figure-eight, the
+ICM-42688-P's error models, sampled at the part's real rate), so the motion simulator's
+physics costs nothing during the run; what the twin still does per sample (quantise, pack
+the 20-byte packet, keep the FIFO) is measured apart, on the same recording, and printed
+beside the total: the service's own work is the difference.
+
+``--drdy`` wakes the loop on the simulated FIFO watermark line instead of the timer;
+``--stall-ms`` stops the loop once a second for that long (a host stall) to show what the
+FIFO holds: lost samples are counted by cause (``diagnostics.lost``).
+
+Printed: CPU of this process (one core = 100 %) over the run, the twin's CPU apart, the
+service's own CPU, samples estimated and logged against the samples the part produced, lost
+samples by cause, the rate the part ran at and the tracked one, and ATTITUDE messages seen.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+
+
+class RecordedImu:
+    """The simulator's output, precomputed at the part's sample instants; ``physics(t)`` looks
+    the nearest one up (the twin asks exactly at those instants)."""
+
+    def __init__(self, seconds: float, rate_hz: float, clock) -> None:
+        from ahrs_service.drivers.sim.imu import SimulatedImu
+        from ahrs_service.drivers.sim.motion import profile
+        from ahrs_service.drivers.sim.sensor_model import PART_MODELS
+
+        self.clock, self.rate_hz = clock, rate_hz
+        imu = SimulatedImu(profile("figure8", looping=True),
+                           {"gyr": PART_MODELS["ICM42688P_GYRO"].analog(),
+                            "acc": PART_MODELS["ICM42688P_ACC"].analog(), "mag": PART_MODELS["ideal"]},
+                           clock=clock, seed=1)
+        n = int(seconds * rate_hz) + 1
+        self.rows = []
+        for k in range(n):
+            p = imu.physics(k / rate_hz)
+            self.rows.append({"gyr": np.array(p["gyr"]), "acc": np.array(p["acc"]), "mag": np.zeros(3),
+                              "temperature_c": 25.0, "truth": {"q": np.array(p["truth"].q)}})
+
+    def physics(self, t: float) -> dict:
+        return self.rows[min(int(round(t * self.rate_hz)), len(self.rows) - 1)]
+
+
+def twin_cost_us(recording: RecordedImu, odr: float, n_samples: int) -> float:
+    """CPU µs per sample of the twin alone (latch, pack, FIFO) on the recording."""
+    from ahrs_service.drivers.imu.icm42688p import SimulatedICM42688P
+    from ahrs_service.drivers.sim.clock import ManualClock
+
+    clock = ManualClock()
+    saved, recording.clock = recording.clock, clock
+    twin = SimulatedICM42688P(recording)
+    twin.regs[0x4F] = twin.regs[0x50] = {8000: 3, 4000: 4, 2000: 5, 1000: 6}[int(odr)]
+    twin.regs[0x16], twin.regs[0x5F], twin.regs[0x4E] = 0x80, 0x3F, 0x0F
+    twin.restart_measurement(0.0)
+    c0 = time.process_time()
+    for _ in range(int(n_samples / odr * 1000)):
+        twin.update(clock.advance(0.001))
+        twin.bus_read(0x30, twin.fifo.level, clock.now())  # drained as the driver does
+        twin.take_popped_truth()
+    cost = (time.process_time() - c0) / max(1, twin.samples_latched) * 1e6
+    recording.clock = saved
+    return cost
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--odr", type=float, default=8000.0)
+    ap.add_argument("--loop-hz", type=float, default=1000.0, help="timer rate of the loop (FIFO bursts)")
+    ap.add_argument("--estimator", default="madgwick")
+    ap.add_argument("--publish", type=float, default=200.0)
+    ap.add_argument("--drdy", action="store_true", help="wake on the simulated watermark line")
+    ap.add_argument("--stall-ms", type=float, default=0.0, help="stop the loop this long once a second")
+    args = ap.parse_args(argv)
+
+    from ahrs_service import config, service as service_mod, sources
+    from ahrs_service.drivers.boards import make_transport_board
+    from ahrs_service.drivers.gpio.drdy import SimulatedDataReadyLine
+    from ahrs_service.drivers.imu.boards import _twin
+    from ahrs_service.drivers.sim.imu import MonotonicClock
+
+    clock = MonotonicClock()
+    real_rate = args.odr * 1.0042  # the twin's oscillator error
+    print(f"precomputing {args.seconds + 15:.0f} s of the simulator at {real_rate:.1f} Hz …", flush=True)
+    recording = RecordedImu(args.seconds + 15, real_rate, clock)
+    twin_us = twin_cost_us(recording, args.odr, min(80_000, int(args.odr * 5)))
+
+    gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0")
+    port = gcs.port.getsockname()[1]
+    seen = {"ATTITUDE": 0, "ATTITUDE_QUATERNION": 0}
+    stop = threading.Event()
+
+    def listen() -> None:
+        while not stop.is_set():
+            m = gcs.recv_match(blocking=True, timeout=0.05)
+            if m is not None and m.get_type() in seen:
+                seen[m.get_type()] += 1
+
+    boards = []
+
+    def make_source(source_cfg, estimation_hz):
+        board = make_transport_board("icm42688p", "spi", simulated_imu=recording,
+                                     odr_hz=args.odr, fifo_read_hz=args.loop_hz)
+        if args.drdy:
+            board.data_ready_line = SimulatedDataReadyLine(_twin(board.transport), clock)
+        boards.append(board)
+        return board
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = config.validate({
+            "source": {"type": "simulated_spi", "board": "icm42688p",
+                       "board_options": {"odr_hz": args.odr, "fifo_read_hz": args.loop_hz}},
+            "estimator": {"name": args.estimator},
+            "rates": {"estimation_hz": min(args.loop_hz, 2000.0), "attitude_hz": args.publish,
+                      "attitude_quaternion_hz": args.publish},
+            "mavlink": {"endpoints": [f"udpout:127.0.0.1:{port}"]},
+            "log": {"directory": str(Path(tmp) / "logs")},
+        })
+        service_mod.make_source = make_source  # the recording-fed twin instead of the live simulator
+        sources.make_source = make_source
+        svc = service_mod.Service(cfg, duration_s=args.seconds)
+        svc.start()
+        listener = threading.Thread(target=listen, daemon=True)
+        listener.start()
+        if args.stall_ms > 0:
+            # a host stall: the loop thread is held inside the source's read once a second
+            board = boards[0]
+            inner = board.read_block
+            next_stall = [time.monotonic() + 1.0]
+
+            def stalling(max_samples=128):
+                if time.monotonic() >= next_stall[0]:
+                    next_stall[0] += 1.0
+                    time.sleep(args.stall_ms / 1000)
+                return inner(max_samples)
+
+            board.read_block = stalling
+        # the source opens before the log and MAVLink: drain what the FIFO gathered meanwhile
+        # (a start-up overflow), and count from the loop's start
+        board = boards[0]
+        twin = _twin(board.transport)
+        while len(board.read_block()):
+            pass
+        lost0 = (board.diagnostics.lost.fifo_overflow, board.diagnostics.lost.bus_error,
+                 board.diagnostics.extra["fifo_overflows"])
+        produced0 = twin.samples_latched + twin.samples_unseen
+        est0 = svc.pipeline.samples
+        read0 = board.diagnostics.samples
+        c0, w0 = time.process_time(), time.monotonic()
+        svc.run()
+        cpu = 100 * (time.process_time() - c0) / (time.monotonic() - w0)
+        wall = time.monotonic() - w0
+        diag = board.diagnostics
+        twin.update(clock.now())
+        produced = twin.samples_latched + twin.samples_unseen - produced0 - twin.fifo.level // 20
+        estimated = svc.pipeline.samples - est0
+        lost = (diag.lost.fifo_overflow - lost0[0], diag.lost.bus_error - lost0[1],
+                diag.extra["fifo_overflows"] - lost0[2])
+        svc.close()
+        stop.set()
+        listener.join(1.0)
+    twin_pct = twin_us * real_rate / 1e4
+    print()
+    print(f"| {args.odr:.0f} Hz ICM-42688-P, simulated SPI, {args.estimator}, publish {args.publish:.0f} Hz, "
+          f"{'data-ready line' if args.drdy else f'timer {args.loop_hz:.0f} Hz'}"
+          f"{f', {args.stall_ms:.0f} ms stall a second' if args.stall_ms else ''} | value |")
+    print("|---|---|")
+    print(f"| wall time of the run, s | {wall:.1f} |")
+    print(f"| CPU of the process (service + twin), % of one core | {cpu:.1f} |")
+    print(f"| the twin alone (pack + FIFO per sample, measured apart: {twin_us:.1f} µs/sample), % | {twin_pct:.1f} |")
+    print(f"| **the service's own work**, % of one core | **{cpu - twin_pct:.1f}** |")
+    print(f"| samples the part produced during the loop / read by the driver / estimated and logged | "
+          f"{produced} / {diag.samples - read0} / {estimated} |")
+    print(f"| lost: FIFO overflow / bus error (overflow events: {lost[2]}) | {lost[0]} / {lost[1]} |")
+    print(f"| part rate (true) / tracked, Hz | {real_rate:.2f} / {board.clock.rate_hz:.2f} |")
+    print(f"| ATTITUDE / ATTITUDE_QUATERNION received | {seen['ATTITUDE']} / {seen['ATTITUDE_QUATERNION']} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

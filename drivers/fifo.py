@@ -1,0 +1,192 @@
+"""FIFO acquisition shared by today's IMUs: decoded bursts, the sensor clock, simulated FIFOs.
+
+* :class:`SensorClock` — each sample's time from its index on the part's own output clock,
+  with the part's real rate tracked against the host's monotonic clock: timestamps neither
+  jitter with the host's read times nor drift from the host clock.
+* :class:`SimulatedFifo` and :class:`SimulatedFifoDevice` — the twins' side: a byte FIFO of
+  the part's depth (stop-on-full or stream), filled with every sample due on a clock that
+  runs ``clock_error`` off nominal (real parts are 0.5–2 % off).
+
+Bursts are handed out as :class:`~ahrs_service.drivers.base.SampleBlock` (the sample-block
+interface in ``drivers/base.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice, _ZERO_PHYSICS
+
+
+class SensorClock:
+    """Sample times from sample indices on the part's clock, mapped onto the host clock.
+
+    A part's samples are evenly spaced on its own oscillator, ``1 / rate`` apart, where the
+    real rate is off the nominal one by the oscillator's error. Sample ``i`` is at
+    ``offset + i · period``. ``period`` is the host time between the first anchor (the least
+    late of the first 16 reads) and the least late read of the last ``window`` bursts, divided
+    by the samples between them (read latency is a few 100 µs against seconds of span, and a
+    read delayed by a host stall is never the one chosen); ``offset`` is the lower envelope
+    of ``host_read − i_newest · period`` over the last ``window`` bursts — a read never
+    happens before the newest sample it returns, so the smallest latency is the best
+    estimate of none.
+    """
+
+    def __init__(self, nominal_rate_hz: float, window: int = 64, min_span_s: float = 0.2) -> None:
+        self.nominal_period_ns = 1e9 / nominal_rate_hz
+        self.period_ns = self.nominal_period_ns
+        self._min_span = min_span_s * 1e9
+        self._first: tuple[int, int] | None = None  # (index, host_ns)
+        self._idx = deque(maxlen=window)
+        self._host = deque(maxlen=window)
+        self._last_t: int | None = None
+        self._anchors = 0
+
+    @property
+    def rate_hz(self) -> float:
+        """The part's tracked real output rate, Hz."""
+        return 1e9 / self.period_ns
+
+    def stamp(self, host_ns: int, first_index: int, n: int, anchor: bool = True) -> np.ndarray:
+        """Times (int64 ns, oldest first) of samples ``first_index … first_index + n − 1``,
+        the newest of which was read out at ``host_ns``.
+
+        anchor: False when the newest sample is known to be older than the read (a FIFO that
+        was full): the burst is stamped from the current fit without updating it.
+        """
+        last = first_index + n - 1
+        if anchor:
+            self._anchors += 1
+            nominal = self.nominal_period_ns
+            if self._first is None or (self._anchors <= 16 and host_ns - last * nominal
+                                       < self._first[1] - self._first[0] * nominal):
+                # the first anchor is the least late of the first 16 reads: one slow first
+                # read (a start-up stall) must not bias the period for good
+                self._first = (last, host_ns)
+            self._idx.append(last)
+            self._host.append(host_ns)
+            i0, h0 = self._first
+            if host_ns - h0 >= self._min_span:
+                # the slope to the least late recent read: a read delayed by a host stall
+                # (late by ms) must not tilt the period
+                p = self.period_ns
+                i1, h1 = min(zip(self._idx, self._host), key=lambda ih: ih[1] - ih[0] * p)
+                if h1 - h0 >= self._min_span and i1 > i0:
+                    self.period_ns = (h1 - h0) / (i1 - i0)
+        if not self._idx:  # no anchor yet (a first burst from a full FIFO): provisional offset
+            self._idx.append(last)
+            self._host.append(host_ns)
+        p = self.period_ns
+        offset = min(h - i * p for i, h in zip(self._idx, self._host))
+        t = offset + p * np.arange(first_index, last + 1, dtype=np.float64)
+        t = np.rint(t).astype(np.int64)
+        # a new estimate may move the offset back a little: never hand out a time twice
+        if self._last_t is not None and t[0] <= self._last_t:
+            t += self._last_t + int(p / 2) - t[0]
+        self._last_t = int(t[-1])
+        return t
+
+    def index_at(self, host_ns: int) -> int:
+        """The index of the newest sample the part has produced by ``host_ns``."""
+        if not self._idx:
+            return -1
+        p = self.period_ns
+        offset = min(h - i * p for i, h in zip(self._idx, self._host))
+        return int(math.floor((host_ns - offset) / p))
+
+
+class SimulatedFifo:
+    """A byte FIFO of ``capacity`` bytes holding whole frames of ``frame`` bytes.
+
+    stop_on_full: a frame that does not fit is dropped (ICM-42688-P "stop-on-full",
+    BMI088 "FIFO mode"); otherwise the oldest frames make room (stream mode).
+    ``overflowed`` is set on the first lost frame; ``dropped`` counts them.
+    """
+
+    def __init__(self, capacity: int, stop_on_full: bool = True) -> None:
+        self.capacity = int(capacity)
+        self.stop_on_full = stop_on_full
+        self.data = bytearray()
+        self.overflowed = False
+        self.dropped = 0
+
+    @property
+    def level(self) -> int:
+        return len(self.data)
+
+    def push(self, frame: bytes) -> bool:
+        if len(self.data) + len(frame) > self.capacity:
+            self.overflowed = True
+            self.dropped += 1
+            if self.stop_on_full:
+                return False
+            del self.data[:len(frame)]
+        self.data += frame
+        return True
+
+    def pop(self, n: int) -> bytes:
+        out = bytes(self.data[:n])
+        del self.data[:n]
+        return out
+
+    def clear(self) -> None:
+        self.data.clear()
+        self.overflowed = False
+
+
+class SimulatedFifoDevice(SimulatedRegisterDevice):
+    """Twin base whose every due sample is latched (and pushed to its FIFO), in order.
+
+    clock_error: the part's oscillator error (+0.004 = 0.4 % fast; the name the I2C twins use): ``rate_hz()`` returns the
+    nominal rate from the registers, the samples come at ``nominal · (1 + clock_error)``.
+    Subclasses implement :meth:`nominal_rate_hz`, :meth:`latch` (data registers + FIFO) and
+    :meth:`backlog_limit` (how many samples can matter at once: the FIFO's depth + 1).
+    """
+
+    CLOCK_ERROR = 0.0
+
+    def __init__(self, source=None, address: int | None = None, clock_error: float | None = None) -> None:
+        super().__init__(source, address)
+        self.clock_error = self.CLOCK_ERROR if clock_error is None else float(clock_error)
+        #: samples produced while the FIFO was full that were never computed (``samples_latched``
+        #: counts the rest: produced = samples_latched + samples_unseen)
+        self.samples_unseen = 0
+
+    def nominal_rate_hz(self) -> float | None:
+        return None
+
+    def rate_hz(self) -> float | None:
+        r = self.nominal_rate_hz()
+        return None if not r else r * (1.0 + self.clock_error)
+
+    def backlog_limit(self) -> int:
+        return 1
+
+    def update(self, now: float) -> None:
+        if self._t0 is None:
+            return
+        rate = self.rate_hz()
+        if not rate:
+            return
+        k = math.floor((now - self._t0) * rate + 1e-7)
+        if k <= self._k:
+            return
+        first = max(self._k + 1, k - self.backlog_limit() + 1)
+        if first > self._k + 1:
+            # samples that could only have overflowed the FIFO: count them, skip the physics
+            self.samples_unseen += first - self._k - 1
+            self.skipped_unseen(first - self._k - 1)
+        physics = self._physics
+        for j in range(first, k + 1):
+            t = self._t0 + j / rate
+            phys = physics(t) if physics is not None else _ZERO_PHYSICS
+            self.latched, self.latched_t = phys, t
+            self.samples_latched += 1
+            self.latch(phys, t, 0)
+        self._k = k
+
+    def skipped_unseen(self, n: int) -> None:
+        """``n`` samples produced while the FIFO was already full (hook: mark overflow)."""

@@ -1,0 +1,66 @@
+"""AKM AK09916 magnetometer (inside the ICM-20948, behind its auxiliary I2C master), and its twin.
+
+Register map used (AK09916 datasheet, §9 "Registers"; 7-bit address 0x0C on the aux bus):
+
+=====  ===========  ===========================================================
+0x01   WIA2         0x09 (device ID; WIA1 0x00 = 0x48, the company ID)
+0x10   ST1          bit 0 DRDY, bit 1 DOR
+0x11…  HXL…HZH      X, Y, Z little-endian two's complement, 0.15 µT/LSB
+0x18   ST2          bit 3 HOFL (overflow); reading ST2 ends the read and clears DRDY
+0x31   CNTL2        MODE 4:0: 0x00 power-down, 0x02 10 Hz, 0x04 20 Hz, 0x06 50 Hz, 0x08 100 Hz
+0x32   CNTL3        bit 0 SRST
+=====  ===========  ===========================================================
+
+The ICM-20948 reads ST1 … ST2 (9 bytes, 0x10 … 0x18) each sample with its I2C slave 0 and
+puts them in EXT_SLV_SENS_DATA_00 … 08 and, with SLV_0_FIFO_EN, into each FIFO packet.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice, i16_bytes, to_counts
+
+ADDRESS = 0x0C
+WIA2, WIA2_VALUE, ST1, HXL, ST2, CNTL2, CNTL3 = 0x01, 0x09, 0x10, 0x11, 0x18, 0x31, 0x32
+DRDY, DOR, HOFL, SRST = 0x01, 0x02, 0x08, 0x01
+MODES_HZ = {0x02: 10.0, 0x04: 20.0, 0x06: 50.0, 0x08: 100.0}
+UT_PER_LSB = 0.15
+FULL_SCALE = 32752  # ±4912 µT
+
+
+class SimulatedAK09916(SimulatedRegisterDevice):
+    """AK09916 twin. The physics field (board = ICM-20948 accelerometer axes) is written in the
+    die's own axes: X_mag = X_acc, Y_mag = −Y_acc, Z_mag = −Z_acc (datasheet orientation)."""
+
+    PART = "AK09916"
+    DEFAULT_ADDRESS = ADDRESS
+    POWER_ON = {0x00: 0x48, WIA2: WIA2_VALUE}
+    WRITABLE = frozenset({CNTL2, CNTL3})
+
+    def rate_hz(self) -> float | None:
+        return MODES_HZ.get(self.regs[CNTL2] & 0x1F)
+
+    def on_write(self, reg: int, value: int, old: int, now: float) -> None:
+        if reg == CNTL3 and value & SRST:
+            self.power_on_reset(now)
+        elif reg == CNTL2:
+            if self.rate_hz():
+                self.restart_measurement(now)
+            else:
+                self.stop_measurement()
+
+    def latch(self, phys: dict, t: float, skipped: int) -> None:
+        m = phys["mag"]
+        die = (m[0], -m[1], -m[2])
+        counts = [to_counts(v, UT_PER_LSB, -FULL_SCALE, FULL_SCALE) for v in die]
+        out = []
+        for c in counts:
+            out.extend(i16_bytes(c, False))
+        self.regs[HXL:HXL + 6] = bytes(out)
+        self.regs[ST2] = HOFL if any(abs(c) >= FULL_SCALE for c in counts) else 0
+        self.regs[ST1] = DRDY | (DOR if skipped or self.regs[ST1] & DRDY else 0)
+
+    def on_read(self, regs: list[int], now: float) -> None:
+        if ST2 in regs:
+            self.regs[ST1] = 0

@@ -1,0 +1,403 @@
+"""Bosch BMI088: accelerometer and gyroscope on two dies, each with its own chip select,
+registers and FIFO (SPI), and their twins.
+
+Accelerometer die (BST-BMI088-DS001 rev 1.x, register map §5.3.x / Table "accelerometer
+register map"; FIFO §4.9 "FIFO", frame formats §4.9.x):
+
+=====  ==============  ===============================================================
+0x00   ACC_CHIP_ID     0x1E
+0x24   FIFO_LENGTH_0/1 bytes in the FIFO, 13:0 (0x24 = 7:0, 0x25 = 13:8)
+0x26   FIFO_DATA       frames: 0x84 + 6 data bytes (X, Y, Z little-endian), 0x40 + 1 skip,
+                       0x44 + 3 sensortime, 0x48 + 1 config change, 0x50 + 1 drop; 0x80 = empty
+0x40   ACC_CONF        bwp 7:4 (0xA normal), odr 3:0 (0x08 100 … 0x0C 1600 Hz)
+0x41   ACC_RANGE       0…3: ±3/6/12/24 g
+0x46   FIFO_WTM_0/1    watermark in bytes, 12:0
+0x48   FIFO_CONFIG_0   bit 1 must be 1; bit 0 mode: 1 FIFO (stop when full), 0 stream
+0x49   FIFO_CONFIG_1   bit 6 acc_en; bit 4 must be 1
+0x53   INT1_IO_CTRL    bit 3 out, bit 2 open-drain, bit 1 active high
+0x58   INT_MAP_DATA    bit 1 int1_fwm, bit 0 int1_ffull
+0x7C   ACC_PWR_CONF    0x03 suspend (power-on), 0x00 active
+0x7D   ACC_PWR_CTRL    0x00 off (power-on), 0x04 on
+0x7E   ACC_SOFTRESET   0xB6
+=====  ==============  ===============================================================
+
+SPI on the accelerometer (§6.1.2): a read returns one **dummy byte** before the data; after
+power-on the die listens on I2C until a rising edge on CSB1 — the driver's first access is
+a throw-away read of ACC_CHIP_ID. Sensitivity: 32768 / (1.5 · 2^(range+1)) LSB/g. FIFO
+1024 bytes = 146 accelerometer frames of 7 bytes.
+
+Gyroscope die (register map §5.5.x / Table "gyroscope register map"; FIFO §4.9):
+
+=====  ==================  ===========================================================
+0x00   GYRO_CHIP_ID        0x0F
+0x0E   FIFO_STATUS         bit 7 overrun, 6:0 frames in the FIFO
+0x0F   GYRO_RANGE          0…4: ±2000/1000/500/250/125 °/s
+0x10   GYRO_BANDWIDTH      ODR/filter: 0x01 2000/230, 0x02 1000/116, 0x03 400/47,
+                           0x04 200/23, 0x05 100/12 Hz (bit 7 reads 1)
+0x11   GYRO_LPM1           0x00 normal
+0x14   GYRO_SOFTRESET      0xB6
+0x15   GYRO_INT_CTRL       bit 6 FIFO interrupt on
+0x16   INT3_INT4_IO_CONF   bit 1 int3 open-drain, bit 0 int3 active high
+0x18   INT3_INT4_IO_MAP    bit 2 FIFO on INT3
+0x1E   FIFO_WM_ENABLE      0x88 watermark interrupt on, 0x08 off
+0x3D   FIFO_CONFIG_0       watermark level, frames 6:0
+0x3E   FIFO_CONFIG_1       mode 7:6: 0x40 FIFO (stop when full), 0x80 stream; a write clears it
+0x3F   FIFO_DATA           6-byte frames X, Y, Z little-endian
+=====  ==================  ===========================================================
+
+No dummy byte on the gyroscope. FIFO 100 frames. Sensitivity 16.384 · 2^range LSB/(°/s).
+
+The dies run on separate oscillators: the board pairs them by the rule in
+:class:`~ahrs_service.drivers.imu.boards.BMI088Board`.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from ahrs_service.drivers.fifo import SimulatedFifo, SimulatedFifoDevice
+from ahrs_service.drivers.i2c.device import DEG2RAD, STANDARD_GRAVITY, to_counts
+from ahrs_service.drivers.transport import RegisterTransport, TransportDevice
+
+# accelerometer die
+ACC_CHIP_ID, ACC_CHIP_ID_VALUE = 0x00, 0x1E
+FIFO_LENGTH_0, ACC_FIFO_DATA = 0x24, 0x26
+ACC_CONF, ACC_RANGE, FIFO_WTM_0, FIFO_WTM_1 = 0x40, 0x41, 0x46, 0x47
+ACC_FIFO_CONFIG_0, ACC_FIFO_CONFIG_1 = 0x48, 0x49
+INT1_IO_CTRL, INT_MAP_DATA = 0x53, 0x58
+ACC_PWR_CONF, ACC_PWR_CTRL, ACC_SOFTRESET = 0x7C, 0x7D, 0x7E
+ACC_ODR_CODES = {100: 0x08, 200: 0x09, 400: 0x0A, 800: 0x0B, 1600: 0x0C}
+ACC_ODR_HZ = {c: float(r) for r, c in ACC_ODR_CODES.items()}
+ACC_RANGES_G = {3: 0, 6: 1, 12: 2, 24: 3}
+ACC_FRAME_HEADER, ACC_FRAME, ACC_EMPTY = 0x84, 7, 0x80
+ACC_FIFO_BYTES = 1024
+SOFTRESET_CMD = 0xB6
+
+# gyroscope die
+GYRO_CHIP_ID, GYRO_CHIP_ID_VALUE = 0x00, 0x0F
+FIFO_STATUS, GYRO_RANGE, GYRO_BANDWIDTH, GYRO_LPM1 = 0x0E, 0x0F, 0x10, 0x11
+GYRO_SOFTRESET, GYRO_INT_CTRL, INT3_INT4_IO_CONF, INT3_INT4_IO_MAP = 0x14, 0x15, 0x16, 0x18
+FIFO_WM_ENABLE, GYRO_FIFO_CONFIG_0, GYRO_FIFO_CONFIG_1, GYRO_FIFO_DATA = 0x1E, 0x3D, 0x3E, 0x3F
+GYRO_ODR_CODES = {2000: 0x01, 1000: 0x02, 400: 0x03, 200: 0x04, 100: 0x05}
+GYRO_ODR_HZ = {0x00: 2000.0, 0x01: 2000.0, 0x02: 1000.0, 0x03: 400.0, 0x04: 200.0, 0x05: 100.0,
+               0x06: 200.0, 0x07: 100.0}
+GYRO_RANGES_DPS = {2000: 0, 1000: 1, 500: 2, 250: 3, 125: 4}
+GYRO_FRAME, GYRO_FIFO_FRAMES = 6, 100
+OVERRUN = 0x80
+
+
+def acc_lsb_per_g(range_code: int) -> float:
+    return 32768.0 / (1.5 * 2 ** (range_code + 1))
+
+
+def gyro_lsb_per_dps(range_code: int) -> float:
+    return 16.384 * 2 ** range_code
+
+
+class BMI088Accel(TransportDevice):
+    """BMI088 accelerometer die: FIFO mode (stop when full), watermark on INT1."""
+
+    PART = "BMI088 accelerometer"
+
+    def __init__(self, transport: RegisterTransport, *, odr_hz: float = 1600, range_g: int = 24,
+                 watermark: int = 8, **kw: Any) -> None:
+        super().__init__(transport, **kw)
+        if odr_hz not in ACC_ODR_CODES:
+            raise ValueError(f"BMI088 acc_odr_hz must be one of {sorted(ACC_ODR_CODES)}, got {odr_hz}")
+        if range_g not in ACC_RANGES_G:
+            raise ValueError(f"BMI088 acc_range_g must be one of {sorted(ACC_RANGES_G)}, got {range_g}")
+        self.odr_hz, self.range_g, self.watermark = float(odr_hz), range_g, int(watermark)
+        self.scale = STANDARD_GRAVITY / acc_lsb_per_g(ACC_RANGES_G[range_g])
+        self.full_scale = 32767
+
+    def configure(self) -> None:
+        t = self.transport
+        self.read_u8(ACC_CHIP_ID)  # the rising CSB1 edge that puts the die into SPI mode (§6.1)
+        self.check_identity(ACC_CHIP_ID, (ACC_CHIP_ID_VALUE,), "ACC_CHIP_ID")
+        self.write_u8(ACC_SOFTRESET, SOFTRESET_CMD)
+        t.sleep(0.001)
+        self.read_u8(ACC_CHIP_ID)  # back to SPI after the reset
+        self.write_u8(ACC_PWR_CONF, 0x00)
+        t.sleep(0.005)
+        self.write_u8(ACC_PWR_CTRL, 0x04)
+        t.sleep(0.005)
+        self.write_u8(ACC_CONF, 0xA0 | ACC_ODR_CODES[int(self.odr_hz)])
+        self.write_u8(ACC_RANGE, ACC_RANGES_G[self.range_g])
+        wm = self.watermark * ACC_FRAME
+        self.write_u8(FIFO_WTM_0, wm & 0xFF)
+        self.write_u8(FIFO_WTM_1, wm >> 8)
+        self.write_u8(ACC_FIFO_CONFIG_1, 0x50)  # acc_en | reserved 1
+        self.write_u8(ACC_FIFO_CONFIG_0, 0x03)  # FIFO mode: stop when full (also clears it)
+        self.write_u8(INT1_IO_CTRL, 0x0A)  # out, push-pull, active high
+        self.write_u8(INT_MAP_DATA, 0x03)  # watermark and full on INT1
+
+    def flush(self) -> None:
+        self.write_u8(ACC_FIFO_CONFIG_0, 0x03)  # rewriting the FIFO configuration clears it
+
+    def read_level(self) -> int:
+        b = self.read_regs(FIFO_LENGTH_0, 2)
+        return b[0] | (b[1] & 0x3F) << 8
+
+    def read_frames(self, n_bytes: int) -> tuple[np.ndarray, bool]:
+        """(counts (n, 3) of the accelerometer frames in ``n_bytes`` of FIFO, full flag)."""
+        data = self.read_fifo(ACC_FIFO_DATA, n_bytes) if n_bytes else b""
+        rows, i = [], 0
+        while i < len(data):
+            h = data[i] & 0xFC  # bits 1:0 tag the interrupt pins
+            if h == ACC_FRAME_HEADER and i + ACC_FRAME <= len(data):
+                rows.append(data[i + 1:i + ACC_FRAME])
+                i += ACC_FRAME
+            elif h == 0x44:
+                i += 4
+            elif h in (0x40, 0x48, 0x50):
+                i += 2
+            else:  # 0x80: empty, or a partial frame
+                break
+        counts = np.frombuffer(b"".join(rows), dtype="<i2").reshape(-1, 3).astype(np.int64)
+        return counts, n_bytes > ACC_FIFO_BYTES - ACC_FRAME
+
+
+class BMI088Gyro(TransportDevice):
+    """BMI088 gyroscope die: FIFO mode (stop when full), watermark on INT3."""
+
+    PART = "BMI088 gyroscope"
+
+    def __init__(self, transport: RegisterTransport, *, odr_hz: float = 2000, range_dps: int = 2000,
+                 watermark: int = 8, **kw: Any) -> None:
+        super().__init__(transport, **kw)
+        if odr_hz not in GYRO_ODR_CODES:
+            raise ValueError(f"BMI088 odr_hz must be one of {sorted(GYRO_ODR_CODES)}, got {odr_hz}")
+        if range_dps not in GYRO_RANGES_DPS:
+            raise ValueError(f"BMI088 gyro_range_dps must be one of {sorted(GYRO_RANGES_DPS)}, got {range_dps}")
+        if not 1 <= watermark <= GYRO_FIFO_FRAMES - 2:
+            raise ValueError(f"BMI088 watermark must be 1…{GYRO_FIFO_FRAMES - 2} frames, got {watermark}")
+        self.odr_hz, self.range_dps, self.watermark = float(odr_hz), range_dps, int(watermark)
+        self.scale = DEG2RAD / gyro_lsb_per_dps(GYRO_RANGES_DPS[range_dps])
+        self.full_scale = 32767
+
+    def configure(self) -> None:
+        self.check_identity(GYRO_CHIP_ID, (GYRO_CHIP_ID_VALUE,), "GYRO_CHIP_ID")
+        self.write_u8(GYRO_SOFTRESET, SOFTRESET_CMD)
+        self.transport.sleep(0.03)
+        self.write_u8(GYRO_LPM1, 0x00)
+        self.write_u8(GYRO_RANGE, GYRO_RANGES_DPS[self.range_dps])
+        self.write_u8(GYRO_BANDWIDTH, GYRO_ODR_CODES[int(self.odr_hz)])
+        self.write_u8(GYRO_FIFO_CONFIG_0, self.watermark)
+        self.write_u8(FIFO_WM_ENABLE, 0x88)
+        self.write_u8(INT3_INT4_IO_CONF, 0x01)  # push-pull, active high
+        self.write_u8(INT3_INT4_IO_MAP, 0x04)  # FIFO interrupt on INT3
+        self.write_u8(GYRO_INT_CTRL, 0x40)
+        self.write_u8(GYRO_FIFO_CONFIG_1, 0x40)  # FIFO mode: stop when full (clears it)
+
+    def flush(self) -> None:
+        self.write_u8(GYRO_FIFO_CONFIG_1, 0x40)
+
+    def read_status(self) -> tuple[int, bool]:
+        """(frames waiting, overrun) from FIFO_STATUS."""
+        s = self.read_u8(FIFO_STATUS)
+        return s & 0x7F, bool(s & OVERRUN)
+
+    def read_frames(self, frames: int) -> np.ndarray:
+        data = self.read_fifo(GYRO_FIFO_DATA, frames * GYRO_FRAME, GYRO_FRAME)
+        return np.frombuffer(data, dtype="<i2").reshape(-1, 3).astype(np.int64)
+
+
+# ============================================================================ twins
+
+
+class _BMI088Die(SimulatedFifoDevice):
+    """What both dies' twins share: FIFO port reads, soft reset, the truth side channel."""
+
+    FIFO_PORT = 0x00
+    SOFTRESET_REG = 0x00
+
+    def __init__(self, source: Any = None, clock_error: float | None = None) -> None:
+        self.int1 = None
+        super().__init__(source, 0x10, clock_error)
+
+    def reset_state(self, now: float) -> None:
+        self.truth: deque = deque()
+        self.popped_truth: list = []
+        self._above_wm = False
+
+    def take_popped_truth(self) -> list:
+        out, self.popped_truth = self.popped_truth, []
+        return out
+
+    def bus_read(self, sub: int, n: int, now: float) -> list[int]:
+        self.update(now)
+        if sub == self.FIFO_PORT:
+            return self.pop_fifo(n)
+        return [self.read_register((sub + i) & 0x7F) for i in range(n)]
+
+    def bus_write(self, sub: int, data: list[int], now: float) -> None:
+        self.update(now)
+        if sub == self.SOFTRESET_REG and data and data[0] == SOFTRESET_CMD:
+            self.power_on_reset(now)
+            return
+        super().bus_write(sub, data, now)
+
+    def _truth_q(self, phys: dict):
+        truth = phys.get("truth")
+        if truth is None:
+            return None
+        return np.asarray(truth["q"] if isinstance(truth, dict) else truth.q, dtype=float)
+
+    def _edge(self, t: float, level_frames: int, wm_frames: int, routed: bool) -> None:
+        if wm_frames and level_frames >= wm_frames:
+            if not self._above_wm:
+                self._above_wm = True
+                if self.int1 is not None and routed:
+                    self.int1(t)
+        else:
+            self._above_wm = False
+
+
+class SimulatedBMI088Accel(_BMI088Die):
+    """Accelerometer die twin: SPI mode after the first CSB1 edge, one dummy byte per read,
+    the 1 KB FIFO of 7-byte frames in FIFO (stop-when-full) mode, a 0x80 header when empty."""
+
+    PART = "BMI088 accelerometer"
+    SPI_DUMMY_BYTES = 1
+    CLOCK_ERROR = -0.0061
+    FIFO_PORT, SOFTRESET_REG = ACC_FIFO_DATA, ACC_SOFTRESET
+    POWER_ON = {ACC_CHIP_ID: ACC_CHIP_ID_VALUE, ACC_CONF: 0xA8, ACC_RANGE: 0x01, ACC_PWR_CONF: 0x03,
+                ACC_PWR_CTRL: 0x00, ACC_FIFO_CONFIG_0: 0x02, ACC_FIFO_CONFIG_1: 0x10, FIFO_WTM_0: 0x00,
+                FIFO_WTM_1: 0x02, INT_MAP_DATA: 0x00}
+    WRITABLE = frozenset({ACC_CONF, ACC_RANGE, FIFO_WTM_0, FIFO_WTM_1, ACC_FIFO_CONFIG_0, ACC_FIFO_CONFIG_1,
+                          INT1_IO_CTRL, INT_MAP_DATA, ACC_PWR_CONF, ACC_PWR_CTRL})
+
+    def reset_state(self, now: float) -> None:
+        super().reset_state(now)
+        self.fifo = SimulatedFifo(ACC_FIFO_BYTES, stop_on_full=True)
+        self.spi_mode = False
+        self.restart_measurement(now)
+
+    def spi_select(self, now: float) -> bool:
+        """Chip select asserted: the first edge after power-on switches the die to SPI."""
+        if not self.spi_mode:
+            self.spi_mode = True
+            return False
+        return True
+
+    def nominal_rate_hz(self) -> float | None:
+        if self.regs[ACC_PWR_CTRL] != 0x04 or self.regs[ACC_PWR_CONF] != 0x00:
+            return None
+        return ACC_ODR_HZ.get(self.regs[ACC_CONF] & 0x0F)
+
+    def backlog_limit(self) -> int:
+        return ACC_FIFO_BYTES // ACC_FRAME + 1
+
+    def on_write(self, reg: int, value: int, old: int, now: float) -> None:
+        if reg == ACC_FIFO_CONFIG_0:
+            self.fifo.clear()
+            self.truth.clear()
+        if reg in (ACC_PWR_CTRL, ACC_PWR_CONF, ACC_CONF) and value != old:
+            self.restart_measurement(now)
+
+    def latch(self, phys: dict, t: float, skipped: int) -> None:
+        lsb = STANDARD_GRAVITY / acc_lsb_per_g(self.regs[ACC_RANGE] & 3)
+        frame = bytearray((ACC_FRAME_HEADER,))
+        for a in phys["acc"]:
+            frame += (to_counts(a, lsb, -32768, 32767) & 0xFFFF).to_bytes(2, "little")
+        if self.regs[ACC_FIFO_CONFIG_1] & 0x40 and self.fifo.push(bytes(frame)):
+            self.truth.append(self._truth_q(phys))
+        wm = (self.regs[FIFO_WTM_0] | (self.regs[FIFO_WTM_1] & 0x1F) << 8) // ACC_FRAME
+        self._edge(t, self.fifo.level // ACC_FRAME, wm, bool(self.regs[INT_MAP_DATA] & 0x02))
+
+    def skipped_unseen(self, n: int) -> None:
+        self.fifo.overflowed = True
+        self.fifo.dropped += n
+
+    def read_register(self, reg: int) -> int:
+        if reg == FIFO_LENGTH_0:
+            return self.fifo.level & 0xFF
+        if reg == FIFO_LENGTH_0 + 1:
+            return self.fifo.level >> 8
+        return self.regs[reg]
+
+    def pop_fifo(self, n: int) -> list[int]:
+        before = self.fifo.level // ACC_FRAME
+        got = self.fifo.pop(n)
+        for _ in range(before - -(-self.fifo.level // ACC_FRAME)):
+            self.popped_truth.append(self.truth.popleft())
+        self._above_wm = False
+        return list(got) + [ACC_EMPTY] * (n - len(got))
+
+
+class SimulatedBMI088Gyro(_BMI088Die):
+    """Gyroscope die twin: the 100-frame FIFO in FIFO mode, FIFO_STATUS overrun, INT3."""
+
+    PART = "BMI088 gyroscope"
+    CLOCK_ERROR = +0.0073
+    FIFO_PORT, SOFTRESET_REG = GYRO_FIFO_DATA, GYRO_SOFTRESET
+    POWER_ON = {GYRO_CHIP_ID: GYRO_CHIP_ID_VALUE, GYRO_BANDWIDTH: 0x80, GYRO_RANGE: 0x00,
+                FIFO_WM_ENABLE: 0x08, GYRO_FIFO_CONFIG_1: 0x00}
+    WRITABLE = frozenset({GYRO_RANGE, GYRO_BANDWIDTH, GYRO_LPM1, GYRO_INT_CTRL, INT3_INT4_IO_CONF,
+                          INT3_INT4_IO_MAP, FIFO_WM_ENABLE, GYRO_FIFO_CONFIG_0, GYRO_FIFO_CONFIG_1})
+
+    def reset_state(self, now: float) -> None:
+        super().reset_state(now)
+        self.fifo = SimulatedFifo(GYRO_FIFO_FRAMES * GYRO_FRAME, stop_on_full=True)
+        self.restart_measurement(now)
+
+    def nominal_rate_hz(self) -> float | None:
+        if self.regs[GYRO_LPM1] != 0x00:
+            return None
+        return GYRO_ODR_HZ[self.regs[GYRO_BANDWIDTH] & 0x07]
+
+    def backlog_limit(self) -> int:
+        return GYRO_FIFO_FRAMES + 1
+
+    def on_write(self, reg: int, value: int, old: int, now: float) -> None:
+        if reg == GYRO_BANDWIDTH:
+            self.regs[GYRO_BANDWIDTH] = 0x80 | value  # bit 7 reads 1
+            if (value & 0x07) != (old & 0x07):
+                self.restart_measurement(now)
+        elif reg == GYRO_FIFO_CONFIG_1:
+            self.fifo.clear()
+            self.truth.clear()
+        elif reg == GYRO_LPM1 and value != old:
+            self.restart_measurement(now)
+
+    def fifo_on(self) -> bool:
+        return (self.regs[GYRO_FIFO_CONFIG_1] & 0xC0) != 0
+
+    def latch(self, phys: dict, t: float, skipped: int) -> None:
+        lsb = DEG2RAD / gyro_lsb_per_dps(self.regs[GYRO_RANGE] & 7)
+        frame = bytearray()
+        for w in phys["gyr"]:
+            frame += (to_counts(w, lsb, -32768, 32767) & 0xFFFF).to_bytes(2, "little")
+        if self.fifo_on() and self.fifo.push(bytes(frame)):
+            self.truth.append(self._truth_q(phys))
+        routed = bool(self.regs[INT3_INT4_IO_MAP] & 0x04) and self.regs[FIFO_WM_ENABLE] == 0x88
+        self._edge(t, self.fifo.level // GYRO_FRAME, self.regs[GYRO_FIFO_CONFIG_0] & 0x7F, routed)
+
+    def skipped_unseen(self, n: int) -> None:
+        self.fifo.overflowed = True
+        self.fifo.dropped += n
+
+    def read_register(self, reg: int) -> int:
+        if reg == FIFO_STATUS:
+            return (OVERRUN if self.fifo.overflowed else 0) | (self.fifo.level // GYRO_FRAME)
+        return self.regs[reg]
+
+    def pop_fifo(self, n: int) -> list[int]:
+        before = self.fifo.level // GYRO_FRAME
+        got = self.fifo.pop(n)
+        for _ in range(before - -(-self.fifo.level // GYRO_FRAME)):
+            self.popped_truth.append(self.truth.popleft())
+        self._above_wm = False
+        return list(got) + [0] * (n - len(got))
+
+    def next_watermark_time(self) -> float | None:
+        rate, wm = self.rate_hz(), self.regs[GYRO_FIFO_CONFIG_0] & 0x7F
+        if not rate or self._t0 is None or not wm:
+            return None
+        missing = max(0, wm - self.fifo.level // GYRO_FRAME)
+        if missing == 0:
+            return self.latched_t if self.latched_t is not None else self._t0
+        return self._t0 + (self._k + missing) / rate

@@ -1,0 +1,432 @@
+"""Boards of today's IMUs as :class:`~ahrs_service.drivers.base.ImuSource`: FIFO bursts.
+
+A :class:`FifoBoard` reads its part's FIFO in bursts (status + count in one transfer, the
+packets in transfers of at most what the transport carries), timestamps each row on the
+sensor's clock (:class:`~ahrs_service.drivers.fifo.SensorClock`), and hands the rows out
+as a :class:`~ahrs_service.drivers.base.SampleBlock` (``read_block``) or one
+:class:`~ahrs_service.drivers.base.ImuSample` per row (``read``, ``may_have_backlog``).
+
+Loss accounting: ``diagnostics.lost`` (:class:`~ahrs_service.drivers.base.LossCounts`):
+``fifo_overflow`` — samples the full FIFO turned away, estimated from the sensor clock at
+the FIFO reset; ``bus_error`` — samples produced while the part was unreachable;
+``diagnostics.extra["fifo_overflows"]`` counts the events. The block after a loss carries it
+in ``lost``; its first row's time shows the gap (a long dt, never fake samples).
+
+Faults: a failed transfer is retried and counted; a part that keeps failing is marked lost
+and configured again at most every ``reinit_period_s``.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from ahrs_service.drivers.base import (
+    ACC_SATURATED,
+    ACC_VALID,
+    GYR_SATURATED,
+    GYR_VALID,
+    ImuSample,
+    ImuSource,
+    LossCounts,
+    SampleBlock,
+)
+from ahrs_service.drivers.fifo import SensorClock
+from ahrs_service.drivers.i2c.device import DeviceIdentityError, watermark_frames
+from ahrs_service.drivers.imu import icm42688p
+from ahrs_service.drivers.transport import RegisterTransport, check_bus_rate
+
+
+class FifoBoard(ImuSource):
+    """Base of the FIFO boards: one main part, polled in bursts."""
+
+    NAME = ""
+    has_mag = False
+    may_have_backlog = True
+    #: the FIFO watermark line, when wired (``source.drdy_gpio``); the service then waits on it
+    data_ready_line = None
+    #: bursts per second the watermark is set for (the data-ready line's edge rate), Hz
+    wakeup_rate_hz = 1000.0
+    #: whether the part raises a FIFO watermark interrupt a data-ready line can wait for
+    HAS_WATERMARK_LINE = True
+
+    def __init__(self, transport: RegisterTransport, *, retries: int = 2,
+                 reinit_period_s: float = 0.05, own_bus: Any = None) -> None:
+        super().__init__()
+        self.transport = transport
+        self.bus = getattr(transport, "bus", None)
+        self.own_bus = own_bus
+        self.retries = retries
+        self.reinit_period_ns = int(reinit_period_s * 1e9)
+        self.lost = False
+        self._last_attempt_ns = 0
+        self._opened = False
+        self._rows: deque[ImuSample] = deque()
+        self.clock: SensorClock | None = None
+        self._next_index = 0
+        self._lost_pending = LossCounts()
+        self._overflow_pending = False
+        self.diagnostics.extra["fifo_overflows"] = 0
+
+    def _kw(self) -> dict[str, Any]:
+        return {"diagnostics": self.diagnostics, "retries": self.retries}
+
+    # ------------------------------------------------------------------ life cycle
+    def open(self) -> None:
+        self._configure()
+        self._opened = True
+
+    def _configure(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        self._opened = False
+        if self.data_ready_line is not None:
+            self.data_ready_line.close()
+        if self.own_bus is not None:
+            self.own_bus.close()
+
+    # ------------------------------------------------------------------ faults
+    def _mark_lost(self, err: Exception) -> None:
+        if not self.lost:
+            self.lost = True
+            self._last_attempt_ns = self.transport.now_ns()
+        self.diagnostics.device_lost = True
+        self.diagnostics.last_error = f"{self.NAME} lost: {err}"
+
+    def _recover(self) -> bool:
+        now = self.transport.now_ns()
+        if now - self._last_attempt_ns < self.reinit_period_ns:
+            return False
+        self._last_attempt_ns = now
+        try:
+            self._configure()
+        except (OSError, DeviceIdentityError) as exc:
+            self.diagnostics.last_error = f"{self.NAME} still lost: {exc}"
+            return False
+        # the samples the part would have produced meanwhile are lost (bus error)
+        if self.clock is not None and self.clock._idx:
+            idx = self.clock.index_at(self.transport.now_ns())
+            lost = max(0, idx + 1 - self._next_index)
+            self.diagnostics.lost.bus_error += lost
+            self._next_index += lost
+            self._lost_pending.bus_error += lost
+        self.lost = False
+        self.diagnostics.device_lost = False
+        self.diagnostics.reinitialisations += 1
+        return True
+
+    # ------------------------------------------------------------------ samples
+    def read_block(self, max_samples: int = 128) -> SampleBlock:
+        """The rows read from the FIFO now, at most ``max_samples`` (empty: nothing new, or
+        the part is lost); a FIFO holding more keeps the rest for the next call."""
+        if not self._opened:
+            raise RuntimeError(f"{self.NAME} on {self.transport.where}: read before open()")
+        if self.lost and not self._recover():
+            return SampleBlock.empty()
+        try:
+            return self._burst(max_samples)
+        except OSError as exc:
+            self._mark_lost(exc)
+            return SampleBlock.empty()
+
+    def read(self) -> ImuSample | None:
+        """The oldest row not yet handed out (a burst is read when none is left)."""
+        if not self._rows:
+            block = self.read_block()
+            if not len(block):
+                return None
+            self._rows.extend(block.samples())
+        return self._rows.popleft()
+
+    def _burst(self, max_samples: int) -> SampleBlock:
+        raise NotImplementedError
+
+    def _take_loss(self) -> LossCounts:
+        lost, self._lost_pending = self._lost_pending, LossCounts()
+        return lost
+
+    def _flags(self, gyr_counts: np.ndarray, acc_counts: np.ndarray, gfs: int, afs: int) -> np.ndarray:
+        gsat = (np.abs(gyr_counts) >= gfs).any(axis=1)
+        asat = (np.abs(acc_counts) >= afs).any(axis=1)
+        flags = np.where(gsat, GYR_SATURATED, GYR_VALID) | np.where(asat, ACC_SATURATED, ACC_VALID)
+        self.diagnostics.saturated += int(gsat.sum() + asat.sum())
+        return flags
+
+
+class ICM42688PBoard(FifoBoard):
+    """ICM-42688-P on SPI (``/dev/spidevB.C``) or I2C (0x68/0x69).
+
+    odr_hz: 100 … 8000; watermark: samples per burst (default ``odr_hz / fifo_read_hz``);
+    fifo_read_hz: the burst (wake-up) rate the watermark is set for, default 1000 Hz.
+    """
+
+    NAME = "icm42688p"
+    PART = icm42688p.ICM42688P
+
+    def __init__(self, transport: RegisterTransport, *, odr_hz: float = 1000,
+                 fifo_read_hz: float = 1000, watermark: int | None = None, **kw: Any) -> None:
+        super().__init__(transport, **kw)
+        if not 1 <= fifo_read_hz <= 8000:
+            raise ValueError(f"icm42688p fifo_read_hz must be 1…8000 Hz, got {fifo_read_hz}")
+        if watermark is None:
+            # one sample of room short of the I2C twins' rule: the driver takes ≤ depth − 2
+            watermark = watermark_frames(odr_hz, fifo_read_hz, icm42688p.ICM42688P.FIFO_SAMPLES - 1)
+        self.part = icm42688p.ICM42688P(transport, odr_hz=odr_hz, watermark=watermark, **self._kw())
+        self.odr_hz = float(odr_hz)
+        self.wakeup_rate_hz = self.odr_hz / watermark
+        check_bus_rate(transport, "source.board_options.odr_hz", self.odr_hz, icm42688p.PACKET,
+                       min(self.odr_hz, self.odr_hz / watermark), icm42688p.STATUS_BYTES, "ICM-42688-P")
+
+    def _configure(self) -> None:
+        self.part.configure()
+        if self.clock is None:
+            self.clock = SensorClock(self.odr_hz)
+
+    def _burst(self, max_samples: int) -> SampleBlock:
+        part = self.part
+        status, count = part.read_status()
+        if count > icm42688p.FIFO_BYTES:
+            # a count the part cannot hold: a garbled transfer or no part (SPI reads 0xFF)
+            raise OSError(5, f"FIFO count {count} > {icm42688p.FIFO_BYTES}: bad transfer or part gone")
+        # FIFO_FULL clears on reading INT_STATUS: remember it until the FIFO is drained
+        self._overflow_pending |= bool(status & icm42688p.FIFO_FULL_INT)
+        packets = min(count // icm42688p.PACKET, max_samples)
+        if packets == 0:
+            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+        pk = part.read_packets(packets * icm42688p.PACKET)
+        host = self.transport.now_ns()
+        drained = packets * icm42688p.PACKET > count - icm42688p.PACKET
+        overflow = self._overflow_pending
+        header = pk["header"]
+        ok = ((header & 0xFC) == icm42688p.HIRES_HEADER) & \
+            (pk["acc20"] != icm42688p.INVALID_20BIT).all(axis=1) & \
+            (pk["gyr20"] != icm42688p.INVALID_20BIT).all(axis=1)
+        first = self._next_index
+        self._next_index += len(header)
+        lost = self._take_loss()
+        # a full FIFO's newest sample is older than the read: not a clock anchor
+        t = self.clock.stamp(host, first, len(header), anchor=not overflow)[ok]
+        if overflow and drained:
+            part.flush()
+            self._overflow_pending = False
+            self.diagnostics.extra["fifo_overflows"] += 1
+            produced = self.clock.index_at(self.transport.now_ns())
+            n_lost = max(1, produced + 1 - self._next_index)  # the part did report one
+            self.diagnostics.lost.fifo_overflow += n_lost
+            self._next_index += n_lost
+            self._lost_pending.fifo_overflow += n_lost
+        n = int(ok.sum())
+        self.diagnostics.samples += n
+        gyr_c, acc_c = pk["gyr"][ok].astype(np.int64), pk["acc"][ok].astype(np.int64)
+        truth = None
+        if self.transport.simulated:  # the twin hands over the truth of the packets just read
+            popped = _twin(self.transport).take_popped_truth()
+            rows = [q for q, good in zip(popped, ok) if good]
+            if rows and all(q is not None for q in rows):
+                truth = np.array(rows, dtype=float)
+        return SampleBlock(
+            t_ns=t, gyr=gyr_c * part.gyro_scale, acc=acc_c * part.acc_scale,
+            mag=np.full((n, 3), np.nan),
+            flags=self._flags(gyr_c, acc_c, part.gyro_full_scale, part.acc_full_scale).astype(np.int64),
+            temperature_c=part.temperature_c(pk["temp"][ok]).astype(float),
+            raw={"gyr": gyr_c, "acc": acc_c}, truth_q=truth, lost=lost)
+
+
+def _twin(transport: RegisterTransport) -> Any:
+    bus = transport.bus
+    return bus.device(transport.cs if transport.kind == "spi" else transport.address)
+
+
+class BMI088Board(FifoBoard):
+    """Bosch BMI088 on SPI: the gyroscope die (``transport``, drives the rows) and the
+    accelerometer die (``acc_transport``, one dummy byte per read), each with its FIFO.
+
+    **Pairing rule** (two dies, two oscillators): every gyroscope sample is one row; its
+    accelerometer value is the newest accelerometer sample whose own sensor-clock time is at
+    or before the row's time (zero-order hold, never a sample from the row's future). Rows
+    before the first accelerometer sample after start are not emitted. The accelerometer's
+    overflows are counted in ``diagnostics.extra["acc_fifo_overflows"]`` (they cost no rows:
+    the held value bridges them) and do not count as lost samples.
+
+    odr_hz: gyro 100/200/400/1000/2000; acc_odr_hz: 100…1600; watermark: gyro frames per
+    burst (default ``odr_hz / fifo_read_hz``); ranges: gyro_range_dps, acc_range_g.
+    """
+
+    NAME = "bmi088"
+
+    def __init__(self, transport: RegisterTransport, *, acc_transport: RegisterTransport,
+                 odr_hz: float = 2000, acc_odr_hz: float = 1600, gyro_range_dps: int = 2000,
+                 acc_range_g: int = 24, fifo_read_hz: float = 1000, watermark: int | None = None,
+                 **kw: Any) -> None:
+        from ahrs_service.drivers.imu import bmi088
+
+        super().__init__(transport, **kw)
+        self.acc_transport = acc_transport
+        if not 1 <= fifo_read_hz <= 2000:
+            raise ValueError(f"bmi088 fifo_read_hz must be 1…2000 Hz, got {fifo_read_hz}")
+        if odr_hz not in bmi088.GYRO_ODR_CODES:
+            raise ValueError(f"BMI088 odr_hz must be one of {sorted(bmi088.GYRO_ODR_CODES)}, got {odr_hz}")
+        if watermark is None:
+            watermark = watermark_frames(odr_hz, fifo_read_hz, bmi088.GYRO_FIFO_FRAMES - 1)
+        self.gyro = bmi088.BMI088Gyro(transport, odr_hz=odr_hz, range_dps=gyro_range_dps,
+                                      watermark=watermark, **self._kw())
+        acc_wm = max(1, int(round(acc_odr_hz / (odr_hz / watermark))))
+        self.acc = bmi088.BMI088Accel(acc_transport, odr_hz=acc_odr_hz, range_g=acc_range_g,
+                                      watermark=acc_wm, **self._kw())
+        self.part = self.gyro
+        self.odr_hz = float(odr_hz)
+        self.wakeup_rate_hz = self.odr_hz / watermark
+        self._bmi = bmi088
+        self.diagnostics.extra["acc_fifo_overflows"] = 0
+        check_bus_rate(transport, "source.board_options.odr_hz", self.odr_hz, bmi088.GYRO_FRAME,
+                       min(self.odr_hz, self.wakeup_rate_hz), 1, "BMI088 gyroscope")
+        check_bus_rate(acc_transport, "source.board_options.acc_odr_hz", float(acc_odr_hz),
+                       bmi088.ACC_FRAME, min(float(acc_odr_hz), self.wakeup_rate_hz), 2,
+                       "BMI088 accelerometer")
+
+    def _configure(self) -> None:
+        self.acc.configure()
+        self.gyro.configure()
+        if self.clock is None:
+            self.clock = SensorClock(self.odr_hz)
+            self.acc_clock = SensorClock(self.acc.odr_hz)
+            self._acc_next = 0
+            self._acc_t = np.empty(0, np.int64)
+            self._acc_c = np.empty((0, 3), np.int64)
+
+    def _read_acc(self) -> None:
+        bmi = self._bmi
+        level = self.acc.read_level()
+        counts, full = self.acc.read_frames(level // bmi.ACC_FRAME * bmi.ACC_FRAME)
+        host = self.acc_transport.now_ns()
+        if len(counts):
+            t = self.acc_clock.stamp(host, self._acc_next, len(counts), anchor=not full)
+            self._acc_next += len(counts)
+            self._acc_t = np.concatenate([self._acc_t[-1:], t])
+            self._acc_c = np.concatenate([self._acc_c[-1:], counts])
+        if full:
+            self.acc.flush()
+            self.diagnostics.extra["acc_fifo_overflows"] += 1
+            self._acc_next = self.acc_clock.index_at(self.acc_transport.now_ns()) + 1
+
+    def _burst(self, max_samples: int) -> SampleBlock:
+        gyro = self.gyro
+        frames, overrun = gyro.read_status()
+        self._overflow_pending |= overrun
+        take = min(frames, max_samples)
+        g = gyro.read_frames(take) if take else np.empty((0, 3), np.int64)
+        host = self.transport.now_ns()
+        self._read_acc()
+        if take == 0:
+            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+        overflow = self._overflow_pending
+        first = self._next_index
+        self._next_index += take
+        lost = self._take_loss()
+        t = self.clock.stamp(host, first, take, anchor=not overflow)
+        if overflow and take == frames:
+            gyro.flush()
+            self._overflow_pending = False
+            self.diagnostics.extra["fifo_overflows"] += 1
+            n_lost = max(1, self.clock.index_at(self.transport.now_ns()) + 1 - self._next_index)
+            self.diagnostics.lost.fifo_overflow += n_lost
+            self._next_index += n_lost
+            self._lost_pending.fifo_overflow += n_lost
+        # pairing: the newest accelerometer sample at or before each gyro row
+        idx = np.searchsorted(self._acc_t, t, side="right") - 1
+        ok = idx >= 0
+        truth = None
+        if self.transport.simulated:
+            popped = _twin(self.transport).take_popped_truth()
+            rows = [q for q, good in zip(popped, ok) if good]
+            if rows and all(q is not None for q in rows):
+                truth = np.array(rows, dtype=float)
+        g, t, idx = g[ok], t[ok], idx[ok]
+        a = self._acc_c[idx]
+        n = len(t)
+        self.diagnostics.samples += n
+        return SampleBlock(
+            t_ns=t, gyr=g * gyro.scale, acc=a * self.acc.scale, mag=np.full((n, 3), np.nan),
+            flags=self._flags(g, a, gyro.full_scale, self.acc.full_scale).astype(np.int64),
+            temperature_c=np.full(n, np.nan), raw={"gyr": g, "acc": a}, truth_q=truth, lost=lost)
+
+
+class ICM20948Board(FifoBoard):
+    """ICM-20948 with its AK09916 (through the part's auxiliary I2C master), SPI or I2C.
+
+    Each FIFO packet carries accelerometer, gyro and the AK09916's ST1 … ST2 as slave 0 read
+    them at that sample: a row has ``MAG_NEW`` exactly when ST1.DRDY is set in its packet
+    (the master reads ST2 each sample, which clears DRDY until the next measurement). The
+    field is in the accelerometer's axes (X, −Y, −Z of the die). No watermark line: timer
+    polling at ``fifo_read_hz`` (the FIFO holds 21 ms at 1125 Hz).
+    """
+
+    NAME = "icm20948"
+    has_mag = True
+    HAS_WATERMARK_LINE = False
+
+    def __init__(self, transport: RegisterTransport, *, odr_hz: float = 1125, gyro_range_dps: int = 2000,
+                 acc_range_g: int = 16, mag_rate_hz: float = 100, fifo_read_hz: float = 250, **kw: Any) -> None:
+        from ahrs_service.drivers.imu import icm20948
+
+        super().__init__(transport, **kw)
+        self._icm = icm20948
+        self.part = icm20948.ICM20948(transport, odr_hz=odr_hz, gyro_range_dps=gyro_range_dps,
+                                      acc_range_g=acc_range_g, mag_rate_hz=mag_rate_hz, **self._kw())
+        self.odr_hz = self.part.odr_hz
+        self.wakeup_rate_hz = float(fifo_read_hz)
+        check_bus_rate(transport, "source.board_options.odr_hz", self.odr_hz, icm20948.PACKET,
+                       min(self.odr_hz, fifo_read_hz), 3, "ICM-20948")
+
+    def _configure(self) -> None:
+        self.part.configure()
+        if self.clock is None:
+            self.clock = SensorClock(self.odr_hz)
+
+    def _burst(self, max_samples: int) -> SampleBlock:
+        from ahrs_service.drivers.base import MAG_NEW, MAG_SATURATED, MAG_VALID
+
+        icm, part = self._icm, self.part
+        overflow, count = part.read_status()
+        if count > icm.FIFO_BYTES + 64:
+            raise OSError(5, f"FIFO count {count} > {icm.FIFO_BYTES}: bad transfer or part gone")
+        self._overflow_pending |= overflow
+        packets = min(count // icm.PACKET, max_samples)
+        if packets == 0:
+            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+        p = part.read_packets(packets)
+        host = self.transport.now_ns()
+        drained = packets * icm.PACKET > count - icm.PACKET
+        overflow = self._overflow_pending
+        first = self._next_index
+        self._next_index += packets
+        lost = self._take_loss()
+        t = self.clock.stamp(host, first, packets, anchor=not overflow)
+        if overflow and drained:
+            part.flush()
+            self._overflow_pending = False
+            self.diagnostics.extra["fifo_overflows"] += 1
+            n_lost = max(1, self.clock.index_at(self.transport.now_ns()) + 1 - self._next_index)
+            self.diagnostics.lost.fifo_overflow += n_lost
+            self._next_index += n_lost
+            self._lost_pending.fifo_overflow += n_lost
+        acc_c, gyr_c = p[:, 0:3], p[:, 3:6]
+        st1, mag_c, st2 = p[:, 6], p[:, 7:10], p[:, 11]
+        new = (st1 & 0x01) != 0
+        hofl = (st2 & 0x08) != 0
+        mag = np.where(new[:, None], part.mag_to_board(mag_c), np.nan)
+        flags = self._flags(gyr_c, acc_c, part.gyro_full_scale, part.acc_full_scale)
+        flags |= np.where(new, MAG_NEW | np.where(hofl, MAG_SATURATED, MAG_VALID), 0)
+        self.diagnostics.samples += packets
+        truth = None
+        if self.transport.simulated:
+            rows = _twin(self.transport).take_popped_truth()
+            if rows and all(q is not None for q in rows):
+                truth = np.array(rows, dtype=float)
+        return SampleBlock(
+            t_ns=t, gyr=gyr_c * part.gyro_scale, acc=acc_c * part.acc_scale, mag=mag,
+            flags=flags.astype(np.int64), temperature_c=np.full(packets, np.nan),
+            raw={"gyr": gyr_c, "acc": acc_c, "mag": mag_c}, truth_q=truth, lost=lost)

@@ -1,0 +1,375 @@
+"""TDK InvenSense ICM-20948 gyroscope + accelerometer with its AK09916 magnetometer read by
+the part's auxiliary I2C master (SPI or I2C), and its twin.
+
+Register map used (TDK DS-000189 rev 1.3, §7 "Register map" per user bank; FIFO §6.x). Every
+bank has REG_BANK_SEL at 0x7F (bits 5:4 = bank):
+
+=====  ==========  ===================  =================================================
+bank   reg         name                 use
+=====  ==========  ===================  =================================================
+0      0x00        WHO_AM_I             0xEA
+0      0x03        USER_CTRL            bit 6 FIFO_EN, bit 5 I2C_MST_EN, bit 4 I2C_IF_DIS
+0      0x06        PWR_MGMT_1           bit 7 DEVICE_RESET, bit 6 SLEEP, CLKSEL 2:0 (1 = auto)
+0      0x07        PWR_MGMT_2           0x00: accelerometer and gyroscope on
+0      0x17        I2C_MST_STATUS       bit 6 I2C_SLV4_DONE
+0      0x1B        INT_STATUS_2         FIFO_OVERFLOW_INT 4:0
+0      0x3B…       EXT_SLV_SENS_DATA    what the aux master's slave 0 read
+0      0x66        FIFO_EN_1            bit 0 SLV_0_FIFO_EN
+0      0x67        FIFO_EN_2            bit 4 ACCEL, bits 3:1 GYRO_Z/Y/X
+0      0x68        FIFO_RST             write 0x1F then 0x00 to empty the FIFO
+0      0x69        FIFO_MODE            bit 0 snapshot (stop when full)
+0      0x70        FIFO_COUNTH/L        bytes in the FIFO, big-endian (0x70 … 0x71)
+0      0x72        FIFO_R_W             reads pop the FIFO
+2      0x00        GYRO_SMPLRT_DIV      gyro ODR = 1125 Hz / (1 + div)
+2      0x01        GYRO_CONFIG_1        DLPFCFG 5:3, GYRO_FS_SEL 2:1 (±250/500/1000/2000), FCHOICE 0
+2      0x10        ACCEL_SMPLRT_DIV_1/2 accel ODR = 1125 Hz / (1 + div), 11:0
+2      0x14        ACCEL_CONFIG         DLPFCFG 5:3, ACCEL_FS_SEL 2:1 (±2/4/8/16 g), FCHOICE 0
+3      0x01        I2C_MST_CTRL         I2C_MST_CLK 3:0 (7 = 345.6 kHz)
+3      0x03…0x06   I2C_SLV0_ADDR/REG/   slave 0: address | 0x80 read, register, EN 7 | LENG 3:0
+                   CTRL/DO
+3      0x13…0x17   I2C_SLV4_ADDR/REG/   slave 4: one transfer per EN write (DONE in
+                   CTRL/DO/DI           I2C_MST_STATUS), the configuration path to the AK09916
+=====  ==========  ===================  =================================================
+
+FIFO: 512 bytes (the datasheet's figure; some units hold more). With accelerometer, gyro and
+slave 0's 9 bytes a packet is 21 bytes, big-endian: ACCEL X Y Z, GYRO X Y Z, then ST1, HXL …
+HZH (little-endian), TMPS, ST2 — 24 packets, 21 ms at 1125 Hz. The part has no programmable
+FIFO watermark interrupt (its watermark belongs to the DMP), so the board polls on the timer;
+``source.drdy_gpio`` is refused for it. SPI: mode 0 or 3, ≤ 7 MHz, read bit 0x80; I2C
+address 0x68 (AD0 low) or 0x69.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from ahrs_service.drivers.fifo import SimulatedFifo, SimulatedFifoDevice
+from ahrs_service.drivers.i2c.bus import SimulatedI2CBus
+from ahrs_service.drivers.i2c.device import DEG2RAD, STANDARD_GRAVITY, i16_bytes, to_counts
+from ahrs_service.drivers.imu import ak09916
+from ahrs_service.drivers.transport import PartIdentityError, RegisterTransport, TransportDevice
+
+REG_BANK_SEL = 0x7F
+# bank 0
+WHO_AM_I, USER_CTRL, PWR_MGMT_1, PWR_MGMT_2, I2C_MST_STATUS = 0x00, 0x03, 0x06, 0x07, 0x17
+INT_STATUS_2, ACCEL_XOUT_H, EXT_SLV_SENS_DATA_00 = 0x1B, 0x2D, 0x3B
+FIFO_EN_1, FIFO_EN_2, FIFO_RST, FIFO_MODE, FIFO_COUNTH, FIFO_R_W = 0x66, 0x67, 0x68, 0x69, 0x70, 0x72
+# bank 2
+GYRO_SMPLRT_DIV, GYRO_CONFIG_1, ACCEL_SMPLRT_DIV_1, ACCEL_SMPLRT_DIV_2, ACCEL_CONFIG = 0x00, 0x01, 0x10, 0x11, 0x14
+# bank 3
+I2C_MST_CTRL, I2C_SLV0_ADDR, I2C_SLV0_REG, I2C_SLV0_CTRL = 0x01, 0x03, 0x04, 0x05
+I2C_SLV4_ADDR, I2C_SLV4_REG, I2C_SLV4_CTRL, I2C_SLV4_DO, I2C_SLV4_DI = 0x13, 0x14, 0x15, 0x16, 0x17
+
+WHO_AM_I_VALUE = 0xEA
+FIFO_EN_BIT, I2C_MST_EN, I2C_IF_DIS = 0x40, 0x20, 0x10
+DEVICE_RESET, SLEEP, CLKSEL_AUTO = 0x80, 0x40, 0x01
+SLV4_DONE, SLV_EN, READ = 0x40, 0x80, 0x80
+BASE_RATE_HZ = 1125.0
+FIFO_BYTES, PACKET, MAG_BYTES = 512, 21, 9
+GYRO_LSB = (131.0, 65.5, 32.8, 16.4)
+ACC_LSB = (16384.0, 8192.0, 4096.0, 2048.0)
+GYRO_RANGES_DPS = {250: 0, 500: 1, 1000: 2, 2000: 3}
+ACC_RANGES_G = {2: 0, 4: 1, 8: 2, 16: 3}
+
+
+class ICM20948(TransportDevice):
+    """ICM-20948 driver: FIFO (snapshot mode) of accelerometer + gyro + the AK09916's 9 bytes.
+
+    odr_hz: 1125 / (1 + n), n = 0…255 (1125, 562.5, 375, 281.25, 225, …); gyro and
+    accelerometer alike. The magnetometer runs at ``mag_rate_hz`` 10/20/50/100.
+    """
+
+    PART = "ICM-20948"
+
+    def __init__(self, transport: RegisterTransport, *, odr_hz: float = 1125, gyro_range_dps: int = 2000,
+                 acc_range_g: int = 16, mag_rate_hz: float = 100, **kw: Any) -> None:
+        super().__init__(transport, **kw)
+        div = round(BASE_RATE_HZ / odr_hz) - 1 if odr_hz > 0 else -1
+        if not 0 <= div <= 255 or abs(BASE_RATE_HZ / (1 + div) - odr_hz) > 0.01:
+            raise ValueError(f"ICM-20948 odr_hz must be 1125 / (1 + n), n = 0…255 (1125, 562.5, 375, "
+                             f"281.25, 225, …), got {odr_hz}")
+        if gyro_range_dps not in GYRO_RANGES_DPS:
+            raise ValueError(f"ICM-20948 gyro_range_dps must be one of {sorted(GYRO_RANGES_DPS)}, got {gyro_range_dps}")
+        if acc_range_g not in ACC_RANGES_G:
+            raise ValueError(f"ICM-20948 acc_range_g must be one of {sorted(ACC_RANGES_G)}, got {acc_range_g}")
+        modes = {v: k for k, v in ak09916.MODES_HZ.items()}
+        if mag_rate_hz not in modes:
+            raise ValueError(f"ICM-20948 mag_rate_hz must be one of {sorted(modes)}, got {mag_rate_hz}")
+        self.div, self.odr_hz = div, BASE_RATE_HZ / (1 + div)
+        self.gyro_code, self.acc_code = GYRO_RANGES_DPS[gyro_range_dps], ACC_RANGES_G[acc_range_g]
+        self.mag_mode = modes[mag_rate_hz]
+        self.gyro_scale = DEG2RAD / GYRO_LSB[self.gyro_code]
+        self.acc_scale = STANDARD_GRAVITY / ACC_LSB[self.acc_code]
+        self.gyro_full_scale = min(32767, int(gyro_range_dps * GYRO_LSB[self.gyro_code]))
+        self.acc_full_scale = min(32767, int(acc_range_g * ACC_LSB[self.acc_code]))
+        self._bank = -1
+
+    def bank(self, n: int) -> None:
+        """Selects user bank ``n`` (written only when it changes)."""
+        if n != self._bank:
+            self.write_u8(REG_BANK_SEL, n << 4)
+            self._bank = n
+
+    def aux_transfer(self, reg: int, value: int | None = None) -> int:
+        """One transfer to the AK09916 through slave 4: a write of ``value``, or a read."""
+        self.bank(3)
+        self.write_u8(I2C_SLV4_ADDR, ak09916.ADDRESS | (READ if value is None else 0))
+        self.write_u8(I2C_SLV4_REG, reg)
+        if value is not None:
+            self.write_u8(I2C_SLV4_DO, value)
+        self.write_u8(I2C_SLV4_CTRL, SLV_EN)
+        self.bank(0)
+        for _ in range(10):
+            if self.read_u8(I2C_MST_STATUS) & SLV4_DONE:
+                break
+            self.transport.sleep(0.001)
+        else:
+            raise OSError(5, "ICM-20948 aux I2C master: slave 4 transfer to the AK09916 never completed")
+        if value is not None:
+            return value
+        self.bank(3)
+        got = self.read_u8(I2C_SLV4_DI)
+        self.bank(0)
+        return got
+
+    def configure(self) -> None:
+        t = self.transport
+        self._bank = -1
+        self.bank(0)
+        self.check_identity(WHO_AM_I, (WHO_AM_I_VALUE,), "WHO_AM_I")
+        self.write_u8(PWR_MGMT_1, DEVICE_RESET)
+        t.sleep(0.1)
+        self._bank = -1
+        self.bank(0)
+        self.write_u8(PWR_MGMT_1, CLKSEL_AUTO)
+        self.write_u8(PWR_MGMT_2, 0x00)
+        spi = I2C_IF_DIS if t.kind == "spi" else 0
+        self.write_u8(USER_CTRL, spi | I2C_MST_EN)
+        self.bank(2)
+        self.write_u8(GYRO_SMPLRT_DIV, self.div)
+        self.write_u8(GYRO_CONFIG_1, 1 << 3 | self.gyro_code << 1 | 1)  # DLPF 1 (≈ 197 Hz), FCHOICE on
+        self.write_u8(ACCEL_SMPLRT_DIV_1, 0)
+        self.write_u8(ACCEL_SMPLRT_DIV_2, self.div)
+        self.write_u8(ACCEL_CONFIG, 1 << 3 | self.acc_code << 1 | 1)
+        self.bank(3)
+        self.write_u8(I2C_MST_CTRL, 0x07)
+        self.bank(0)
+        self.aux_transfer(ak09916.CNTL3, ak09916.SRST)
+        wia = self.aux_transfer(ak09916.WIA2)
+        if wia != ak09916.WIA2_VALUE:
+            raise PartIdentityError(f"{t.where} aux I2C 0x0C", "AK09916", ak09916.WIA2, wia,
+                                    (ak09916.WIA2_VALUE,), "WIA2 (through I2C slave 4)")
+        self.aux_transfer(ak09916.CNTL2, self.mag_mode)
+        self.bank(3)
+        self.write_u8(I2C_SLV0_ADDR, READ | ak09916.ADDRESS)
+        self.write_u8(I2C_SLV0_REG, ak09916.ST1)
+        self.write_u8(I2C_SLV0_CTRL, SLV_EN | MAG_BYTES)
+        self.bank(0)
+        self.write_u8(FIFO_EN_1, 0x01)  # slave 0
+        self.write_u8(FIFO_EN_2, 0x1E)  # accel + gyro X/Y/Z
+        self.write_u8(FIFO_MODE, 0x01)  # snapshot: stop when full
+        self.flush()
+        self.write_u8(USER_CTRL, spi | I2C_MST_EN | FIFO_EN_BIT)
+
+    def flush(self) -> None:
+        self.bank(0)
+        self.write_u8(FIFO_RST, 0x1F)
+        self.write_u8(FIFO_RST, 0x00)
+
+    def read_status(self) -> tuple[bool, int]:
+        """(overflow, FIFO count in bytes)."""
+        self.bank(0)
+        overflow = bool(self.read_u8(INT_STATUS_2) & 0x1F)
+        b = self.read_regs(FIFO_COUNTH, 2)
+        return overflow, (b[0] << 8 | b[1]) & 0x1FFF
+
+    def read_packets(self, n: int) -> np.ndarray:
+        """(n, 12) int64: accel X Y Z, gyro X Y Z, ST1, mag X Y Z (die axes), TMPS, ST2."""
+        a = np.frombuffer(self.read_fifo(FIFO_R_W, n * PACKET), dtype=np.uint8).reshape(n, PACKET)
+        out = np.empty((n, 12), dtype=np.int64)
+        out[:, 0:6] = a[:, 0:12].copy().view(">i2")  # accel, gyro: big-endian
+        out[:, 6] = a[:, 12]  # ST1
+        out[:, 7:10] = a[:, 13:19].copy().view("<i2")  # HX, HY, HZ: little-endian (AK09916)
+        out[:, 10], out[:, 11] = a[:, 19], a[:, 20]  # TMPS, ST2
+        return out
+
+    @staticmethod
+    def mag_to_board(counts: np.ndarray) -> np.ndarray:
+        """AK09916 die axes → ICM-20948 accelerometer axes (X, −Y, −Z), µT."""
+        return counts * np.array([1.0, -1.0, -1.0]) * ak09916.UT_PER_LSB
+
+
+class SimulatedICM20948(SimulatedFifoDevice):
+    """ICM-20948 twin: four user banks, the FIFO (snapshot mode, overflow flag), and an
+    auxiliary I2C master on its own simulated bus carrying a :class:`SimulatedAK09916`."""
+
+    PART = "ICM-20948"
+    DEFAULT_ADDRESS = 0x68
+    CLOCK_ERROR = -0.0088
+
+    WRITABLE_BANK = {
+        0: frozenset({USER_CTRL, PWR_MGMT_1, PWR_MGMT_2, FIFO_EN_1, FIFO_EN_2, FIFO_RST, FIFO_MODE, 0x0F, 0x10, 0x11}),
+        2: frozenset({GYRO_SMPLRT_DIV, GYRO_CONFIG_1, ACCEL_SMPLRT_DIV_1, ACCEL_SMPLRT_DIV_2, ACCEL_CONFIG}),
+        3: frozenset({I2C_MST_CTRL, I2C_SLV0_ADDR, I2C_SLV0_REG, I2C_SLV0_CTRL, 0x06,
+                      I2C_SLV4_ADDR, I2C_SLV4_REG, I2C_SLV4_CTRL, I2C_SLV4_DO}),
+    }
+
+    def __init__(self, source: Any = None, address: int | None = None, clock_error: float | None = None,
+                 clock: Any = None) -> None:
+        self._clock = clock
+        self.aux = None
+        super().__init__(source, address, clock_error)
+        self.aux = SimulatedI2CBus(clock if clock is not None else _Zero(), name="icm20948-aux")
+        self.mag = self.aux.attach(ak09916.SimulatedAK09916(source))
+
+    def reset_state(self, now: float) -> None:
+        self.banks = [bytearray(128) for _ in range(4)]
+        self.banks[0][WHO_AM_I] = WHO_AM_I_VALUE
+        self.banks[0][PWR_MGMT_1] = SLEEP | CLKSEL_AUTO
+        self.banks[2][GYRO_CONFIG_1] = 0x01
+        self.banks[2][ACCEL_CONFIG] = 0x01
+        self.fifo = SimulatedFifo(FIFO_BYTES, stop_on_full=True)
+        self.truth: deque = deque()
+        self.popped_truth: list = []
+        if self.aux is not None:
+            self.aux.device(ak09916.ADDRESS).power_on_reset(now)
+
+    def take_popped_truth(self) -> list:
+        out, self.popped_truth = self.popped_truth, []
+        return out
+
+    @property
+    def bank(self) -> int:
+        return (self.banks[0][REG_BANK_SEL] >> 4) & 3
+
+    def nominal_rate_hz(self) -> float | None:
+        if self.banks[0][PWR_MGMT_1] & SLEEP:
+            return None
+        return BASE_RATE_HZ / (1 + self.banks[2][GYRO_SMPLRT_DIV])
+
+    def backlog_limit(self) -> int:
+        return FIFO_BYTES // PACKET + 1
+
+    def fifo_on(self) -> bool:
+        return bool(self.banks[0][USER_CTRL] & FIFO_EN_BIT) and bool(self.banks[0][FIFO_EN_2] & 0x1E)
+
+    # ---------------------------------------------------------------- bus side
+    def bus_read(self, sub: int, n: int, now: float) -> list[int]:
+        self.update(now)
+        bank = self.bank
+        if bank == 0 and sub == FIFO_R_W:
+            before = self.fifo.level // PACKET
+            got = self.fifo.pop(n)
+            for _ in range(before - -(-self.fifo.level // PACKET)):
+                self.popped_truth.append(self.truth.popleft())
+            return list(got) + [0xFF] * (n - len(got))
+        out = []
+        for i in range(n):
+            reg = (sub + i) & 0x7F
+            if reg == REG_BANK_SEL:
+                out.append(self.banks[0][REG_BANK_SEL])
+            elif bank == 0 and reg == FIFO_COUNTH:
+                out.append(self.fifo.level >> 8)
+            elif bank == 0 and reg == FIFO_COUNTH + 1:
+                out.append(self.fifo.level & 0xFF)
+            elif bank == 0 and reg == INT_STATUS_2:
+                out.append(0x1F if self.fifo.overflowed else 0)
+                self.fifo.overflowed = False  # cleared on read
+            elif bank == 0 and reg == I2C_MST_STATUS:
+                out.append(self.banks[0][reg])
+                self.banks[0][reg] = 0
+            else:
+                out.append(self.banks[bank][reg])
+        return out
+
+    def bus_write(self, sub: int, data: list[int], now: float) -> None:
+        self.update(now)
+        for i, value in enumerate(data):
+            reg = (sub + i) & 0x7F
+            if reg == REG_BANK_SEL:
+                self.banks[0][REG_BANK_SEL] = value & 0x30
+                continue
+            bank = self.bank
+            if reg not in self.WRITABLE_BANK.get(bank, ()):
+                continue
+            old = self.banks[bank][reg]
+            self.banks[bank][reg] = value
+            self._on_write(bank, reg, value, old, now)
+
+    def _on_write(self, bank: int, reg: int, value: int, old: int, now: float) -> None:
+        if bank == 0 and reg == PWR_MGMT_1 and value & DEVICE_RESET:
+            self.power_on_reset(now)
+        elif bank == 0 and reg == FIFO_RST and value & 0x1F:
+            self.fifo.clear()
+            self.truth.clear()
+        elif (bank, reg) in ((0, PWR_MGMT_1), (2, GYRO_SMPLRT_DIV)) and value != old:
+            if self.rate_hz():
+                self.restart_measurement(now)
+            else:
+                self.stop_measurement()
+        elif bank == 3 and reg == I2C_SLV4_CTRL and value & SLV_EN:
+            self._slave4(now)
+
+    def _slave4(self, now: float) -> None:
+        """One aux-bus transfer of slave 4 (the part's I2C master runs it, then sets DONE)."""
+        b3 = self.banks[3]
+        addr, reg = b3[I2C_SLV4_ADDR] & 0x7F, b3[I2C_SLV4_REG]
+        self.aux.clock = _At(now)
+        try:
+            if b3[I2C_SLV4_ADDR] & READ:
+                b3[I2C_SLV4_DI] = self.aux.read_byte_data(addr, reg)
+            else:
+                self.aux.write_byte_data(addr, reg, b3[I2C_SLV4_DO])
+        except OSError:
+            pass  # a NACK: DONE still set, as on the part (it would also set I2C_SLV4_NACK)
+        b3[I2C_SLV4_CTRL] &= ~SLV_EN
+        self.banks[0][I2C_MST_STATUS] |= SLV4_DONE
+
+    # ---------------------------------------------------------------- samples
+    def latch(self, phys: dict, t: float, skipped: int) -> None:
+        b0, b2, b3 = self.banks[0], self.banks[2], self.banks[3]
+        a_lsb = STANDARD_GRAVITY / ACC_LSB[(b2[ACCEL_CONFIG] >> 1) & 3]
+        g_lsb = DEG2RAD / GYRO_LSB[(b2[GYRO_CONFIG_1] >> 1) & 3]
+        out = []
+        for a in phys["acc"]:
+            out.extend(i16_bytes(to_counts(a, a_lsb, -32768, 32767), True))
+        for w in phys["gyr"]:
+            out.extend(i16_bytes(to_counts(w, g_lsb, -32768, 32767), True))
+        b0[ACCEL_XOUT_H:ACCEL_XOUT_H + 12] = bytes(out)
+        ext = b""
+        if b0[USER_CTRL] & I2C_MST_EN and b3[I2C_SLV0_CTRL] & SLV_EN and b3[I2C_SLV0_ADDR] & READ:
+            self.aux.clock = _At(t)
+            n = b3[I2C_SLV0_CTRL] & 0x0F
+            try:
+                ext = bytes(self.aux.read_i2c_block_data(b3[I2C_SLV0_ADDR] & 0x7F, b3[I2C_SLV0_REG], n))
+            except OSError:
+                ext = bytes(n)
+            b0[EXT_SLV_SENS_DATA_00:EXT_SLV_SENS_DATA_00 + n] = ext
+        if self.fifo_on():
+            pkt = bytes(out) + (ext if b0[FIFO_EN_1] & 0x01 else b"")
+            if self.fifo.push(pkt):
+                truth = phys.get("truth")
+                self.truth.append(None if truth is None else np.asarray(
+                    truth["q"] if isinstance(truth, dict) else truth.q, dtype=float))
+
+    def skipped_unseen(self, n: int) -> None:
+        self.fifo.overflowed = True
+        self.fifo.dropped += n
+
+
+class _At:
+    """A clock stopped at ``t``: the aux bus runs on the part's sample instants."""
+
+    def __init__(self, t: float) -> None:
+        self.t = t
+
+    def now(self) -> float:
+        return self.t
+
+
+class _Zero(_At):
+    def __init__(self) -> None:
+        super().__init__(0.0)

@@ -1,0 +1,342 @@
+"""TDK InvenSense ICM-42688-P gyroscope + accelerometer (SPI or I2C), and its twin.
+
+Register map used (user bank 0; TDK DS-000347 rev 1.6, §14 "Register map", descriptions
+§14.x; FIFO §6, packet structure §6.1, hi-res packet = "packet 4", 20 bytes):
+
+=====  ==================  ===============================================================
+0x11   DEVICE_CONFIG       bit 0 SOFT_RESET_CONFIG (wait 1 ms)
+0x14   INT_CONFIG          INT1: bit 2 MODE (0 pulsed), bit 1 DRIVE (1 push-pull), bit 0
+                           POLARITY (1 active high)
+0x16   FIFO_CONFIG         FIFO_MODE 7:6: 00 bypass, 01 stream, 10 stop-on-full
+0x2D   INT_STATUS          bit 2 FIFO_THS_INT, bit 1 FIFO_FULL_INT, bit 3 DATA_RDY_INT —
+                           cleared by reading
+0x2E   FIFO_COUNTH/L       bytes in the FIFO (INTF_CONFIG0: big-endian, in bytes), 0x2E…0x2F
+0x30   FIFO_DATA           reads pop the FIFO (no address increment)
+0x4B   SIGNAL_PATH_RESET   bit 1 FIFO_FLUSH
+0x4C   INTF_CONFIG0        power-on 0x30: FIFO count and sensor data big-endian, count in bytes
+0x4E   PWR_MGMT0           GYRO_MODE 3:2, ACCEL_MODE 1:0 (11 = low noise): 0x0F
+0x4F   GYRO_CONFIG0        GYRO_FS_SEL 7:5 (000 = ±2000 °/s), GYRO_ODR 3:0
+0x50   ACCEL_CONFIG0       ACCEL_FS_SEL 7:5 (000 = ±16 g), ACCEL_ODR 3:0
+0x5F   FIFO_CONFIG1        bit 5 WM_GT_TH, 4 HIRES_EN, 3 TMST_FSYNC_EN, 2 TEMP_EN, 1 GYRO_EN,
+                           0 ACCEL_EN
+0x60   FIFO_CONFIG2/3      watermark in bytes, 11:0 (0x60 = 7:0, 0x61 = 11:8)
+0x65   INT_SOURCE0         bit 2 FIFO_THS_INT1_EN, bit 1 FIFO_FULL_INT1_EN
+0x75   WHO_AM_I            0x47
+0x76   REG_BANK_SEL        bank 0 after reset
+=====  ==================  ===============================================================
+
+ODR codes (GYRO_ODR / ACCEL_ODR): 3 = 8 kHz, 4 = 4 kHz, 5 = 2 kHz, 6 = 1 kHz, 15 = 500 Hz,
+7 = 200 Hz, 8 = 100 Hz. FIFO: 2048 bytes = 102 hi-res packets (12.75 ms at 8 kHz, 102 ms at
+1 kHz). Hi-res packet (§6.1, packet 4), big-endian: header (0x78: accel, gyro, 20-bit,
+timestamp), accel X/Y/Z bits 19:4, gyro X/Y/Z bits 19:4, temperature (16 bit,
+T = raw / 132.48 + 25 °C), timestamp (16 bit, µs on the part's clock), then one byte per axis
+with accel bits 3:0 in the high nibble and gyro bits 3:0 in the low one. In hi-res the FIFO
+data are ±16 g at 8192 LSB/g in 18 bits (two zero LSBs) and ±2000 °/s at 131 LSB/(°/s) in
+19 bits (one zero LSB), whatever the FS_SEL; −524288 marks an invalid sample. SPI: mode 0
+or 3, up to 24 MHz, read bit 0x80; I2C address 0x68 (AD0 low) or 0x69.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from ahrs_service.drivers.fifo import SimulatedFifo, SimulatedFifoDevice
+from ahrs_service.drivers.i2c.device import DEG2RAD, STANDARD_GRAVITY, i16_bytes, to_counts
+from ahrs_service.drivers.transport import RegisterTransport, TransportDevice
+
+DEVICE_CONFIG, INT_CONFIG, FIFO_CONFIG = 0x11, 0x14, 0x16
+TEMP_DATA1, ACCEL_DATA_X1, GYRO_DATA_X1 = 0x1D, 0x1F, 0x25
+INT_STATUS, FIFO_COUNTH, FIFO_COUNTL, FIFO_DATA = 0x2D, 0x2E, 0x2F, 0x30
+SIGNAL_PATH_RESET, INTF_CONFIG0, PWR_MGMT0 = 0x4B, 0x4C, 0x4E
+GYRO_CONFIG0, ACCEL_CONFIG0, TMST_CONFIG = 0x4F, 0x50, 0x54
+FIFO_CONFIG1, FIFO_CONFIG2, FIFO_CONFIG3, INT_SOURCE0 = 0x5F, 0x60, 0x61, 0x65
+WHO_AM_I, REG_BANK_SEL = 0x75, 0x76
+WHO_AM_I_VALUE = 0x47
+
+SOFT_RESET = 0x01
+FIFO_MODE_STOP_ON_FULL, FIFO_MODE_MASK = 0x80, 0xC0
+FIFO_THS_INT, FIFO_FULL_INT, DATA_RDY_INT, RESET_DONE_INT = 0x04, 0x02, 0x08, 0x10
+FIFO_FLUSH = 0x02
+PWR_LOW_NOISE = 0x0F
+FIFO_WM_GT_TH, FIFO_HIRES_EN, FIFO_TMST_FSYNC_EN = 0x20, 0x10, 0x08
+FIFO_TEMP_EN, FIFO_GYRO_EN, FIFO_ACCEL_EN = 0x04, 0x02, 0x01
+FIFO_THS_INT1_EN, FIFO_FULL_INT1_EN = 0x04, 0x02
+INT1_PUSH_PULL_ACTIVE_HIGH = 0x03
+
+ODR_CODES = {8000: 3, 4000: 4, 2000: 5, 1000: 6, 500: 15, 200: 7, 100: 8}
+ODR_HZ = {c: float(r) for r, c in ODR_CODES.items()}
+FIFO_BYTES = 2048
+PACKET = 20
+HIRES_HEADER = 0x78  # accel + gyro + 20-bit + ODR timestamp (§6.1 header bits 6:3)
+HEADER_EMPTY = 0x80
+INVALID_20BIT = -524288
+HIRES_ACC_LSB_PER_G, HIRES_GYRO_LSB_PER_DPS = 8192.0, 131.0
+TEMP_LSB_PER_C, TEMP_OFFSET_C = 132.48, 25.0
+#: register-path sensitivity for GYRO_FS_SEL 0..3 / ACCEL_FS_SEL 0..3 (16-bit data registers)
+GYRO_REG_LSB = (16.4, 32.8, 65.5, 131.0)
+ACC_REG_LSB = (2048.0, 4096.0, 8192.0, 16384.0)
+#: on the wire per burst besides the data: INT_STATUS + FIFO_COUNTH/L in one read
+STATUS_BYTES = 3
+
+
+def decode_hires(data: bytes) -> dict[str, np.ndarray]:
+    """Decodes whole 20-byte hi-res packets: {"header", "acc" (n,3) 18-bit counts, "gyr"
+    (n,3) 19-bit counts, "temp", "tmst"} (int32/int64 arrays)."""
+    a = np.frombuffer(data, dtype=np.uint8).reshape(-1, PACKET).astype(np.int32)
+    ext = a[:, 17:20]
+    acc = (a[:, 1:7:2] << 12) | (a[:, 2:7:2] << 4) | (ext >> 4)
+    gyr = (a[:, 7:13:2] << 12) | (a[:, 8:13:2] << 4) | (ext & 0x0F)
+    acc = np.where(acc >= 1 << 19, acc - (1 << 20), acc)  # 20-bit two's complement
+    gyr = np.where(gyr >= 1 << 19, gyr - (1 << 20), gyr)
+    temp = (a[:, 13] << 8) | a[:, 14]
+    temp = np.where(temp >= 1 << 15, temp - (1 << 16), temp)
+    return {"header": a[:, 0], "acc20": acc, "gyr20": gyr, "acc": acc >> 2, "gyr": gyr >> 1,
+            "temp": temp, "tmst": (a[:, 15] << 8) | a[:, 16]}
+
+
+class ICM42688P(TransportDevice):
+    """ICM-42688-P driver: hi-res FIFO packets at ``odr_hz`` with a FIFO watermark.
+
+    odr_hz: 100/200/500/1000/2000/4000/8000 (gyro and accelerometer alike).
+    watermark: samples per FIFO burst (the watermark interrupt fires at it), 1…102.
+    """
+
+    PART = "ICM-42688-P"
+    BYTES_PER_SAMPLE = PACKET
+    FIFO_SAMPLES = FIFO_BYTES // PACKET
+
+    def __init__(self, transport: RegisterTransport, *, odr_hz: float = 1000, watermark: int = 8,
+                 **kw: Any) -> None:
+        super().__init__(transport, **kw)
+        if odr_hz not in ODR_CODES:
+            raise ValueError(f"ICM-42688-P odr_hz must be one of {sorted(ODR_CODES)}, got {odr_hz}")
+        if not isinstance(watermark, int) or not 1 <= watermark <= self.FIFO_SAMPLES - 2:
+            raise ValueError(f"ICM-42688-P watermark must be 1…{self.FIFO_SAMPLES - 2} samples, "
+                             f"got {watermark!r}")
+        self.odr_hz, self.watermark = float(odr_hz), watermark
+        self.gyro_scale = DEG2RAD / HIRES_GYRO_LSB_PER_DPS
+        self.acc_scale = STANDARD_GRAVITY / HIRES_ACC_LSB_PER_G
+        # saturation: the hi-res ranges, 18/19 bits
+        self.acc_full_scale, self.gyro_full_scale = (1 << 17) - 1, (1 << 18) - 1
+
+    def configure(self) -> None:
+        """Identity, soft reset, low-noise mode at ``odr_hz``, hi-res FIFO stop-on-full with
+        the watermark, INT1 push-pull active high on watermark and full."""
+        t = self.transport
+        self.write_u8(REG_BANK_SEL, 0)
+        self.check_identity(WHO_AM_I, (WHO_AM_I_VALUE,), "WHO_AM_I")
+        self.write_u8(DEVICE_CONFIG, SOFT_RESET)
+        t.sleep(0.001)
+        self.write_u8(REG_BANK_SEL, 0)
+        code = ODR_CODES[int(self.odr_hz)]
+        self.write_u8(GYRO_CONFIG0, 0 << 5 | code)  # ±2000 °/s
+        self.write_u8(ACCEL_CONFIG0, 0 << 5 | code)  # ±16 g
+        self.write_u8(INT_CONFIG, INT1_PUSH_PULL_ACTIVE_HIGH)
+        self.write_u8(FIFO_CONFIG, FIFO_MODE_STOP_ON_FULL)
+        self.write_u8(FIFO_CONFIG1, FIFO_WM_GT_TH | FIFO_HIRES_EN | FIFO_TMST_FSYNC_EN
+                      | FIFO_TEMP_EN | FIFO_GYRO_EN | FIFO_ACCEL_EN)
+        wm = self.watermark * PACKET
+        self.write_u8(FIFO_CONFIG2, wm & 0xFF)
+        self.write_u8(FIFO_CONFIG3, wm >> 8)
+        self.write_u8(INT_SOURCE0, FIFO_THS_INT1_EN | FIFO_FULL_INT1_EN)
+        self.write_u8(PWR_MGMT0, PWR_LOW_NOISE)
+        t.sleep(0.045)  # gyro start-up (§3.1: 45 ms typical)
+        self.flush()
+
+    def flush(self) -> None:
+        """Empties the FIFO (after an overflow)."""
+        self.write_u8(SIGNAL_PATH_RESET, FIFO_FLUSH)
+
+    def read_status(self) -> tuple[int, int]:
+        """(INT_STATUS, FIFO count in bytes) in one 3-byte read (reading clears INT_STATUS)."""
+        b = self.read_regs(INT_STATUS, STATUS_BYTES)
+        return b[0], (b[1] << 8) | b[2]
+
+    def read_packets(self, count_bytes: int) -> dict[str, np.ndarray]:
+        """The whole packets among ``count_bytes``, decoded (:func:`decode_hires`)."""
+        n = min(count_bytes, FIFO_BYTES) // PACKET
+        # FIFO_DATA is a byte stream: transfers may split packets (full 32-byte SMBus blocks)
+        return decode_hires(self.read_fifo(FIFO_DATA, n * PACKET))
+
+    @staticmethod
+    def temperature_c(raw: np.ndarray) -> np.ndarray:
+        return raw / TEMP_LSB_PER_C + TEMP_OFFSET_C
+
+
+class SimulatedICM42688P(SimulatedFifoDevice):
+    """ICM-42688-P twin: bank-0 registers above, the 2 KB FIFO with hi-res packets, the
+    watermark and stop-on-full overflow, a 16-bit µs timestamp on the part's clock, INT1.
+
+    ``int1``: a callable ``(t)`` the simulated data-ready line attaches; called when the FIFO
+    level rises to the watermark (or the FIFO fills) with FIFO_THS/FULL routed to INT1.
+    """
+
+    PART = "ICM-42688-P"
+    DEFAULT_ADDRESS = 0x68
+    CLOCK_ERROR = +0.0042  # this unit's RC oscillator runs 0.42 % fast
+    POWER_ON = {WHO_AM_I: WHO_AM_I_VALUE, INTF_CONFIG0: 0x30, GYRO_CONFIG0: 0x06,
+                ACCEL_CONFIG0: 0x06, INT_SOURCE0: 0x10, FIFO_CONFIG1: 0x00, TMST_CONFIG: 0x23,
+                INT_CONFIG: 0x00, INT_STATUS: RESET_DONE_INT}
+    WRITABLE = frozenset({DEVICE_CONFIG, INT_CONFIG, FIFO_CONFIG, SIGNAL_PATH_RESET, INTF_CONFIG0,
+                          PWR_MGMT0, GYRO_CONFIG0, ACCEL_CONFIG0, TMST_CONFIG, FIFO_CONFIG1,
+                          FIFO_CONFIG2, FIFO_CONFIG3, INT_SOURCE0, REG_BANK_SEL})
+
+    def __init__(self, source: Any = None, address: int | None = None, clock_error: float | None = None) -> None:
+        self.int1 = None
+        super().__init__(source, address, clock_error)
+
+    def reset_state(self, now: float) -> None:
+        self.fifo = SimulatedFifo(FIFO_BYTES, stop_on_full=True)
+        self.truth: deque = deque()  # the true attitude of each packet in the FIFO (simulation only)
+        self.popped_truth: list = []  # … of the packets read out since take_popped_truth()
+        self._above_wm = False
+
+    # ---------------------------------------------------------------- configuration
+    def nominal_rate_hz(self) -> float | None:
+        if (self.regs[PWR_MGMT0] & 0x0C) != 0x0C:  # gyro not in low-noise mode
+            return None
+        return ODR_HZ.get(self.regs[GYRO_CONFIG0] & 0x0F)
+
+    def fifo_enabled(self) -> bool:
+        return (self.regs[FIFO_CONFIG] & FIFO_MODE_MASK) != 0 and \
+            (self.regs[FIFO_CONFIG1] & (FIFO_GYRO_EN | FIFO_ACCEL_EN)) != 0
+
+    def watermark_bytes(self) -> int:
+        return self.regs[FIFO_CONFIG2] | (self.regs[FIFO_CONFIG3] & 0x0F) << 8
+
+    def backlog_limit(self) -> int:
+        return FIFO_BYTES // PACKET + 1 if self.fifo_enabled() else 1
+
+    def on_write(self, reg: int, value: int, old: int, now: float) -> None:
+        if reg == DEVICE_CONFIG and value & SOFT_RESET:
+            self.power_on_reset(now)
+        elif reg == SIGNAL_PATH_RESET and value & FIFO_FLUSH:
+            self.fifo.clear()
+            self.truth.clear()
+            self._above_wm = False
+            self.regs[SIGNAL_PATH_RESET] = 0
+        elif reg in (PWR_MGMT0, GYRO_CONFIG0) and value != old:
+            if self.rate_hz():
+                self.restart_measurement(now)
+            else:
+                self.stop_measurement()
+
+    # ---------------------------------------------------------------- samples
+    def latch(self, phys: dict, t: float, skipped: int) -> None:
+        # data registers (16-bit, configured FS)
+        g_lsb = DEG2RAD / (GYRO_REG_LSB[(self.regs[GYRO_CONFIG0] >> 5) & 3])
+        a_lsb = STANDARD_GRAVITY / (ACC_REG_LSB[(self.regs[ACCEL_CONFIG0] >> 5) & 3])
+        temp_c = phys.get("temperature_c", TEMP_OFFSET_C)
+        regs = self.regs
+        out = list(i16_bytes(to_counts(temp_c - TEMP_OFFSET_C, 1 / TEMP_LSB_PER_C, -32768, 32767), True))
+        for a in phys["acc"]:
+            out.extend(i16_bytes(to_counts(a, a_lsb, -32768, 32767), True))
+        for w in phys["gyr"]:
+            out.extend(i16_bytes(to_counts(w, g_lsb, -32768, 32767), True))
+        regs[TEMP_DATA1:TEMP_DATA1 + 14] = bytes(out)
+        regs[INT_STATUS] |= DATA_RDY_INT
+        if self.fifo_enabled():
+            self._push(phys, t, temp_c)
+
+    def _push(self, phys: dict, t: float, temp_c: float) -> None:
+        # 18-bit accel / 19-bit gyro counts at the hi-res sensitivities, left-aligned in 20 bits
+        acc = [to_counts(a, STANDARD_GRAVITY / HIRES_ACC_LSB_PER_G, -(1 << 17), (1 << 17) - 1) << 2
+               for a in phys["acc"]]
+        gyr = [to_counts(w, DEG2RAD / HIRES_GYRO_LSB_PER_DPS, -(1 << 18), (1 << 18) - 1) << 1
+               for w in phys["gyr"]]
+        temp = to_counts(temp_c - TEMP_OFFSET_C, 1 / TEMP_LSB_PER_C, -32768, 32767) & 0xFFFF
+        # the timestamp counts µs of the part's own clock: k samples of 1/ODR nominal each
+        tmst = int(round(self._k_latched() * 1e6 / self.nominal_rate_hz())) & 0xFFFF
+        pkt = bytearray(PACKET)
+        pkt[0] = HIRES_HEADER
+        for i in range(3):
+            a, g = acc[i] & 0xFFFFF, gyr[i] & 0xFFFFF
+            pkt[1 + 2 * i], pkt[2 + 2 * i] = a >> 12, (a >> 4) & 0xFF
+            pkt[7 + 2 * i], pkt[8 + 2 * i] = g >> 12, (g >> 4) & 0xFF
+            pkt[17 + i] = (a & 0x0F) << 4 | (g & 0x0F)
+        pkt[13], pkt[14] = temp >> 8, temp & 0xFF
+        pkt[15], pkt[16] = tmst >> 8, tmst & 0xFF
+        self._push_packet(bytes(pkt), t, phys)
+
+    def _k_latched(self) -> int:
+        # update() sets latched_t before calling latch: recover the sample number from it
+        return int(round((self.latched_t - self._t0) * self.rate_hz()))
+
+    def _push_packet(self, pkt: bytes, t: float, phys: dict) -> None:
+        fifo = self.fifo
+        if not fifo.push(pkt):
+            self.regs[INT_STATUS] |= FIFO_FULL_INT
+        else:
+            self.truth.append(_truth_q(phys))
+        if fifo.level >= self.watermark_bytes() > 0:
+            self.regs[INT_STATUS] |= FIFO_THS_INT
+            if not self._above_wm:
+                self._above_wm = True
+                if self.int1 is not None and self.regs[INT_SOURCE0] & FIFO_THS_INT1_EN:
+                    self.int1(t)
+
+    def take_popped_truth(self) -> list:
+        """The true attitudes of the packets read since the last call, oldest first."""
+        out, self.popped_truth = self.popped_truth, []
+        return out
+
+    def skipped_unseen(self, n: int) -> None:
+        self.fifo.overflowed = True
+        self.fifo.dropped += n
+        self.regs[INT_STATUS] |= FIFO_FULL_INT
+
+    def next_watermark_time(self) -> float | None:
+        """When the FIFO reaches its watermark (simulation time), None if never."""
+        rate, wm = self.rate_hz(), self.watermark_bytes()
+        if not rate or self._t0 is None or not self.fifo_enabled() or wm == 0:
+            return None
+        missing = max(0, math.ceil((wm - self.fifo.level) / PACKET))
+        if missing == 0:
+            return self.latched_t if self.latched_t is not None else self._t0
+        return self._t0 + (self._k + missing) / rate
+
+    # ---------------------------------------------------------------- bus side
+    def bus_read(self, sub: int, n: int, now: float) -> list[int]:
+        self.update(now)
+        out: list[int] = []
+        reg = sub
+        while len(out) < n:
+            if reg == FIFO_DATA:  # the FIFO port: pops, never increments
+                out.extend(self._pop_fifo(n - len(out)))
+                break
+            if reg == INT_STATUS:
+                out.append(self.regs[INT_STATUS])
+                self.regs[INT_STATUS] = 0  # clear on read
+            elif reg == FIFO_COUNTH:
+                level = self.fifo.level
+                self._count_latch = level
+                out.append(level >> 8)
+            elif reg == FIFO_COUNTL:
+                out.append(getattr(self, "_count_latch", self.fifo.level) & 0xFF)
+            else:
+                out.append(self.regs[reg])
+            reg = (reg + 1) & 0x7F
+        return out
+
+    def _pop_fifo(self, n: int) -> list[int]:
+        before = self.fifo.level // PACKET
+        got = self.fifo.pop(n)
+        for _ in range(before - -(-self.fifo.level // PACKET)):
+            self.popped_truth.append(self.truth.popleft())
+        if self.fifo.level < self.watermark_bytes():
+            self._above_wm = False
+        if not self.fifo.level:
+            self.fifo.overflowed = False
+        # reading past the data: an empty-FIFO header then 0x00 (§6.1: header bit 7)
+        return list(got) + ([HEADER_EMPTY] + [0] * (n - len(got) - 1) if len(got) < n else [])
+
+
+def _truth_q(phys: dict) -> np.ndarray | None:
+    truth = phys.get("truth")
+    if truth is None:
+        return None
+    return np.asarray(truth["q"] if isinstance(truth, dict) else truth.q, dtype=float)

@@ -1,0 +1,122 @@
+"""A fast, read-only pass over an MCAP file's messages, for tools that read whole long logs.
+
+:class:`~ahrs_service.logs.reader.MessageSource` goes through the ``mcap`` library, which
+builds a record object per message: about 17 µs a message on the reference machine, 40 s for
+a one-hour 200 Hz log. :func:`scan_messages` walks the same records with ``struct`` on the
+decompressed chunk bytes and hands out only the wanted topics' payloads, without objects —
+the MCAP format's record layout (https://mcap.dev/spec): opcode u8, length u64, then the
+fields; a Chunk's records are compressed with zstd (this project's writer) or stored.
+
+Like the stream path of ``MessageSource`` it reads in file order up to the first damage (a
+record cut short, a chunk that does not decompress or fails its CRC) and says where in
+``ScanResult.damage``. Files with another chunk compression (lz4) raise ``ValueError``; the
+caller falls back to ``MessageSource``.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from dataclasses import dataclass
+from typing import Callable
+
+_MAGIC = b"\x89MCAP0\r\n"
+_HEAD = struct.Struct("<BQ")
+_CHUNK = struct.Struct("<QQQI")  # message start, message end, uncompressed size, uncompressed CRC
+_MSG = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+_CHANNEL, _MESSAGE, _CHUNK_OP, _FOOTER = 0x04, 0x05, 0x06, 0x02
+
+
+@dataclass
+class ScanResult:
+    """What a scan read: messages handed out, and the damage that stopped it (None: sound)."""
+
+    messages: int = 0
+    damage: str | None = None
+
+
+def _channel(body: bytes, channels: dict[int, str]) -> None:
+    cid = int.from_bytes(body[0:2], "little")
+    n = int.from_bytes(body[4:8], "little")
+    channels[cid] = body[8 : 8 + n].decode()
+
+
+def scan_messages(path: str | os.PathLike, handlers: dict[str, Callable[[int, bytes], None]]) -> ScanResult:
+    """Calls ``handlers[topic](log_time_ns, data)`` for every message of a handled topic, in
+    file order, up to the first damage (see :class:`ScanResult`)."""
+    result = ScanResult()
+    channels: dict[int, str] = {}
+    wanted: dict[int, Callable[[int, bytes], None] | None] = {}
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        if f.read(8) != _MAGIC:
+            result.damage = "not an MCAP file (bad magic)"
+            return result
+        pos = 8
+        zstd = None
+        while True:
+            head = f.read(9)
+            if len(head) < 9:
+                result.damage = f"file ends at byte {pos} without footer (writer did not finish)"
+                return result
+            op, length = _HEAD.unpack(head)
+            if op == _FOOTER:
+                return result
+            if pos + 9 + length > size:
+                result.damage = f"record at byte {pos} cut short: needs {length} bytes, {size - pos - 9} left"
+                return result
+            if op != _CHANNEL and op != _CHUNK_OP:
+                f.seek(length, os.SEEK_CUR)  # indexes, statistics, metadata …: not messages
+                pos += 9 + length
+                continue
+            body = f.read(length)
+            if op == _CHANNEL:
+                _channel(body, channels)
+            else:
+                _, _, raw_size, crc = _CHUNK.unpack_from(body, 0)
+                n = int.from_bytes(body[28:32], "little")
+                compression = body[32 : 32 + n].decode()
+                p = 32 + n
+                rec_len = int.from_bytes(body[p : p + 8], "little")
+                data = body[p + 8 : p + 8 + rec_len]
+                if compression == "zstd":
+                    if zstd is None:
+                        import zstandard
+
+                        zstd = zstandard.ZstdDecompressor()
+                    try:
+                        records = zstd.decompress(data, max_output_size=raw_size)
+                    except Exception as exc:  # noqa: BLE001 - a damaged chunk
+                        result.damage = f"chunk at byte {pos} does not decompress: {exc}"
+                        return result
+                elif compression == "":
+                    records = data
+                else:
+                    raise ValueError(f"chunk compression {compression!r} not handled by the fast scan")
+                if crc and zlib.crc32(records) != crc:
+                    result.damage = f"chunk at byte {pos} fails its CRC"
+                    return result
+                result.messages += _chunk_messages(records, channels, wanted, handlers)
+            pos += 9 + length
+
+
+def _chunk_messages(records: bytes, channels: dict[int, str], wanted: dict, handlers: dict) -> int:
+    pos, end, count = 0, len(records), 0
+    unpack_head, unpack_msg = _HEAD.unpack_from, _MSG.unpack_from
+    while pos + 9 <= end:
+        op, length = unpack_head(records, pos)
+        start = pos + 9
+        pos = start + length
+        if op == _MESSAGE:
+            cid, _, log_time, _ = unpack_msg(records, start)
+            handler = wanted.get(cid, False)
+            if handler is False:
+                handler = wanted[cid] = handlers.get(channels.get(cid, ""))
+            if handler is not None:
+                handler(log_time, records[start + 22 : pos])
+                count += 1
+        elif op == _CHANNEL:
+            _channel(records[start:pos], channels)
+            wanted.pop(int.from_bytes(records[start : start + 2], "little"), None)
+    return count

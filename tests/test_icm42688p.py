@@ -1,0 +1,218 @@
+"""ICM-42688-P driver against its twin: identity, configuration, hi-res burst layout and scale,
+watermark, overflow, sensor clock, faults, on the simulated SPI and I2C buses.
+
+Register expectations are written out from TDK DS-000347 (register map §14, FIFO §6.1)
+independently of the driver's constants, so driver and twin cannot share a mistake unnoticed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ahrs_service.drivers.boards import make_transport_board
+from ahrs_service.drivers.imu.icm42688p import decode_hires
+from ahrs_service.drivers.sim.clock import ManualClock
+from ahrs_service.drivers.transport import PartIdentityError
+
+G0 = 9.80665
+D2R = math.pi / 180
+
+
+class ConstantImu:
+    """Constant readings the test sets, on a clock the test moves."""
+
+    def __init__(self) -> None:
+        self.clock = ManualClock()
+        self.gyr = np.array([0.1, -0.2, 0.3])
+        self.acc = np.array([1.5, -2.5, -9.0])
+        self.q = np.array([1.0, 0.0, 0.0, 0.0])
+
+    def physics(self, t: float) -> dict:
+        return {"gyr": self.gyr, "acc": self.acc, "mag": np.zeros(3), "temperature_c": 31.0,
+                "truth": {"q": self.q}}
+
+
+def board(bus: str = "spi", **options):
+    imu = ConstantImu()
+    b = make_transport_board("icm42688p", bus, simulated_imu=imu, **options)
+    return b, imu, b.transport.bus.device(b.transport.cs if bus == "spi" else 0x68)
+
+
+def test_identity_is_checked_and_a_missing_part_reads_ff_on_spi():
+    b, imu, twin = board()
+    b.open()
+    assert twin.regs[0x75] == 0x47  # WHO_AM_I
+    twin.regs[0x75] = 0x12  # another InvenSense part
+    with pytest.raises(PartIdentityError, match=r"sim-spi0\.0: expected ICM-42688-P.*0x75\) reads 0x12"):
+        b.part.configure()
+    b2, _, _ = board()
+    b2.transport.bus.set_present(0, False)
+    with pytest.raises(PartIdentityError, match="reads 0xFF"):
+        b2.open()
+
+
+@pytest.mark.parametrize("odr, code", [(8000, 3), (4000, 4), (2000, 5), (1000, 6), (500, 15), (200, 7), (100, 8)])
+def test_configuration_registers(odr, code):
+    b, imu, twin = board(odr_hz=odr, watermark=10)
+    b.open()
+    r = twin.regs
+    assert r[0x4F] == code and r[0x50] == code  # GYRO/ACCEL_CONFIG0: FS 000 (±2000 °/s, ±16 g), ODR
+    assert r[0x4E] == 0x0F  # PWR_MGMT0: gyro and accel low-noise
+    assert r[0x16] == 0x80  # FIFO_CONFIG: stop-on-full
+    assert r[0x5F] == 0x3F  # FIFO_CONFIG1: WM_GT_TH, HIRES, TMST_FSYNC, TEMP, GYRO, ACCEL
+    assert r[0x60] | (r[0x61] & 0x0F) << 8 == 200  # watermark: 10 packets of 20 bytes
+    assert r[0x65] == 0x06  # INT_SOURCE0: FIFO_THS and FIFO_FULL on INT1
+    assert r[0x14] == 0x03  # INT_CONFIG: INT1 pulsed, push-pull, active high
+    assert twin.rate_hz() == pytest.approx(odr * 1.0042)  # the unit runs 0.42 % fast
+
+
+def test_hires_packet_layout_decoded_from_the_datasheet_order():
+    # accel X = 0x12345 (20 bit), gyro Z = -3 (0xFFFFD), temperature 0x0102, timestamp 0xBEEF
+    pkt = bytearray(20)
+    pkt[0] = 0x78
+    pkt[1], pkt[2], pkt[17] = 0x12, 0x34, 0x50  # accel X bits 19:12, 11:4, 3:0 in the high nibble
+    pkt[11], pkt[12], pkt[19] = 0xFF, 0xFF, 0x0D  # gyro Z bits 19:12, 11:4, 3:0 in the low nibble
+    pkt[13], pkt[14], pkt[15], pkt[16] = 0x01, 0x02, 0xBE, 0xEF
+    d = decode_hires(bytes(pkt))
+    assert d["acc20"][0, 0] == 0x12345 and d["acc"][0, 0] == 0x12345 >> 2
+    assert d["gyr20"][0, 2] == -3 and d["gyr"][0, 2] == -2  # 19 bits: arithmetic shift
+    assert d["temp"][0] == 0x0102 and d["tmst"][0] == 0xBEEF and d["header"][0] == 0x78
+
+
+def test_burst_scale_within_one_lsb_and_timestamps_on_the_part_clock():
+    b, imu, twin = board(odr_hz=8000, watermark=8)
+    b.open()
+    blocks = []
+    for _ in range(400):  # 0.4 s of 1 ms bursts
+        imu.clock.advance(0.001)
+        blk = b.read_block()
+        if len(blk):
+            blocks.append(blk)
+    blk = blocks[-1]
+    assert np.abs(blk.gyr - imu.gyr).max() <= D2R / 131 / 2 + 1e-12  # 131 LSB/(°/s)
+    assert np.abs(blk.acc - imu.acc).max() <= G0 / 8192 / 2 + 1e-12  # 8192 LSB/g
+    assert blk.temperature_c[0] == pytest.approx(31.0, abs=1 / 132.48)
+    assert blk.raw["gyr"][0].tolist() == [round(w / (D2R / 131)) for w in imu.gyr]
+    n = sum(len(x) for x in blocks)
+    assert n == b.diagnostics.samples == twin.samples_latched  # every sample, none twice
+    # the packets' 16-bit µs timestamp steps by 125 µs of the part's clock at 8 kHz
+    twin_rate = twin.rate_hz()
+    assert b.clock.rate_hz == pytest.approx(twin_rate, rel=2e-4)
+    t = np.concatenate([x.t_ns for x in blocks])
+    assert (np.diff(t) > 0).all()
+    # once the rate is tracked (after 0.2 s), rows are the part's real period apart
+    late = np.concatenate([x.t_ns for x in blocks[-100:]])
+    assert np.median(np.diff(late)) == pytest.approx(1e9 / twin_rate, rel=2e-4)
+
+
+def test_packet_timestamps_step_by_the_output_period():
+    b, imu, twin = board(odr_hz=8000, watermark=8)
+    b.open()
+    imu.clock.advance(0.002)
+    b.part.read_status()
+    d = b.part.read_packets(twin.fifo.level)
+    assert len(d["tmst"]) == 16
+    assert set(np.diff(d["tmst"]) % 65536) == {125}
+
+
+def test_watermark_sets_int_status_and_raises_int1_once():
+    b, imu, twin = board(odr_hz=1000, watermark=5)
+    b.open()
+    edges = []
+    twin.int1 = edges.append
+    imu.clock.advance(0.0045)  # 4 samples (1004.2 Hz): below the watermark
+    status, count = b.part.read_status()
+    assert status & 0x06 == 0 and count == 80  # neither FIFO_THS nor FIFO_FULL
+    assert edges == []
+    imu.clock.advance(0.001)  # the fifth
+    status, count = b.part.read_status()
+    assert status & 0x04 and count == 100  # FIFO_THS_INT
+    assert len(edges) == 1 and edges[0] == pytest.approx(5 / 1004.2)
+    imu.clock.advance(0.001)
+    assert b.part.read_status()[0] & 0x04 and len(edges) == 1  # still above: no new edge
+    assert len(b.read_block()) == 6
+
+
+def test_overflow_counts_the_loss_resets_the_fifo_and_shows_the_gap():
+    b, imu, twin = board(odr_hz=8000, watermark=8)
+    b.open()
+    for _ in range(300):  # 0.3 s: the part's real rate is tracked
+        imu.clock.advance(0.001)
+        b.read_block()
+    imu.clock.advance(0.05)  # a 50 ms stall: the 102-packet FIFO (12.7 ms) overflows
+    full = b.read_block()
+    assert len(full) == 102
+    assert b.diagnostics.extra["fifo_overflows"] == 1
+    lost = b.diagnostics.lost.fifo_overflow
+    assert abs(lost - twin.fifo.dropped) <= 1  # the samples the full FIFO turned away
+    assert lost > 250
+    assert twin.fifo.level == 0  # FIFO_FLUSH
+    imu.clock.advance(0.001)
+    after = b.read_block()
+    assert after.lost.fifo_overflow == lost and after.lost.total == lost
+    gap = (after.t_ns[0] - full.t_ns[-1]) / 1e9
+    assert gap == pytest.approx((lost + 1) / twin.rate_hz(), abs=2e-4)  # a long dt, no fake rows
+
+
+def test_bus_errors_are_retried_and_a_vanished_part_comes_back_with_the_loss_counted():
+    b, imu, twin = board(odr_hz=1000, watermark=4)
+    b.open()
+    bus = b.transport.bus
+    for _ in range(20):
+        imu.clock.advance(0.004)
+        b.read_block()
+    bus.inject_errors(0, 2)
+    imu.clock.advance(0.004)
+    assert len(b.read_block()) == 4
+    assert b.diagnostics.retries == 2 and b.diagnostics.bus_errors == 2
+    bus.set_present(0, False)  # MISO floats: the count reads 0xFFFF
+    imu.clock.advance(0.004)
+    assert len(b.read_block()) == 0 and b.diagnostics.device_lost
+    for _ in range(25):  # 100 ms away
+        imu.clock.advance(0.004)
+        b.read_block()
+    bus.set_present(0, True)  # power-cycled: must be configured again
+    for _ in range(20):
+        imu.clock.advance(0.004)
+        b.read_block()
+    assert not b.diagnostics.device_lost and b.diagnostics.reinitialisations == 1
+    assert 95 <= b.diagnostics.lost.bus_error <= 160
+
+
+def test_i2c_transport_reads_the_fifo_in_smbus_blocks():
+    b, imu, twin = board("i2c", odr_hz=1000, watermark=10)
+    b.open()
+    imu.clock.advance(0.0105)
+    bus = b.transport.bus
+    before = bus.transfers
+    blk = b.read_block()
+    assert len(blk) == 10
+    assert bus.transfers - before == 1 + 7  # status+count, then 200 bytes in 32-byte SMBus blocks
+    assert np.abs(blk.gyr - imu.gyr).max() <= D2R / 131 / 2 + 1e-12
+
+
+def test_read_block_takes_at_most_max_samples_and_keeps_the_rest_in_the_fifo():
+    b, imu, twin = board(odr_hz=8000, watermark=8)
+    b.open()
+    for _ in range(300):
+        imu.clock.advance(0.001)
+        b.read_block()
+    imu.clock.advance(0.03)  # overflowed
+    a = b.read_block(max_samples=64)
+    assert len(a) == 64 and b.diagnostics.extra["fifo_overflows"] == 0  # not drained: no reset yet
+    c = b.read_block(max_samples=64)
+    assert len(c) == 38 and b.diagnostics.extra["fifo_overflows"] == 1
+    assert c.t_ns[0] - a.t_ns[-1] == pytest.approx(1e9 / twin.rate_hz(), rel=1e-3)  # contiguous
+
+
+def test_rows_carry_the_truth_of_their_own_sample():
+    b, imu, twin = board(odr_hz=1000, watermark=4)
+    b.open()
+    imu.clock.advance(0.0045)
+    rows = [b.read() for _ in range(4)]
+    assert all(r is not None for r in rows) and b.read() is None
+    assert rows[0].t_ns < rows[-1].t_ns and rows[0].truth_q.tolist() == [1.0, 0.0, 0.0, 0.0]
+    assert rows[0].mag is None and rows[0].raw["acc"] == [round(a / (G0 / 8192)) for a in imu.acc]
