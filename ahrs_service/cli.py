@@ -20,6 +20,19 @@ _COMMAND_MODULES = [
 ]
 
 
+def add_offline_options(parser: argparse.ArgumentParser, offline_help: str) -> None:
+    """``--offline`` and ``--offline-blend``, shared by ``evaluate`` and ``log replay``
+    (``ahrs_service.estimators.offline``)."""
+    parser.add_argument("--offline", action="store_true", help=offline_help)
+    parser.add_argument(
+        "--offline-blend",
+        type=float,
+        default=None,
+        metavar="S",
+        help="with --offline: time constant of the fusion weights 1 - exp(-t/S), seconds (default 10)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ahrs-service", description="MAVLink AHRS companion service: run, evaluate, log tools, replay, calibration."

@@ -85,9 +85,9 @@ def estimator_param_names(names: list[str]) -> dict[str, str]:
 class MavlinkBridge:
     """The service's MAVLink side; :meth:`tick` is called from the estimation loop."""
 
-    def __init__(self, service: "Service", cfg: "Config") -> None:
-        from ahrs_service.service import IO_PERIOD_NS
-
+    def __init__(self, service: "Service", cfg: "Config", *, io_period_ns: int) -> None:
+        """io_period_ns: how often the loop calls :meth:`tick` (ns); the fastest a stream can
+        go. Handed in by the service, so this module does not import the service's."""
         self.svc = service
         self._next_poll_ns = 0
         self._samples_seen = -1  # pipeline.samples at the last telemetry, and when it last grew
@@ -108,7 +108,7 @@ class MavlinkBridge:
             gyro_calibration=self._calibrate_gyro,
             mag_calibration=lambda action: self._start_collection("mag"),
             accel_calibration=lambda action: self._start_collection("accel"),
-            max_rate_hz=1e9 / IO_PERIOD_NS,
+            max_rate_hz=1e9 / io_period_ns,
         )
 
     # ------------------------------------------------------------------ parameters
@@ -196,6 +196,7 @@ class MavlinkBridge:
             load_percent=svc.last_load_percent,
             comm_errors=diag.bus_errors,
             sensor_faults=diag.saturated + diag.non_finite,
+            lost_samples=diag.lost.total,
         )
 
     def tick(self, now_ns: int) -> None:

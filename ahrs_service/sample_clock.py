@@ -211,7 +211,9 @@ class _Recovery:
         """Adds one stamp to the fit, clipped around the line's prediction (Huber-like)."""
         slope = self._slope()
         period = self.period if slope is None else slope
-        pred = self.fit.at(x, period) if slope is not None else self.last + period
+        # with one point in the fit the line through it at the current period is still the
+        # prediction: the next stamp may be a whole block (many indices) later
+        pred = self.fit.at(x, period) if self.fit.n else self.last + period
         e = y - pred
         bound = max(self.tuning.clip * self.scale, period) if self.scale_n >= 8 else 4.0 * period
         ec = min(max(e, -bound), bound)
@@ -337,6 +339,7 @@ class SampleClock:
         first = self._origin is None
         y = self._rel(raw)
         core = self._core
+        previous = core.last
         r = core.step(y, n, detect_gaps=True, resolution=self._resolution(raw))
         if first and n > 1:
             # the first block: its older samples lie a nominal period apart before the newest
@@ -346,8 +349,15 @@ class SampleClock:
         dtype = np.int64 if self.unit == "ns" else np.float64
         out = np.empty(n, dtype=dtype)
         out[-1] = newest
+        # the block's older samples a tracked period apart before the newest; should the
+        # block's start fall at or before the previous block's newest sample (a block read
+        # early, or a period still settling), they are spread evenly after it instead, so
+        # times always increase
+        step = core.period
+        if not first and r - (n - 1) * step <= previous:
+            step = (r - previous) / n
         for j in range(1, n):
-            out[n - 1 - j] = self._out(r - j * core.period, raw, float("nan"))
+            out[n - 1 - j] = self._out(r - j * step, raw, float("nan"))
         return out
 
     def stamp_indexed(self, host_t_ns: int | float, index: int) -> int | float:

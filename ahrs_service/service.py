@@ -26,7 +26,7 @@ from typing import Any
 from ahrs_service import config as config_mod
 from ahrs_service import estimators
 from ahrs_service.estimators import STATE_HEADER
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID, ImuSource
+from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID, ImuSource, LossCounts
 from ahrs_service.drivers.calibration import SensorCalibration
 from ahrs_service.calibration.live import LiveCalibrationResult, LiveCalibrator
 from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
@@ -41,6 +41,8 @@ log = logging.getLogger("ahrs_service")
 
 IO_PERIOD_NS = 5_000_000  # MAVLink publish/poll granularity: 200 Hz
 HOUSEKEEPING_NS = 1_000_000_000  # loop statistics, STATUS=, health reports
+#: the loss causes of LossCounts, in its field order
+_LOSS_CAUSES = ("fifo_overflow", "bus_error", "gap", "host_stall")
 MAX_SAMPLES_PER_TICK = 16  # a source with a backlog catches up at most this fast
 # how long close() waits for a running live-calibration fit, s: fits take tens of ms, and
 # the whole stop must stay well within 2 s (systemd's TimeoutStopSec is 5 s)
@@ -161,7 +163,7 @@ class Service:
     def _open_mavlink(self, cfg: config_mod.Config) -> None:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
-        self.mavlink = MavlinkBridge(self, cfg)
+        self.mavlink = MavlinkBridge(self, cfg, io_period_ns=IO_PERIOD_NS)
 
     # ------------------------------------------------------------------ control
     def request_stop(self, *_: Any) -> None:
@@ -289,8 +291,16 @@ class Service:
         mode = "reduced" if self.pipeline.reduced else "full"
         return (
             f"{self.estimator.name} ({mode}) at {st.rate_hz:.0f} Hz, load {st.load_percent:.1f}%, "
-            f"jitter p99 {st.period_jitter_p99_us:.0f} us, overruns {st.overruns}, samples {self.pipeline.samples}"
+            f"jitter p99 {st.period_jitter_p99_us:.0f} us, overruns {st.overruns}, samples {self.pipeline.samples}, "
+            f"lost {self._loss_text()}"
         )
+
+    def _loss_text(self, lost: LossCounts | None = None) -> str:
+        """Lost IMU samples, total and by cause: "0" or "12 (fifo_overflow 12)"."""
+        if lost is None:
+            lost = self.source.diagnostics.lost if self.source is not None else LossCounts()
+        causes = [f"{k} {v}" for k, v in lost.as_dict().items() if k != "total" and v]
+        return f"{lost.total} ({', '.join(causes)})" if causes else str(lost.total)
 
     def _housekeeping(self, now: int) -> None:
         st = self.scheduler.stats()
@@ -302,6 +312,12 @@ class Service:
         if self._last_overruns is not None and st.overruns > self._last_overruns:
             self.report(f"loop overruns: {st.overruns - self._last_overruns} in the last second", 4)
         self._last_overruns = st.overruns
+        lost_now = self.source.diagnostics.lost
+        if lost_now.total > self._last_lost_total:
+            new = LossCounts(*(getattr(lost_now, f) - getattr(self._last_loss, f) for f in _LOSS_CAUSES))
+            self.report(f"IMU samples lost: {self._loss_text(new)} in the last second", 4)
+            self._last_lost_total = lost_now.total
+            self._last_loss = LossCounts(*(getattr(lost_now, f) for f in _LOSS_CAUSES))
         lost = bool(diag.get("device_lost"))
         if lost != self._last_lost:
             self._last_lost = lost
@@ -324,6 +340,8 @@ class Service:
                 self._log_failed_before |= status == "error"
 
     _last_overruns: int | None = None
+    _last_lost_total = 0
+    _last_loss = LossCounts()
     _mag_rejected = False
     _last_lost = False
     _last_log_status = "ok"

@@ -2,6 +2,12 @@
 
     python benchmarks/service.py [--seconds 60] [--rate 1000] [--estimator robust] [--source recorded] [--no-truth]
                                  [--floor-seconds S]
+    python benchmarks/service.py --fifo-pairs 5 [--seconds 20] [--rate 1000]
+
+``--fifo-pairs N``: the simulated MPU-9250 on the simulated I2C bus at 1 kHz, logged and
+publishing, read through its FIFO (the default) and polled one sample per tick
+(``board_options = { fifo = false }``, the reference), in N alternating pairs run back to
+back; prints each run's CPU and lost samples, the medians and the ratio FIFO / polling.
 
 What runs: the service as a subprocess (its scheduler, estimator, MAVLink over UDP to a
 pymavlink ground station in this process, MCAP logging to a temporary folder), started under
@@ -183,6 +189,40 @@ def service_cpu(cfg: Path, tmp: Path, seconds: float) -> float:
             proc.kill()
 
 
+def fifo_pairs(args: argparse.Namespace) -> int:
+    """FIFO against polling on the simulated MPU-9250: CPU and lost samples per run."""
+    from mcap.reader import make_reader
+
+    runs: dict[bool, list[float]] = {True: [], False: []}
+    lost: dict[bool, list[int]] = {True: [], False: []}
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0")
+        port = gcs.port.getsockname()[1]
+        for i in range(args.fifo_pairs):
+            for fifo in (True, False):
+                logs = tmp / f"logs-{i}-{fifo}"
+                cfg = tmp / f"fifo-{i}-{fifo}.toml"
+                cfg.write_text(
+                    f'[source]\ntype = "simulated_i2c"\nprofile = "figure8"\nboard = "mpu9250"\n'
+                    f'board_options = {{ fifo = {str(fifo).lower()} }}\n\n'
+                    f'[estimator]\nname = "{args.estimator}"\n\n'
+                    f"[rates]\nestimation_hz = {args.rate}\nattitude_hz = {args.publish}\n"
+                    f"attitude_quaternion_hz = {args.publish}\n\n"
+                    f'[mavlink]\nendpoints = ["udpout:127.0.0.1:{port}"]\n\n[log]\ndirectory = "{logs}"\n')
+                runs[fifo].append(service_cpu(cfg, tmp, args.seconds))
+                with open(next(logs.glob("flight-*.mcap")), "rb") as f:
+                    loops = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/loop"])]
+                lost[fifo].append(int(loops[-1]["source"].get("lost", {}).get("total", 0)) if loops else -1)
+                print(f"pair {i + 1}: {'FIFO   ' if fifo else 'polling'} CPU {runs[fifo][-1]:.1f} %, "
+                      f"lost samples {lost[fifo][-1]}", flush=True)
+    f_cpu, p_cpu = float(np.median(runs[True])), float(np.median(runs[False]))
+    print(f"median of {args.fifo_pairs} pairs, {args.seconds:.0f} s each after 5 s warm-up, "
+          f"{args.rate:.0f} Hz loop, {args.estimator}: FIFO {f_cpu:.1f} %, polling {p_cpu:.1f} %, "
+          f"ratio {f_cpu / p_cpu:.2f}")
+    return 0
+
+
 def step_after_sleep_us(estimator: str, n: int = 300) -> tuple[float, float]:
     """Median µs of one ``update_row`` of ``estimator`` called back to back, and called right
     after a 0.8 ms sleep (as the service calls it): the cost of starting each tick cold."""
@@ -221,7 +261,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="length of the empty-loop reference run, e.g. as long as the run to compare "
                          "overruns (default: the run's length, at most 30 s)")
     ap.add_argument("--markdown", action="store_true")
+    ap.add_argument("--fifo-pairs", type=int, default=0, metavar="N",
+                    help="only compare the MPU-9250 read through its FIFO against polling, N alternating pairs")
     args = ap.parse_args(argv)
+    if args.fifo_pairs:
+        return fifo_pairs(args)
     floor_s = min(args.seconds, 30.0) if args.floor_seconds is None else args.floor_seconds
 
     with tempfile.TemporaryDirectory() as tmp_name:

@@ -110,7 +110,8 @@ class SampleBlock:
         sample (then ``MAG_NEW`` is clear in ``flags``).
     flags: (n,) int64 validity bits, as :attr:`ImuSample.flags`.
     temperature_c: (n,) float64 °C, NaN where unknown.
-    raw: counts as read, {"gyr": (n, 3) int64, "acc": …, "mag": …} where the driver has them.
+    raw: counts as read, {"gyr": (n, 3) int64, "acc": …, "mag": …, "temp": (n,)} where the
+        driver has them.
     truth_q: (n, 4) q_earth←body [w, x, y, z] where the source knows the truth, else None.
     lost: samples lost **immediately before row 0** (a source ends a block at a loss, so the
         gap shows as one long dt between the previous block's last row and this one's first —
@@ -147,9 +148,10 @@ class SampleBlock:
         raw = None
         if all(s.raw is not None for s in samples):
             keys = set.intersection(*(set(s.raw) for s in samples))  # type: ignore[arg-type]
-            vector_keys = [k for k in keys if all(np.ndim(s.raw[k]) == 1 for s in samples)]  # type: ignore[index]
+            # (n, 3) per vector reading, (n,) per scalar one (a temperature count)
+            same_shape = [k for k in keys if len({np.ndim(s.raw[k]) for s in samples}) == 1]  # type: ignore[index]
             raw = {k: np.array([s.raw[k] for s in samples], dtype=np.int64)  # type: ignore[index]
-                   for k in sorted(vector_keys)}
+                   for k in sorted(same_shape)}
         truth = (np.array([s.truth_q for s in samples], dtype=float)
                  if all(s.truth_q is not None for s in samples) else None)
         return cls(

@@ -8,6 +8,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ahrs_service import execution
+from ahrs_service.cli import add_offline_options
+
 
 def _param(text: str) -> tuple[str, float]:
     name, sep, value = text.partition("=")
@@ -47,25 +50,26 @@ def add_subcommands(subparsers: Any) -> None:
     p.add_argument("--out", type=Path, required=True, help="figure file: .png, .pdf or .svg")
     p.set_defaults(func=_plot)
 
-    p = subparsers.add_parser("replay", help="re-run an estimator over a recorded log and compare")
-    p.add_argument("log", type=Path)
+    p = subparsers.add_parser(
+        "replay",
+        help="re-run an estimator over a recorded log (or a fleet of logs) and compare",
+        description=(
+            "One log: replays it and compares (--out FILE writes the new log). Several logs, a "
+            "directory or a glob pattern: each log is one task of the execution layer, --out DIR "
+            "gets each new log plus fleet.csv / fleet.parquet (one row per log) and a summary."
+        ),
+    )
+    p.add_argument("log", nargs="+", metavar="LOG", help="an MCAP log, a directory of logs, or a glob such as 'logs/*.mcap'")
     p.add_argument("--estimator", default=None, help="estimator name (default: the recorded one)")
     p.add_argument("--param", type=_param, action="append", default=[], metavar="NAME=VALUE")
     p.add_argument("--no-param-changes", action="store_true", help="ignore recorded live parameter changes")
-    p.add_argument("--out", type=Path, default=None, help="write a new log with the new estimate")
     p.add_argument(
-        "--offline",
-        action="store_true",
-        help="non-causal estimate: the estimator run forward and backward over the log and fused",
+        "--out", type=Path, default=None,
+        help="one log: write a new log with the new estimate (FILE); several: the folder for the new logs and the fleet table (DIR)",
     )
-    p.add_argument(
-        "--offline-blend",
-        type=float,
-        default=None,
-        metavar="S",
-        help="with --offline: time constant of the fusion weights 1 - exp(-t/S), seconds (default 10)",
-    )
+    add_offline_options(p, "non-causal estimate: the estimator run forward and backward over the log and fused")
     p.add_argument("--json", action="store_true", help="print the comparison as JSON")
+    execution.add_arguments(p)
     p.set_defaults(func=_replay)
 
 
@@ -131,11 +135,72 @@ def _import_broad(args: argparse.Namespace) -> int:
     return 0
 
 
+def _is_fleet(specs: list[str]) -> bool:
+    return len(specs) > 1 or Path(specs[0]).is_dir() or any(c in specs[0] for c in "*?[")
+
+
+def _replay_fleet(args: argparse.Namespace) -> int:
+    from ahrs_service.execution import RunnerError, open_runner
+    from ahrs_service.logs import fleet
+
+    try:
+        paths = fleet.expand_logs(args.log)
+    except FileNotFoundError as exc:
+        print(f"ahrs-service replay: error: {exc}", file=sys.stderr)
+        return 2
+    if args.out is None:
+        print("ahrs-service replay: error: several logs need --out DIR (the new logs and the fleet table)", file=sys.stderr)
+        return 2
+    if args.out.exists() and not args.out.is_dir():
+        print(f"ahrs-service replay: error: --out {str(args.out)!r} is a file; several logs need a folder", file=sys.stderr)
+        return 2
+    blend: float | None = None
+    if args.offline:
+        from ahrs_service.estimators.offline import blend_time
+
+        try:
+            blend = blend_time(args.offline_blend)
+        except ValueError as exc:
+            print(f"ahrs-service replay: error: {exc}", file=sys.stderr)
+            return 2
+    args.out.mkdir(parents=True, exist_ok=True)
+    names = [p.stem for p in paths]
+    jobs = [
+        fleet.ReplayJob(
+            path=str(p.resolve()), estimator=args.estimator, params=dict(args.param),
+            follow_param_changes=not args.no_param_changes, blend_time_s=blend,
+            # two logs of the same name from different folders get the folder in the name
+            out_path=str(args.out / (f"{p.parent.name}_{p.stem}.mcap" if names.count(p.stem) > 1 else f"{p.stem}.mcap")),
+        )
+        for p in paths
+    ]
+    try:
+        runner = open_runner(args.workers, args.scheduler)
+    except RunnerError as exc:
+        print(f"ahrs-service replay: error: {exc}", file=sys.stderr)
+        return 2
+    with runner:
+        rows = runner.map(fleet.replay_one, jobs, progress=sys.stderr.isatty() and not args.json, desc="replay")
+    csv_path, pq_path = fleet.write_table(rows, args.out)
+    text = fleet.summary(rows)
+    (args.out / "summary.txt").write_text(text + "\n", encoding="utf-8")
+    if args.json:
+        from dataclasses import asdict
+
+        print(json.dumps([asdict(r) for r in rows], indent=2))
+    else:
+        print(text)
+        print(f"  wrote {csv_path}" + (f" and {pq_path}" if pq_path else "") + f" and {len(rows) - sum(r.error is not None for r in rows)} log(s) in {args.out}")
+    return 1 if any(r.error for r in rows) else 0
+
+
 def _replay(args: argparse.Namespace) -> int:
+    if _is_fleet(args.log):
+        return _replay_fleet(args)
     from ahrs_service.logs.reader import read_log
     from ahrs_service.logs.replay import compare, replay, replay_offline, write_replay
 
-    log = read_log(args.log)
+    log = read_log(args.log[0])
     params = dict(args.param)
     name = args.estimator or log.estimator
     if not name:

@@ -290,7 +290,9 @@ def test_imu_delay_needs_motion_and_samples():
 def _evaluate(argv: list[str]) -> int:
     parser = argparse.ArgumentParser()
     command.add_subcommands(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["evaluate", *argv])
+    # in-process: the parallel runs are test_execution.py's
+    extra = [] if "--workers" in argv or "--scheduler" in argv else ["--workers", "1"]
+    args = parser.parse_args(["evaluate", *argv, *extra])
     return args.func(args)
 
 

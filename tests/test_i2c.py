@@ -562,8 +562,11 @@ def test_board_gives_each_gyro_sample_once_with_mag_when_new(name):
         if s is not None:
             samples.append(s)
     gyro_twin = board.bus.device(addr)
-    assert len(samples) == gyro_twin.samples_latched
-    assert abs(len(samples) - rate) <= 1
+    # a FIFO board (the MPU-9250's default) has the samples of its last drain period still
+    # waiting in the FIFO: handed out at the next drain, none lost
+    waiting = len(gyro_twin.fifo) // 12 + board.pending if getattr(board, "fifo", False) else 0
+    assert len(samples) + waiting == gyro_twin.samples_latched
+    assert abs(len(samples) + waiting - rate) <= 1
     t = np.array([s.t_ns for s in samples])
     assert np.all(np.diff(t) > 0)
     s = samples[-1]
@@ -581,7 +584,8 @@ def test_board_gives_each_gyro_sample_once_with_mag_when_new(name):
     mag_twin = board.bus.device(board.parts["mag"].address)
     assert 0.85 * mag_twin.samples_latched <= len(with_mag) <= mag_twin.samples_latched
     np.testing.assert_allclose(with_mag[-1].mag, src.mag, atol=0.5)
-    assert board.diagnostics.samples == len(samples)
+    # drained (counted) but not handed out yet: the FIFO board's queue
+    assert board.diagnostics.samples == len(samples) + getattr(board, "pending", 0)
     assert board.diagnostics.bus_errors == 0
 
 
@@ -656,8 +660,11 @@ def test_board_device_loss_and_recovery_with_reinitialisation(name, role):
     src, board = stand_in_board(name)
     part = board.parts[role]
     bus = board.bus
-    src.advance(2e-3)
+    # a FIFO board (the MPU-9250's default) drains every 10 ms: the first rows come then
+    src.advance(11e-3 if getattr(board, "fifo", False) else 2e-3)
     assert board.read() is not None
+    while board.read() is not None:  # the rest of that drain, read before the loss
+        pass
     bus.set_present(part.address, False)
     for _ in range(100):  # 0.1 s gone: never raises, nothing returned
         src.advance(1e-3)

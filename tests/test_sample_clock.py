@@ -169,3 +169,19 @@ def test_bad_arguments_are_clear_errors():
     clock.stamp(10)
     with pytest.raises(ValueError, match="do not mix"):
         clock.stamp_indexed(20, 1)
+
+
+def test_blocks_of_many_samples_from_the_start_are_exact_and_increasing():
+    """FIFO blocks of 10 at 1 kHz read every 10 ms exactly: the second block must follow the
+    first (it once started 1.5 ms before the first block's newest sample)."""
+    clock = SampleClock(1000)
+    times = np.concatenate([clock.stamp(k * 10_000_000, 10) for k in range(1, 51)])
+    assert np.all(np.diff(times) > 0)
+    np.testing.assert_array_equal(times, np.arange(1, 501, dtype=np.int64) * 1_000_000)
+
+
+def test_a_block_read_early_never_goes_back_in_time():
+    clock = SampleClock(1000)
+    clock.stamp(10_000_000, 10)
+    early = clock.stamp(12_000_000, 10)  # ten samples claimed 2 ms later: impossible at 1 kHz
+    assert early[0] > 10_000_000 and np.all(np.diff(early) > 0)

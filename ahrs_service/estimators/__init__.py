@@ -16,6 +16,7 @@ every estimator shares (``state[STATE_HEADER.slices.bias]``); see ``layout``.
 from __future__ import annotations
 
 import importlib
+import os
 from typing import Any
 
 import numpy as np
@@ -59,8 +60,16 @@ def get(name: str) -> type[Estimator]:
     return getattr(importlib.import_module(f"{__name__}.{module}"), cls)
 
 
-def create(name: str, **params: float) -> Estimator:
-    """A fresh estimator instance; unknown parameter names raise ValueError."""
+def create(name: str, preset: str | os.PathLike | None = None, **params: float) -> Estimator:
+    """A fresh estimator instance; unknown parameter names raise ValueError.
+
+    ``preset``: a preset file (``ahrs-service tune`` writes them, ``presets.load_preset``)
+    whose parameters the instance starts from; ``params`` override it.
+    """
+    if preset is not None:
+        from ahrs_service.estimators.presets import load_preset
+
+        params = {**load_preset(name, preset), **params}
     return get(name)(**params)
 
 
@@ -73,6 +82,7 @@ def run(
     rate_hz: float | None = None,
     timestamps: Any = None,
     recover_clock: bool = True,
+    preset: str | os.PathLike | None = None,
     **params: float,
 ) -> np.ndarray:
     """Runs estimator ``name`` over a recording and returns (N, 4) q_earth←body (NED).
@@ -82,8 +92,9 @@ def run(
     first recovered onto the sensor's steady clock (``ahrs_service.sample_clock``, causal;
     uniform stamps pass unchanged); ``recover_clock=False`` integrates the raw steps instead.
     Stamps that cannot be seconds (NaN, not increasing, steps over a second) raise ValueError.
+    ``preset`` and ``params`` as for :func:`create`.
     """
-    est = create(name, **params)
+    est = create(name, preset, **params)
     n = np.shape(gyr)[0]
     return est.run(gyr, acc, mag, dt=time_steps(n, rate_hz, timestamps, recover_clock=recover_clock))
 

@@ -28,8 +28,8 @@ from numba import njit
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.layout import Layout, Slot, param_index
-from ahrs_service.estimators.triad import align_down, down_direction
-from ahrs_service.quaternion import quat_integrate, quat_mul, quat_normalize
+from ahrs_service.estimators.triad import down_direction, propagate_then_level
+from ahrs_service.quaternion import quat_mul, quat_normalize
 
 _inline = njit(cache=True, inline="always")
 
@@ -177,12 +177,7 @@ def quest_step(s, p, x):
             K.store_quat(s, qq)
             return
     # without an algebraic fix the gyro carries the attitude, gravity sets its tilt
-    q = K.load_quat(s)
-    if gyro_ok:
-        q = quat_integrate(q, x[0], x[1], x[2], x[K.DT])
-    if acc_ok:
-        q = align_down(q, down_direction(x))
-    K.store_quat(s, q)
+    propagate_then_level(s, x, gyro_ok, acc_ok)
 
 
 @njit(cache=True)

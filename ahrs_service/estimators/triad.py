@@ -52,6 +52,18 @@ def align_down(q, d):
 
 
 @_inline
+def propagate_then_level(s, x, gyro_ok, acc_ok):
+    """Fallback of the algebraic estimators (TRIAD, QUEST) for a sample without a fix: the
+    gyro carries the attitude (heading included), then gravity sets its tilt."""
+    q = K.load_quat(s)
+    if gyro_ok:
+        q = quat_integrate(q, x[0], x[1], x[2], x[K.DT])
+    if acc_ok:
+        q = align_down(q, down_direction(x))
+    K.store_quat(s, q)
+
+
+@_inline
 def triad_quat(d, mx, my, mz):
     """q_earth←body from body down ``d`` and field (mx, my, mz), eq. 15–16.
 
@@ -79,12 +91,7 @@ def triad_step(s, p, x):
             K.store_quat(s, qt)
             return
     # between algebraic fixes the gyro carries the attitude (yaw without mag), gravity its tilt
-    q = K.load_quat(s)
-    if gyro_ok:
-        q = quat_integrate(q, x[0], x[1], x[2], x[K.DT])
-    if acc_ok:
-        q = align_down(q, down_direction(x))
-    K.store_quat(s, q)
+    propagate_then_level(s, x, gyro_ok, acc_ok)
 
 
 @njit(cache=True)

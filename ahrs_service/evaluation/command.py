@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+from ahrs_service import execution
 from ahrs_service.evaluation.broad import ENV_VAR
+from ahrs_service.cli import add_offline_options
 from ahrs_service.evaluation.dido import ENV_VAR as DIDO_ENV_VAR
 
 
@@ -49,20 +51,42 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         metavar="NAME.KEY=VALUE",
         help="tuning parameter for one column, e.g. madgwick.beta=0.05 (repeatable)",
     )
-    p.add_argument(
-        "--offline",
-        action="store_true",
-        help="also score the offline (forward-backward, non-causal) mode of every column, as '<name>+offline'",
-    )
-    p.add_argument(
-        "--offline-blend",
-        type=float,
-        default=None,
-        metavar="S",
-        help="time constant of the offline fusion weights 1 - exp(-t/S), seconds (default 10)",
-    )
+    add_offline_options(p, "also score the offline (forward-backward, non-causal) mode of every column, as '<name>+offline'")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
+    execution.add_arguments(p)
     p.set_defaults(func=_run)
+
+
+    t = subparsers.add_parser(
+        "tune",
+        help="search an estimator's parameters with Optuna on BROAD and write a preset file",
+        description=(
+            "Optuna (TPE) over the search space declared on the estimator's Params fields (or --space); "
+            "every (trial x recording) is one task of the execution layer; objective: mean RMSE over the "
+            "recordings (total, or inclination without heading); leave-one-recording-out validation and "
+            "parameter importances reported; the best parameters written as a preset file that "
+            "estimators.create(name, preset=PATH) accepts."
+        ),
+    )
+    t.add_argument("estimator", metavar="ESTIMATOR")
+    t.add_argument("--dataset", choices=["broad"], default="broad",
+                   help="recordings to tune on (broad; DIDO flights are not wired in yet)")
+    t.add_argument("--data", metavar="DIR", default=None, help=f"BROAD folder (default: ${ENV_VAR}, else ../shared/data/broad)")
+    t.add_argument("--trials", default=None, metavar="PATTERN", help="only recordings whose name matches")
+    t.add_argument("--budget", type=int, default=50, metavar="N", help="Optuna trials (default 50)")
+    t.add_argument("--space", action="append", default=[], metavar="NAME=LOW:HIGH[:log]",
+                   help="search range of one parameter (repeatable; replaces the declared space)")
+    t.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
+    t.add_argument("--out", default=None, metavar="FILE", help="preset file to write (default ./ESTIMATOR.preset.json)")
+    t.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
+    execution.add_arguments(t)
+    t.set_defaults(func=_tune)
+
+
+def _tune(args: argparse.Namespace) -> int:
+    from ahrs_service.evaluation.tuning import main
+
+    return main(args)
 
 
 def _run(args: argparse.Namespace) -> int:

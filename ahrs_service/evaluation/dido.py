@@ -91,16 +91,18 @@ def missing_reason(data_dir: str | os.PathLike) -> str | None:
     try:
         import h5py  # noqa: F401
     except ImportError:
-        return "reading DIDO needs the package h5py (pip install h5py)"
+        return "reading DIDO needs h5py: install the extra 'recordings' (pip install 'ahrs-service[recordings]')"
     return None
 
 
 def check_dir(data_dir: str | os.PathLike) -> Path:
     """The folder as a Path; FileNotFoundError with a clear message when it holds no flights."""
-    reason = missing_reason(data_dir)
-    if reason is not None:
-        raise FileNotFoundError(reason)
-    return Path(data_dir)
+    path = Path(data_dir)
+    if not path.is_dir():
+        raise FileNotFoundError(f"DIDO data folder {str(path)!r} does not exist; pass --data DIR or set {ENV_VAR}")
+    if not any(path.glob("*.hdf5")):
+        raise FileNotFoundError(f"DIDO data folder {str(path)!r} holds no *.hdf5 flights")
+    return path
 
 
 def list_trials(data_dir: str | os.PathLike, pattern: str | None = None) -> list[str]:

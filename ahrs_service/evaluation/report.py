@@ -30,6 +30,7 @@ from ahrs_service import estimators
 from ahrs_service.estimators import offline as offline_mode
 from ahrs_service.estimators.base import stack_rows, time_steps
 from ahrs_service.evaluation import broad, dido, metrics, peers, stats
+from ahrs_service.execution import Runner, RunnerError, open_runner, worker_cache
 
 #: ``--dataset`` name → the module that reads it (same functions: default_dir, check_dir,
 #: list_trials, list_groups, load_trial, CITATION).
@@ -224,6 +225,56 @@ def _warm_up(col: Column, trial: broad.Trial) -> None:
         estimators.run(col.base, trial.gyr[:n], trial.acc[:n], mag, rate_hz=trial.rate_hz, **col.params)
 
 
+@dataclass(frozen=True)
+class TrialJob:
+    """One task of ``evaluate``: a column over a trial, the trial named (loaded on the worker)."""
+
+    data_dir: str
+    trial: str
+    column: Column
+    with_errors: bool  # also return the per-sample errors (the plots want them)
+    dataset: str = "broad"  # a key of DATASETS
+
+
+@dataclass
+class TrialResult:
+    """What a :class:`TrialJob` sends back: its score row and, if asked, per-sample errors (deg)."""
+
+    trial: str
+    column: str
+    row: dict
+    imu_delay: dict[str, float]  # {"samples", "ms"}: how late the trial's IMU samples are
+    errors: dict[str, np.ndarray] | None = None
+
+
+def _load(dataset: str, data_dir: str, name: str) -> Any:
+    return worker_cache((dataset, data_dir, name), lambda: DATASETS[dataset].load_trial(data_dir, name))
+
+
+def run_trial_job(job: TrialJob) -> TrialResult:
+    """Runs and scores one column over one trial; the same code serial or as a Dask task."""
+    trial = _load(job.dataset, job.data_dir, job.trial)
+    col = job.column
+    # once per process and estimator: compile outside the measured run
+    worker_cache(("warm", col.kind, col.base), lambda: _warm_up(col, trial) or True)
+    delay = worker_cache(
+        ("delay", job.dataset, job.data_dir, job.trial),
+        lambda: metrics.imu_delay(trial.gyr, trial.ref, trial.rate_hz, trial.movement),
+    )
+    q, seconds = _run_column(col, trial)
+    score = metrics.score(
+        q, trial.ref, trial.movement, rate_hz=trial.rate_hz, with_heading=col.scores_heading and has_mag(trial)
+    )
+    row = score.as_dict()
+    row["us_per_sample"] = seconds / len(trial) * 1e6
+    errors = None
+    if job.with_errors:
+        tot, head, inc = (np.degrees(a) for a in metrics.error_angles(ned_to_enu_array(q), trial.ref))
+        errors = {"total": tot, "heading": head, "inclination": inc}
+    imu_delay = {"samples": float(delay), "ms": float(delay) / trial.rate_hz * 1e3}
+    return TrialResult(job.trial, col.name, row, imu_delay, errors)
+
+
 def evaluate(
     data_dir: str | os.PathLike,
     columns: list[Column],
@@ -232,8 +283,14 @@ def evaluate(
     progress: bool = False,
     on_trial: Callable[[broad.Trial, dict[str, dict[str, np.ndarray]]], None] | None = None,
     dataset: str = "broad",
+    runner: Runner | None = None,
 ) -> dict:
-    """Runs every column over every trial (each trial loaded once) and returns the results dict.
+    """Runs every column over every trial and returns the results dict.
+
+    Each (trial, column) pair is one job of ``runner`` (default: serial, in this process); a
+    job loads its trial on the worker that runs it (once per worker), and the results are
+    gathered in trial-then-column order, so they equal the serial run's whatever the runner
+    (except the measured ``us_per_sample``).
 
     ``dataset``: "broad" (handheld, optical truth) or "dido" (quadrotor flights: recorded
     stamps, no magnetometer, inclination only, first 10 % of each flight not scored).
@@ -246,44 +303,19 @@ def evaluate(
         raise ValueError("no trial selected")
     if not columns:
         raise ValueError("nothing to evaluate: no estimator and no peer selected")
+    data_dir = str(Path(data_dir).resolve())
+    jobs = [TrialJob(data_dir, t, c, on_trial is not None, dataset) for t in trial_names for c in columns]
+    runner = runner or Runner()
+    results = runner.map(run_trial_job, jobs, progress=progress, desc="evaluate")
     per_trial: dict[str, dict[str, dict]] = {c.name: {} for c in columns}
     imu_delays: dict[str, dict[str, float]] = {}
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(trial_names) * len(columns), unit="run", file=sys.stderr, dynamic_ncols=True)
-    warmed: set[str] = set()
-    try:
-        for tname in trial_names:
-            trial = source.load_trial(data_dir, tname)
-            with_mag = has_mag(trial)
-            delay = metrics.imu_delay(trial.gyr, trial.ref, trial.rate_hz, trial.movement)
-            imu_delays[tname] = {"samples": delay, "ms": delay / trial.rate_hz * 1e3}
-            errors: dict[str, dict[str, np.ndarray]] = {}
-            for col in columns:
-                if bar is not None:
-                    bar.set_description(f"{tname[:24]} {col.name}")
-                if col.name not in warmed:
-                    _warm_up(col, trial)
-                    warmed.add(col.name)
-                q, seconds = _run_column(col, trial)
-                score = metrics.score(
-                    q, trial.ref, trial.movement, rate_hz=trial.rate_hz, with_heading=col.scores_heading and with_mag
-                )
-                row = score.as_dict()
-                row["us_per_sample"] = seconds / len(trial) * 1e6
-                per_trial[col.name][tname] = row
-                if on_trial is not None:
-                    tot, head, inc = (np.degrees(a) for a in metrics.error_angles(ned_to_enu_array(q), trial.ref))
-                    errors[col.name] = {"total": tot, "heading": head, "inclination": inc}
-                if bar is not None:
-                    bar.update(1)
-            if on_trial is not None:
-                on_trial(trial, errors)
-    finally:
-        if bar is not None:
-            bar.close()
+    for res in results:
+        per_trial[res.column][res.trial] = res.row
+        imu_delays[res.trial] = res.imu_delay
+    if on_trial is not None:
+        for i, tname in enumerate(trial_names):
+            trial = _load(dataset, data_dir, tname)  # the plots draw the recording's own signals too
+            on_trial(trial, {r.column: r.errors for r in results[i * len(columns):(i + 1) * len(columns)]})
 
     groups = source.list_groups(data_dir, trial_names)
     per_group: dict[str, dict[str, dict]] = {}
@@ -509,7 +541,15 @@ def main(args: Any) -> int:
         plot_files.append(plots.error_over_time(trial, errors, columns, out_dir, source.CITATION))
 
     progress = not args.quiet and sys.stderr.isatty()
-    results = evaluate(data_dir, columns, trial_names, progress=progress, on_trial=on_trial, dataset=dataset)
+    try:
+        runner = open_runner(getattr(args, "workers", 1), getattr(args, "scheduler", None))
+    except RunnerError as exc:
+        print(f"ahrs-service evaluate: error: {exc}", file=sys.stderr)
+        return 2
+    with runner:
+        results = evaluate(
+            data_dir, columns, trial_names, progress=progress, on_trial=on_trial, dataset=dataset, runner=runner
+        )
     plot_files += plots.group_bars(results, out_dir)
     results["plots"] = plot_files
     if skipped:

@@ -26,6 +26,7 @@ Factories: :func:`make_board` (hardware, ``/dev/i2c-N``) and :func:`make_simulat
 from __future__ import annotations
 
 import inspect
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -40,11 +41,13 @@ from ahrs_service.drivers.base import (
     MAG_VALID,
     ImuSample,
     ImuSource,
+    LossCounts,
+    SampleBlock,
 )
 from ahrs_service.drivers.i2c.adxl345 import ADXL345, SimulatedADXL345
 from ahrs_service.drivers.i2c.ak8963 import AK8963, SimulatedAK8963
 from ahrs_service.drivers.i2c.bus import I2CBus, SimulatedI2CBus, SMBusI2C
-from ahrs_service.drivers.i2c.device import DeviceIdentityError, I2CDevice, I2CDeviceError
+from ahrs_service.drivers.i2c.device import DeviceIdentityError, I2CDevice, I2CDeviceError, overflow_loss
 from ahrs_service.drivers.i2c.hmc5883l import HMC5883L, SimulatedHMC5883L
 from ahrs_service.drivers.i2c.l3g4200d import L3G4200D, SimulatedL3G4200D
 from ahrs_service.drivers.i2c.l3gd20 import L3GD20, SimulatedL3GD20
@@ -281,12 +284,169 @@ class MPU9250Board(I2CBoard):
 
     def __init__(self, bus: I2CBus, *, address: int = 0x68, mag_address: int = 0x0C,
                  gyro_range_dps: int = 2000, acc_range_g: int = 8, rate_hz: float = 1000,
-                 mag_rate_hz: float = 100, **kw: Any) -> None:
+                 mag_rate_hz: float = 100, fifo: bool = True, fifo_read_hz: float = 100.0,
+                 **kw: Any) -> None:
         super().__init__(bus, **kw)
+        if not fifo_read_hz > 0:
+            raise ValueError(f"mpu9250 fifo_read_hz must be > 0 Hz, got {fifo_read_hz}")
         self.mpu = MPU9250(bus, address, gyro_range_dps=gyro_range_dps, acc_range_g=acc_range_g,
-                           rate_hz=rate_hz, **self._kw())
+                           rate_hz=rate_hz, fifo=fifo, **self._kw())
         self.parts = {"gyro": self.mpu,
                       "mag": AK8963(bus, mag_address, rate_hz=mag_rate_hz, **self._kw())}
+        self.fifo = bool(fifo)
+        self.may_have_backlog = self.fifo
+        #: the FIFO is drained every 1 / fifo_read_hz s (bus clock): the wake-up rate; with the
+        #: defaults 10 samples a drain. The MPU-9250 has no watermark interrupt, so this is the
+        #: host's schedule; it must stay above rate / 42 Hz (the FIFO's depth) to lose nothing.
+        self.fifo_read_period_ns = int(round(1e9 / fifo_read_hz))
+        self.period_ns = int(round(1e9 / self.mpu.rate_hz))
+        self._next_drain_ns: int | None = None
+        self._last_drain_ns: int | None = None  # host time of the last FIFO status read
+        self._last_t_ns: int | None = None  # sensor time of the last sample handed out
+        self._pending_loss = LossCounts()  # lost before the next block's first row
+        self._queue: deque[ImuSample] = deque()  # rows of drained blocks for read()
+        self._started = False
+
+    # ------------------------------------------------------------------ FIFO path
+    def open(self) -> None:
+        super().open()
+        self._started = False  # nothing handed out yet since open()
+        self._restart_fifo_schedule()
+
+    def _restart_fifo_schedule(self) -> None:
+        now = self.bus.now_ns()
+        self._next_drain_ns = now + self.fifo_read_period_ns
+        self._last_drain_ns = now  # configure() has just reset the FIFO
+        self._last_t_ns = None
+        self._queue.clear()
+
+    @property
+    def pending(self) -> int:
+        """Rows drained from the FIFO that ``read`` has not handed out yet."""
+        return len(self._queue)
+
+    def read(self) -> ImuSample | None:
+        """Polling (``fifo = false``): as every board. FIFO: the next row of the last drained
+        block (a block is drained when the queue is empty)."""
+        if not self.fifo:
+            return super().read()
+        if not self._queue:
+            block = self.read_block()
+            self._queue.extend(block.samples())
+        return self._queue.popleft() if self._queue else None
+
+    def read_block(self, max_samples: int = 64) -> SampleBlock:
+        """Polling: the base's block of ``read``. FIFO: every whole sample in the FIFO, once
+        per ``1 / fifo_read_hz`` (an empty block in between, no bus transfer); at most the
+        FIFO's depth (42), whatever ``max_samples`` says.
+
+        Times: sample i of n is ``t_read − (n − 1 − i) · T`` (T the output period, t_read the
+        host time of the FIFO level read, which the newest sample precedes by less than T).
+        Overflow: the FIFO kept its oldest samples (FIFO_MODE 1), contiguous with the last
+        ones handed out, so they are timed on from there; the rest are counted in
+        ``lost.fifo_overflow`` (from the sensor clock) and the FIFO is reset. A failed read
+        marks the part lost; the samples it produced until it is back are counted in
+        ``lost.bus_error``. A FIFO that overflowed before the first read after ``open`` is
+        emptied without counting: those samples predate the consumer.
+        """
+        if not self.fifo:
+            return super().read_block(max_samples)
+        if not self._opened:
+            raise RuntimeError(f"{self.NAME} on {self.bus.name}: read_block() before open()")
+        if self.lost:
+            was_lost = "gyro" in self.lost
+            self._recover()
+            if "gyro" in self.lost:
+                return SampleBlock.empty()
+            if was_lost:  # back: configure() reset the FIFO; count what it produced meanwhile
+                now = self.bus.now_ns()
+                missed = max(0, int(round((now - self._last_drain_ns) / self.period_ns)))
+                self._pending_loss.bus_error += missed
+                self.diagnostics.lost.bus_error += missed
+                self._restart_fifo_schedule()
+                return SampleBlock.empty()
+        now = self.bus.now_ns()
+        if now < self._next_drain_ns:
+            return SampleBlock.empty()
+        self._next_drain_ns = max(self._next_drain_ns + self.fifo_read_period_ns, now)
+        mpu = self.mpu
+        try:
+            status = mpu.fifo_status()
+            t_read = self.bus.now_ns()
+            n = status.level
+            acc_c, gyr_c = mpu.read_fifo(n) if n else (np.empty((0, 3), np.int64),) * 2
+            temp = mpu.read_temperature_counts()
+            if status.overflow:
+                mpu.fifo_reset()
+        except I2CDeviceError as exc:
+            self._mark_lost("gyro", exc)
+            return SampleBlock.empty()
+        elapsed = t_read - self._last_drain_ns
+        self._last_drain_ns = t_read
+        if status.overflow and not self._started:
+            # the FIFO filled between open() and the first read (the service sets up its log
+            # and links in between): stale samples nobody asked for yet, not a loss
+            self._started = True
+            self._restart_fifo_schedule()
+            return SampleBlock.empty()
+        self._started = True
+        T = self.period_ns
+        if status.overflow and self._last_t_ns is not None:
+            t_ns = self._last_t_ns + T * np.arange(1, n + 1, dtype=np.int64)
+        else:
+            t_ns = t_read - T * np.arange(n - 1, -1, -1, dtype=np.int64)
+        lost, self._pending_loss = self._pending_loss, LossCounts()
+        if status.overflow:
+            # counted before the next block: the kept samples come first, then the gap
+            self._pending_loss.fifo_overflow += overflow_loss(elapsed, 1e9 / T, n)
+            self._last_t_ns = None  # after the reset the FIFO starts afresh: timed from the read
+        elif n:
+            self._last_t_ns = int(t_ns[-1])
+        if status.overflow:  # counted once, when found; the next block carries it
+            self.diagnostics.lost.add(self._pending_loss)
+        return self._fifo_block(t_ns, acc_c, gyr_c, temp, lost)
+
+    def _fifo_block(self, t_ns: np.ndarray, acc_c: np.ndarray, gyr_c: np.ndarray, temp: int,
+                    lost: LossCounts) -> SampleBlock:
+        mpu = self.mpu
+        n = len(t_ns)
+        gyr = gyr_c * mpu.gyro_scale
+        acc = acc_c * mpu.acc_scale
+        g_sat = (np.abs(gyr_c) >= mpu.gyro_full_scale).any(axis=1)
+        a_sat = (np.abs(acc_c) >= mpu.acc_full_scale).any(axis=1)
+        flags = np.where(g_sat, GYR_SATURATED, GYR_VALID) | np.where(a_sat, ACC_SATURATED, ACC_VALID)
+        d = self.diagnostics
+        d.saturated += int(g_sat.sum() + a_sat.sum())
+        d.samples += n
+        mag = np.full((n, 3), np.nan)
+        raw = {"gyr": gyr_c, "acc": acc_c, "temp": np.full(n, temp, np.int64)}
+        if n:
+            # one magnetometer read per drain: the AK8963 (100 Hz) has no FIFO; its reading
+            # goes with the newest row
+            m, m_si, mflags = self._read_mag(int(t_ns[-1]))
+            if m is not None:
+                mag[-1] = m_si
+                flags[-1] |= mflags
+                mag_raw = np.zeros((n, 3), np.int64)
+                mag_raw[-1] = m
+                raw["mag"] = mag_raw
+        truth = self._fifo_truth(n) if self.bus.simulated else None
+        temp_c = np.full(n, mpu.temperature_c(temp))
+        return SampleBlock(t_ns.astype(np.int64), gyr, acc, mag, flags.astype(np.int64), temp_c,
+                           raw, truth, lost)
+
+    def _fifo_truth(self, n: int) -> np.ndarray | None:
+        """True attitudes of the ``n`` samples just read (simulated bus only: the twin keeps
+        each FIFO sample's truth beside it)."""
+        frames = self.bus.device(self.mpu.address).pop_truth(n)  # type: ignore[attr-defined]
+        qs = []
+        for _, truth in frames:
+            q = None if truth is None else (truth["q"] if isinstance(truth, dict) else getattr(truth, "q", None))
+            if q is None:
+                return None
+            qs.append(q)
+        return np.array(qs, dtype=float) if len(qs) == n else None
+
 
     def _read_inertial(self) -> _Inertial | None:
         """Gyro, accelerometer and temperature come in one burst from the MPU-9250."""

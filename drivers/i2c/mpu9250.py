@@ -40,9 +40,9 @@ or 0x69. Registers auto-increment without a sub-address flag.
 
 from __future__ import annotations
 
-from typing import Any
-
 import struct
+from collections import deque
+from typing import Any
 
 import numpy as np
 
@@ -227,6 +227,9 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
         self.regs[WHO_AM_I] = self.who_am_i
         self.fifo = bytearray()
         self.fifo_overflowed = 0  # samples that did not fit, since power-on (for tests)
+        # (sample time s, physics "truth") of each sample in the FIFO, oldest first: what a
+        # test or the simulated board compares the driver's rows with (not a register)
+        self.fifo_samples: deque[tuple[float, Any]] = deque()
         if not self.regs[PWR_MGMT_1] & SLEEP:
             self.restart_measurement(now)  # the MPU-9250 samples from power-on
 
@@ -277,7 +280,14 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
             if self.fifo_keeps_oldest():
                 return
             del self.fifo[:len(frame)]  # FIFO_MODE 0: the oldest sample makes room
+            if self.fifo_samples:
+                self.fifo_samples.popleft()
         self.fifo += frame
+        self.fifo_samples.append((self.latched_t, (self.latched or {}).get("truth")))
+
+    def pop_truth(self, n: int) -> list[tuple[float, Any]]:
+        """(time s, truth) of the ``n`` oldest samples the host has read from the FIFO."""
+        return [self.fifo_samples.popleft() for _ in range(min(n, len(self.fifo_samples)))]
 
     def read_register(self, reg: int) -> int:
         if reg == FIFO_R_W:
@@ -299,6 +309,7 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
         if reg == USER_CTRL and value & USER_FIFO_RST:
             self.fifo.clear()
+            self.fifo_samples.clear()
             self.regs[USER_CTRL] = value & ~USER_FIFO_RST  # self-clearing
             self.regs[INT_STATUS] &= ~FIFO_OFLOW
             return

@@ -5,7 +5,9 @@ MAV_SYS_STATUS_SENSOR_3D_GYRO/ACCEL/MAG present/enabled/health bits, and the est
 MAV_SYS_STATUS_AHRS. The magnetometer counts as enabled only when the estimator uses it (not in
 reduced mode). ``load`` is the estimator loop load in d% (0..1000). Battery fields carry
 MAVLink's "not sent" values. errors_comm = sensor bus errors, errors_count1 = loop overruns,
-errors_count2 = rejected samples (all saturate at 65535).
+errors_count2 = rejected samples, errors_count3 = IMU samples lost (every cause: FIFO
+overflow, bus error, gap, host stall; by cause in STATUSTEXT and the log's /loop) (all
+saturate at 65535).
 
 STATUSTEXT text is at most 50 bytes of UTF-8. Longer texts are split into chunks that share a
 non-zero ``id`` and count ``chunk_seq`` from 0, as MAVLink 2 defines; the final chunk is
@@ -56,7 +58,7 @@ def encode_sys_status(t: Telemetry) -> "mavlink.MAVLink_sys_status_message":
     return mavlink.MAVLink_sys_status_message(
         present, enabled, health, load,
         0xFFFF, -1, -1,  # voltage, current, remaining: not measured
-        0, _u16(t.comm_errors), _u16(t.overruns), _u16(t.sensor_faults), 0, 0,
+        0, _u16(t.comm_errors), _u16(t.overruns), _u16(t.sensor_faults), _u16(t.lost_samples), 0,
     )
 
 

@@ -49,6 +49,8 @@ class Telemetry:
     load_percent: estimator loop busy time as a percentage of its period (0..100).
     comm_errors: sensor bus errors since start (I2C/CAN), SYS_STATUS errors_comm.
     sensor_faults: rejected samples (saturated, not finite) since start.
+    lost_samples: IMU samples that never reached the host since start (all causes),
+        SYS_STATUS errors_count3.
     faults: other named fault counters (kept for logs; not all fit in SYS_STATUS).
     attitude_fresh: a sample was estimated recently; False (gyroscope gone, source silent)
         withholds ATTITUDE, ATTITUDE_QUATERNION and HIGHRES_IMU — as PX4's streams, which send
@@ -77,6 +79,7 @@ class Telemetry:
     load_percent: float = 0.0
     comm_errors: int = 0
     sensor_faults: int = 0
+    lost_samples: int = 0
     faults: Mapping[str, int] = field(default_factory=dict)
     attitude_fresh: bool = True
 

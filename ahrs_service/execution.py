@@ -1,0 +1,231 @@
+"""One execution layer for the batch commands (``evaluate`` today): each job is a Dask task.
+
+``open_runner(workers=N, scheduler=ADDRESS)`` gives a :class:`Runner` whose :meth:`Runner.map`
+runs ``fn(job)`` for every job and returns the results **in the jobs' order**, whatever order
+they finish in, so a parallel run's results are the serial run's.
+
+- ``workers=1`` and no scheduler: in-process, one job after another, no Dask imported.
+- ``workers=N`` (N > 1, default: the machine's cores): an embedded ``distributed.LocalCluster``
+  of N worker *processes*, one thread each (the estimators are compiled numba loops holding
+  the GIL; threads would not run them in parallel), bound to 127.0.0.1, no dashboard.
+- ``scheduler="tcp://HOST:8786"``: a cluster started elsewhere (``dask scheduler`` plus
+  ``dask worker tcp://HOST:8786`` on each machine, or dask-jobqueue / dask-kubernetes); see
+  docs/fleet.md. An unreachable address fails after ``connect_timeout_s`` with a
+  :class:`RunnerError` naming it.
+
+Faults: a task whose worker dies is rescheduled by the scheduler on another worker (Dask's
+``allowed-failures``, 3 by default); a task that *raises* is retried ``retries`` times and then
+its exception is raised here.
+
+Data locality: a job names its input (a recording's folder and name, a log's path) rather than
+carrying it, and the job function loads it on the worker through a per-process cache
+(:func:`worker_cache`), so each worker reads each recording at most once and nothing large
+crosses the network per task. Kernels: each worker process compiles (or loads from numba's
+on-disk cache) an estimator's kernels at its first job and keeps them for the rest of the run.
+
+Requires the ``fleet`` extra (``pip install 'ahrs-service[fleet]'``) for N > 1 or a scheduler.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence, TypeVar
+
+J = TypeVar("J")
+R = TypeVar("R")
+
+DEFAULT_CONNECT_TIMEOUT_S = 5.0
+
+
+class RunnerError(RuntimeError):
+    """The execution layer could not start or reach its cluster (message names the address)."""
+
+
+@dataclass(frozen=True)
+class RunnerInfo:
+    """What a runner runs on, for the reports: ``mode`` is "serial", "local" or "scheduler"."""
+
+    mode: str
+    workers: int
+    address: str = ""
+
+
+def default_workers() -> int:
+    """One worker process per core this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+_CACHE_SIZE = 4  # recordings a worker keeps; jobs come recording by recording, so 1 would do
+
+
+def worker_cache(key: Any, load: Callable[[], R]) -> R:
+    """``load()`` once per process for ``key``, then the same object: a worker's data cache.
+
+    Lives in this module, so it lasts as long as the worker process (and, in a serial run, as
+    long as the command); the least recently used of more than a few entries is dropped. Keys
+    must identify the data fully (e.g. folder + name).
+    """
+    if key in _cache:
+        _cache.move_to_end(key)
+        return _cache[key]
+    value = load()
+    _cache[key] = value
+    while len(_cache) > _CACHE_SIZE:
+        _cache.popitem(last=False)
+    return value
+
+
+_cache: "OrderedDict[Any, Any]" = OrderedDict()
+
+
+def _import_distributed():
+    try:
+        import distributed  # noqa: F401
+    except ImportError as exc:  # one line, as every missing extra
+        raise RunnerError("parallel runs need Dask: install the extra with pip install 'ahrs-service[fleet]'") from exc
+    return distributed
+
+
+class Runner:
+    """Runs jobs serially or as Dask tasks; results in job order. Use as a context manager."""
+
+    def __init__(self, client: Any = None, cluster: Any = None, info: RunnerInfo | None = None, retries: int = 1) -> None:
+        self._client = client
+        self._cluster = cluster
+        self.info = info or RunnerInfo("serial", 1)
+        self.retries = retries
+
+    # ---------------------------------------------------------------- running
+    def map(
+        self,
+        fn: Callable[[J], R],
+        jobs: Sequence[J],
+        *,
+        progress: bool = False,
+        desc: str = "",
+    ) -> list[R]:
+        """``[fn(job) for job in jobs]``, each job a task when on a cluster; same order as ``jobs``."""
+        jobs = list(jobs)
+        bar = _progress_bar(len(jobs), desc) if progress and jobs else None
+        try:
+            if self._client is None:
+                out = []
+                for job in jobs:
+                    out.append(fn(job))
+                    if bar is not None:
+                        bar.update(1)
+                return out
+            from distributed import as_completed
+
+            # pure=False: two equal jobs are still two runs (the timings differ)
+            futures = self._client.map(fn, jobs, pure=False, retries=self.retries)
+            if bar is not None:
+                for _ in as_completed(futures):
+                    bar.update(1)
+            return self._client.gather(futures)
+        finally:
+            if bar is not None:
+                bar.close()
+
+    def scatter(self, value: Any) -> Any:
+        """``value`` sent once to the workers (a future to pass inside jobs); itself when serial."""
+        if self._client is None:
+            return value
+        return self._client.scatter(value, broadcast=True)
+
+    @property
+    def client(self) -> Any:
+        """The ``distributed.Client`` (None when serial)."""
+        return self._client
+
+    # ---------------------------------------------------------------- lifetime
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+        if self._cluster is not None:
+            self._cluster.close()
+            self._cluster = None
+
+    def __enter__(self) -> "Runner":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_runner(
+    workers: int | None = None,
+    scheduler: str | None = None,
+    *,
+    connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S,
+    retries: int = 1,
+) -> Runner:
+    """A :class:`Runner`: serial for ``workers == 1``, else a LocalCluster, or the given scheduler.
+
+    ``workers=None`` means :func:`default_workers`. Raises :class:`RunnerError` (one line, names
+    the address) when the scheduler cannot be reached within ``connect_timeout_s`` seconds.
+    """
+    if scheduler:
+        _import_distributed()
+        from distributed import Client
+
+        try:
+            client = Client(scheduler, timeout=f"{connect_timeout_s}s", set_as_default=False)
+        except (OSError, TimeoutError) as exc:
+            raise RunnerError(f"cannot reach the Dask scheduler at {scheduler} within {connect_timeout_s:g} s") from exc
+        except ValueError as exc:  # e.g. an address with an unknown protocol
+            raise RunnerError(f"bad Dask scheduler address {scheduler!r}: {exc}") from exc
+        n = len(client.scheduler_info().get("workers", {}))
+        return Runner(client, None, RunnerInfo("scheduler", n, scheduler), retries)
+    n = default_workers() if workers is None else int(workers)
+    if n < 1:
+        raise RunnerError(f"--workers must be at least 1, not {n}")
+    if n == 1:
+        return Runner(info=RunnerInfo("serial", 1), retries=retries)
+    _import_distributed()
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(
+        n_workers=n,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,  # no web server: nothing listens but the scheduler and workers
+        silence_logs=logging.ERROR,
+    )
+    client = Client(cluster, set_as_default=False)
+    return Runner(client, cluster, RunnerInfo("local", n, cluster.scheduler_address), retries)
+
+
+def _progress_bar(total: int, desc: str):
+    try:
+        from tqdm import tqdm
+    except ImportError:  # the bar is a nicety: no analysis extra, no bar
+        return None
+    return tqdm(total=total, unit="task", desc=desc or None, file=sys.stderr, dynamic_ncols=True)
+
+
+def add_arguments(parser: Any) -> None:
+    """The ``--workers`` / ``--scheduler`` options every batch command shares."""
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="worker processes of the embedded Dask cluster (default: one per core; 1 = in-process, no cluster)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="run on an existing Dask cluster instead, e.g. tcp://HOST:8786 (see docs/fleet.md)",
+    )
+

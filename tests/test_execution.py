@@ -1,0 +1,158 @@
+"""The execution layer on real Dask clusters: an embedded LocalCluster of 2 worker processes,
+and a ``dask scheduler`` + two ``dask worker`` subprocesses on 127.0.0.1 driven through
+``evaluate --scheduler``. Both must give the serial run's results, in its order; a worker
+killed mid-run has its task retried; an unreachable scheduler is a one-line error."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("distributed")
+
+import cloudpickle  # noqa: E402  (comes with distributed)
+
+from ahrs_service.evaluation import command, report  # noqa: E402
+from ahrs_service.execution import Runner, RunnerError, open_runner  # noqa: E402
+
+TRIALS = ["02_undisturbed_slow_rotation_B", "32_disturbed_attached_magnet_1cm"]
+ESTIMATORS = ["madgwick", "mahony_passive"]
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def _deterministic(results: dict) -> dict:
+    """The results without what is measured (per-sample cost) or stamped (creation time)."""
+    per_trial = {
+        c: {t: {k: v for k, v in row.items() if k != "us_per_sample"} for t, row in rows.items()}
+        for c, rows in results["per_trial"].items()
+    }
+    return {"trials": results["trials"], "per_trial": per_trial, "per_group": results["per_group"],
+            "imu_delay": results["imu_delay"], "columns": [c["name"] for c in results["columns"]]}
+
+
+def _columns():
+    return report.make_columns(ESTIMATORS, [], {})
+
+
+@pytest.fixture(scope="module")
+def serial(broad_dir) -> dict:
+    return report.evaluate(broad_dir, _columns(), TRIALS, runner=Runner())
+
+
+def test_local_cluster_of_two_processes_gives_the_serial_results(broad_dir, serial):
+    with open_runner(workers=2) as runner:
+        assert runner.info.mode == "local" and runner.info.workers == 2
+        pids = set(runner.client.run(os.getpid).values())
+        assert len(pids) == 2 and os.getpid() not in pids  # worker processes, not threads here
+        parallel = report.evaluate(broad_dir, _columns(), TRIALS, runner=runner)
+    assert json.dumps(_deterministic(parallel), sort_keys=False) == json.dumps(_deterministic(serial), sort_keys=False)
+    # the order of the per-trial tables is the serial one too
+    assert [list(parallel["per_trial"][c]) for c in ESTIMATORS] == [TRIALS, TRIALS]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _dask_cli() -> str:
+    return str(Path(sys.executable).with_name("dask"))
+
+
+def test_evaluate_through_a_scheduler_and_two_worker_subprocesses(broad_dir, serial, tmp_path):
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = dict(os.environ, DASK_DISTRIBUTED__WORKER__DAEMON="False")
+    procs = [subprocess.Popen(
+        [_dask_cli(), "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+    )]
+    try:
+        for _ in range(2):
+            procs.append(subprocess.Popen(
+                [_dask_cli(), "worker", address, "--host", "127.0.0.1", "--nthreads", "1", "--nworkers", "1",
+                 "--no-dashboard", "--death-timeout", "60"],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+            ))
+        with open_runner(scheduler=address, connect_timeout_s=60) as runner:
+            runner.client.wait_for_workers(2, timeout=120)
+        parser = argparse.ArgumentParser()
+        command.add_subcommands(parser.add_subparsers(dest="command"))
+        out = tmp_path / "out"
+        args = parser.parse_args([
+            "evaluate", "--data", str(broad_dir), "--estimators", ",".join(ESTIMATORS),
+            "--trials", "02_*", "--out", str(out), "--scheduler", address, "--quiet",
+        ])
+        assert args.func(args) == 0
+        got = json.loads((out / "results.json").read_text())
+        report.to_json(serial, tmp_path / "serial.json")  # the same JSON writing (NaN → null)
+        want_all = json.loads((tmp_path / "serial.json").read_text())
+        # the CLI ran one trial (the glob); the serial fixture's rows for it must match exactly
+        assert got["trials"] == [TRIALS[0]]
+        for c in ESTIMATORS:
+            want = {k: v for k, v in want_all["per_trial"][c][TRIALS[0]].items() if k != "us_per_sample"}
+            row = {k: v for k, v in got["per_trial"][c][TRIALS[0]].items() if k != "us_per_sample"}
+            assert row == want
+        assert got["imu_delay"][TRIALS[0]] == want_all["imu_delay"][TRIALS[0]]
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def _square_or_die(job: tuple[int, str]) -> int:
+    """A job that kills its worker process the first time job 3 runs (a marker file says so)."""
+    value, marker = job
+    if value == 3 and not os.path.exists(marker):
+        Path(marker).write_text(str(os.getpid()))
+        os._exit(1)  # the worker process dies mid-task, as a crash or an OOM kill would
+    return value * value
+
+
+def test_a_killed_workers_task_is_retried_and_the_result_is_complete(tmp_path):
+    this = sys.modules[__name__]
+    cloudpickle.register_pickle_by_value(this)  # workers cannot import the tests
+    marker = str(tmp_path / "died")
+    try:
+        with open_runner(workers=2) as runner:
+            pids_before = set(runner.client.run(os.getpid).values())
+            got = runner.map(_square_or_die, [(i, marker) for i in range(8)])
+    finally:
+        cloudpickle.unregister_pickle_by_value(this)
+    assert got == [i * i for i in range(8)]
+    assert int(Path(marker).read_text()) in pids_before  # one of the workers did die
+
+
+def test_unreachable_scheduler_is_an_error_naming_it():
+    address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
+    with pytest.raises(RunnerError, match=address.replace(".", r"\.")):
+        open_runner(scheduler=address, connect_timeout_s=1)
+
+
+def test_evaluate_cli_reports_an_unreachable_scheduler_in_one_line(broad_dir, tmp_path, capsys):
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    parser = argparse.ArgumentParser()
+    command.add_subcommands(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["evaluate", "--data", str(broad_dir), "--estimators", "madgwick",
+                              "--trials", "02_*", "--out", str(tmp_path / "o"), "--scheduler", address])
+    assert args.func(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and address in err[0] and "Traceback" not in err[0]
+
+
+def test_workers_below_one_is_an_error():
+    with pytest.raises(RunnerError, match="--workers"):
+        open_runner(workers=0)

@@ -1,0 +1,76 @@
+"""``ahrs-service tune``: a tiny Optuna study on two BROAD recordings writes a preset file that
+``estimators.create`` / ``estimators.run`` load; bad search spaces and presets name the key."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("optuna")
+
+from ahrs_service import estimators  # noqa: E402
+from ahrs_service.cli import main as cli_main  # noqa: E402
+from ahrs_service.estimators.presets import SearchRange  # noqa: E402
+from ahrs_service.evaluation import tuning  # noqa: E402
+
+
+@pytest.mark.timeout(240)
+def test_tiny_tune_writes_a_loadable_preset(broad_dir, tmp_path, capsys):
+    out = tmp_path / "madgwick.preset.json"
+    code = cli_main(["tune", "madgwick", "--data", str(broad_dir), "--trials", "_B", "--budget", "3",
+                     "--workers", "1", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    preset = json.loads(out.read_text())
+    assert preset["estimator"] == "madgwick" and set(preset["params"]) == {"beta"}
+    assert 0.005 <= preset["params"]["beta"] <= 1.0  # inside the declared space
+    assert preset["trials"] == 3 and preset["command"].startswith("ahrs-service tune madgwick")
+    # leave-one-recording-out: one validation score per recording, their mean reported
+    assert set(preset["validation"]) == set(preset["recordings"]) and len(preset["recordings"]) >= 2
+    assert preset["validation_rmse_deg"] == pytest.approx(np.mean(list(preset["validation"].values())))
+    assert preset["train_rmse_deg"] <= max(preset["validation"].values()) + 1e3  # finite numbers
+    assert np.isfinite(preset["train_rmse_deg"])
+    est = estimators.create("madgwick", preset=out)
+    assert est.get_params()["beta"] == preset["params"]["beta"]
+    # explicit parameters override the preset
+    assert estimators.create("madgwick", preset=out, beta=0.2).get_params()["beta"] == 0.2
+    gyr = np.zeros((20, 3)); acc = np.tile([0.0, 0.0, -9.81], (20, 1))
+    q = estimators.run("madgwick", gyr, acc, rate_hz=100.0, preset=out)
+    assert q.shape == (20, 4)
+
+
+def test_declared_search_space_comes_from_the_params_field():
+    assert tuning.search_space("madgwick") == {"beta": SearchRange(0.005, 1.0, log=True)}
+
+
+def test_bad_search_spaces_name_the_key():
+    with pytest.raises(ValueError, match="unknown parameter 'gain'"):
+        tuning.check_space("madgwick", {"gain": SearchRange(0.1, 1.0)})
+    with pytest.raises(ValueError, match=r"madgwick\.beta .* outside its bounds"):
+        tuning.check_space("madgwick", {"beta": SearchRange(-1.0, 1.0)})  # beta must be >= 0
+    with pytest.raises(ValueError, match="LOW < HIGH"):
+        tuning.check_space("madgwick", {"beta": SearchRange(1.0, 0.1)})
+    with pytest.raises(ValueError, match="expected NAME=LOW:HIGH"):
+        tuning.parse_space(["beta=0.1"], "madgwick")
+
+
+def test_cli_bad_space_is_a_one_line_error(broad_dir, capsys):
+    assert cli_main(["tune", "madgwick", "--data", str(broad_dir), "--space", "gain=0:1", "--workers", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'gain'" in err[0]
+
+
+def test_bad_presets_name_the_problem(tmp_path):
+    p = tmp_path / "p.json"
+    p.write_text(json.dumps({"estimator": "madgwick", "params": {"gain": 1.0}}))
+    with pytest.raises(ValueError, match="gain"):
+        estimators.create("madgwick", preset=p)
+    p.write_text(json.dumps({"estimator": "ekf", "params": {}}))
+    with pytest.raises(ValueError, match="for estimator 'ekf'"):
+        estimators.create("madgwick", preset=p)
+    with pytest.raises(ValueError, match="no such file"):
+        estimators.create("madgwick", preset=tmp_path / "none.json")
+    p.write_text(json.dumps({"estimator": "madgwick", "params": {"beta": -1.0}}))
+    with pytest.raises(ValueError, match="beta"):
+        estimators.create("madgwick", preset=p)
