@@ -55,6 +55,10 @@ OPTIONAL_MODULES = {
     "spidev": "hardware",
     "gpiod": "hardware",
     "foxglove": "live",
+    "dask": "fleet",
+    "distributed": "fleet",
+    "optuna": "fleet",
+    "pyarrow": "fleet",
 }
 
 

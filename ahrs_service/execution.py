@@ -86,10 +86,10 @@ _cache: "OrderedDict[Any, Any]" = OrderedDict()
 
 
 def _import_distributed():
-    try:
-        import distributed  # noqa: F401
-    except ImportError as exc:  # one line, as every missing extra
-        raise RunnerError("parallel runs need Dask: install the extra with pip install 'ahrs-service[fleet]'") from exc
+    # a missing package propagates as ModuleNotFoundError: the command line turns it into the
+    # one line naming the extra (cli.OPTIONAL_MODULES: distributed -> fleet), as for every extra
+    import distributed
+
     return distributed
 
 
