@@ -182,7 +182,7 @@ class SimulatedFifoDevice(SimulatedRegisterDevice):
         physics = self._physics
         for j in range(first, k + 1):
             t = self._t0 + j / rate
-            phys = physics(t) if physics is not None else _ZERO_PHYSICS
+            phys = physics(t, 1.0 / rate) if physics is not None else _ZERO_PHYSICS
             self.latched, self.latched_t = phys, t
             self.samples_latched += 1
             self.latch(phys, t, 0)

@@ -11,6 +11,7 @@ from the simulator's physics at the configured output data rate on the bus clock
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -60,6 +61,20 @@ class DeviceIdentityError(RuntimeError):
 
 def _hex(b: bytes) -> str:
     return " ".join(f"0x{x:02X}" for x in b)
+
+
+def _with_period(physics: Callable[..., dict]) -> Callable[[float, float], dict]:
+    """``physics(t, period)``: the simulator's readings at t for a part sampling every
+    ``period`` s. A simulator that takes ``period=`` (``SimulatedImu``) draws each reading's
+    noise over the reading part's own sampling band, so two parts whose sample grids almost
+    coincide do not make each other's readings noisier; a plain ``physics(t)`` is called as is."""
+    try:
+        takes_period = "period" in inspect.signature(physics).parameters
+    except (TypeError, ValueError):
+        takes_period = False
+    if takes_period:
+        return lambda t, period: physics(t, period=period)
+    return lambda t, period: physics(t)
 
 
 class I2CDevice:
@@ -279,11 +294,12 @@ class SimulatedRegisterDevice:
     def __init__(self, source: Any = None, address: int | None = None) -> None:
         self.address = self.DEFAULT_ADDRESS if address is None else int(address)
         if source is None:
-            self._physics: Callable[[float], dict] | None = None
+            self._physics: Callable[[float, float], dict] | None = None
         else:
-            self._physics = getattr(source, "physics", source)
-            if not callable(self._physics):
+            physics = getattr(source, "physics", source)
+            if not callable(physics):
                 raise TypeError(f"{self.PART}: source needs physics(t) -> dict, got {source!r}")
+            self._physics = _with_period(physics)
         self.regs = bytearray(256)
         self.latched: dict | None = None  # physics dict of the sample now in the data registers
         self.latched_t: float | None = None
@@ -349,7 +365,7 @@ class SimulatedRegisterDevice:
         skipped = k - self._k - 1
         self._k = k
         t = self._t0 + k / rate
-        phys = self._physics(t) if self._physics is not None else _ZERO_PHYSICS
+        phys = self._physics(t, 1.0 / rate) if self._physics is not None else _ZERO_PHYSICS
         self.latched, self.latched_t = phys, t
         self.samples_latched += 1
         self.latch(phys, t, skipped)
@@ -365,7 +381,7 @@ class SimulatedRegisterDevice:
             self.fifo_dropped(due - push)
         for j in range(first, first + push):
             t = self._t0 + j / rate
-            phys = self._physics(t) if self._physics is not None else _ZERO_PHYSICS
+            phys = self._physics(t, 1.0 / rate) if self._physics is not None else _ZERO_PHYSICS
             self.latched, self.latched_t = phys, t
             self.samples_latched += 1
             self.latch(phys, t, 0)

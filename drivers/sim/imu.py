@@ -86,14 +86,17 @@ class SimulatedImu:
         """The true motion at time t, without sensor errors (body frame)."""
         return self.trajectory.state(t)
 
-    def physics(self, t: float) -> dict[str, Any]:
+    def physics(self, t: float, period: float | None = None) -> dict[str, Any]:
         """The board's readings at simulation time ``t`` (s).
 
         Returns {"gyr": rad/s, "acc": m/s² specific force, "mag": µT} as (3,) arrays in the
         sensor's axes with the error models applied, "saturated": {sensor: bool},
         "temperature_c" and "truth" (the :class:`MotionState`, body frame). The same ``t`` as
         the previous call gives the same result (two devices of one board read one instant);
-        noise and drift advance once per distinct t.
+        noise and drift advance once per distinct t. ``period``: the sampling period (s) of
+        the part asking; its readings' white noise is drawn over that part's band (bias drift
+        still advances by the time since the previous call), not over the gap since another
+        part's reading, which is tiny where two parts' sample grids almost coincide.
         """
         t = float(t)
         if self._last is not None and t == self._last_t:
@@ -109,7 +112,7 @@ class SimulatedImu:
             if self._mt is not None:
                 v = self._mt @ v
             model = self.models[k]
-            out[k] = model.apply(v, dt, temp)
+            out[k] = model.apply(v, dt, temp, noise_dt=period)
             out["saturated"][k] = model.saturated
         out["temperature_c"] = temp
         out["truth"] = truth

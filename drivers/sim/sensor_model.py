@@ -119,11 +119,13 @@ class SensorErrorModel:
         bw = self.bandwidth_hz if self.bandwidth_hz is not None else 0.5 / dt
         return self.noise_density * math.sqrt(bw)
 
-    def apply(self, true_value: Any, dt: float, temperature_c: float | None = None) -> np.ndarray:
+    def apply(self, true_value: Any, dt: float, temperature_c: float | None = None,
+              noise_dt: float | None = None) -> np.ndarray:
         """The reading of the true vector (3,), ``dt`` s (> 0) after the previous reading.
 
-        Advances the bias random walk by dt and draws fresh noise; sets ``self.saturated``
-        when any axis was clipped to ±range.
+        Advances the bias random walk by dt and draws fresh noise, over the band of a
+        reading every ``noise_dt`` s when given (the sampling part's own period), else every
+        dt; sets ``self.saturated`` when any axis was clipped to ±range.
         """
         if not dt > 0.0:
             raise ValueError(f"dt must be > 0 s, got {dt!r}")
@@ -134,7 +136,7 @@ class SensorErrorModel:
         if temperature_c is not None:
             x += self.temp_coeff * (temperature_c - self.reference_temp_c)
         if self.noise_density > 0.0:
-            x += self._rng.normal(0.0, self.noise_std(dt), 3)
+            x += self._rng.normal(0.0, self.noise_std(dt if noise_dt is None else noise_dt), 3)
         self.saturated = bool(np.any(np.abs(x) > self.range))
         if self.saturated:
             np.clip(x, -self.range, self.range, out=x)
