@@ -41,8 +41,6 @@ log = logging.getLogger("ahrs_service")
 
 IO_PERIOD_NS = 5_000_000  # MAVLink publish/poll granularity: 200 Hz
 HOUSEKEEPING_NS = 1_000_000_000  # loop statistics, STATUS=, health reports
-#: the loss causes of LossCounts, in its field order
-_LOSS_CAUSES = ("fifo_overflow", "bus_error", "gap", "host_stall")
 MAX_SAMPLES_PER_TICK = 16  # a source with a backlog catches up at most this fast
 # how long close() waits for a running live-calibration fit, s: fits take tens of ms, and
 # the whole stop must stay well within 2 s (systemd's TimeoutStopSec is 5 s)
@@ -313,11 +311,9 @@ class Service:
             self.report(f"loop overruns: {st.overruns - self._last_overruns} in the last second", 4)
         self._last_overruns = st.overruns
         lost_now = self.source.diagnostics.lost
-        if lost_now.total > self._last_lost_total:
-            new = LossCounts(*(getattr(lost_now, f) - getattr(self._last_loss, f) for f in _LOSS_CAUSES))
-            self.report(f"IMU samples lost: {self._loss_text(new)} in the last second", 4)
-            self._last_lost_total = lost_now.total
-            self._last_loss = LossCounts(*(getattr(lost_now, f) for f in _LOSS_CAUSES))
+        if lost_now.total > self._last_loss.total:
+            self.report(f"IMU samples lost: {self._loss_text(lost_now.since(self._last_loss))} in the last second", 4)
+            self._last_loss = lost_now.copy()
         lost = bool(diag.get("device_lost"))
         if lost != self._last_lost:
             self._last_lost = lost
@@ -340,7 +336,6 @@ class Service:
                 self._log_failed_before |= status == "error"
 
     _last_overruns: int | None = None
-    _last_lost_total = 0
     _last_loss = LossCounts()
     _mag_rejected = False
     _last_lost = False

@@ -92,6 +92,14 @@ class LossCounts:
         self.gap += other.gap
         self.host_stall += other.host_stall
 
+    def since(self, earlier: "LossCounts") -> "LossCounts":
+        """The counts added since ``earlier`` (a :meth:`copy` taken then)."""
+        return LossCounts(self.fifo_overflow - earlier.fifo_overflow, self.bus_error - earlier.bus_error,
+                          self.gap - earlier.gap, self.host_stall - earlier.host_stall)
+
+    def copy(self) -> "LossCounts":
+        return LossCounts(self.fifo_overflow, self.bus_error, self.gap, self.host_stall)
+
     def as_dict(self) -> dict[str, int]:
         return {"fifo_overflow": self.fifo_overflow, "bus_error": self.bus_error, "gap": self.gap,
                 "host_stall": self.host_stall, "total": self.total}

@@ -92,7 +92,12 @@ def list_trials(data_dir: str | os.PathLike, pattern: str | None = None) -> list
 
     ``pattern`` (a substring, or a shell glob such as ``magnet_?cm``) may match anywhere in the name.
     """
-    path = check_dir(data_dir)
+    return recording_names(check_dir(data_dir), pattern)
+
+
+def recording_names(path: Path, pattern: str | None = None) -> list[str]:
+    """Stems of the ``*.hdf5`` files in the folder ``path``, sorted; ``pattern`` (a substring
+    or shell glob) may match anywhere in the name. Shared by the BROAD and DIDO loaders."""
     names = sorted(p.stem for p in path.glob("*.hdf5"))
     if pattern:
         names = [n for n in names if fnmatch.fnmatchcase(n, f"*{pattern}*")]

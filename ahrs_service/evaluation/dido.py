@@ -107,13 +107,9 @@ def check_dir(data_dir: str | os.PathLike) -> Path:
 
 def list_trials(data_dir: str | os.PathLike, pattern: str | None = None) -> list[str]:
     """Names of the flights present, sorted; ``pattern`` a substring or shell glob."""
-    import fnmatch
+    from ahrs_service.evaluation.broad import recording_names
 
-    path = check_dir(data_dir)
-    names = sorted(p.stem for p in path.glob("*.hdf5"))
-    if pattern:
-        names = [n for n in names if fnmatch.fnmatchcase(n, f"*{pattern}*")]
-    return names
+    return recording_names(check_dir(data_dir), pattern)
 
 
 def list_groups(data_dir: str | os.PathLike, trials: list[str] | None = None) -> dict[str, list[str]]:
