@@ -212,8 +212,8 @@ class MavlinkBridge:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)
 
-    def statustext(self, severity: int, text: str) -> None:
-        self.component.statustext(severity, text)
+    def statustext(self, severity: int, text: str, kind: str | None = None) -> None:
+        self.component.statustext(severity, text, kind)
 
     def stats(self) -> dict[str, Any]:
         return self.component.stats.as_dict()

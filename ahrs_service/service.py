@@ -80,7 +80,7 @@ class Service:
         self._build_estimation(cfg)
         self.scheduler = FixedRateScheduler(cfg.rates["estimation_hz"])
         t0 = time.monotonic()
-        self.pipeline.warm_up()
+        self._warm_up()
         if time.monotonic() - t0 > 1.0:
             log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
         self.source = make_source(cfg.source, cfg.rates["estimation_hz"])
@@ -96,6 +96,20 @@ class Service:
         self._open_log(cfg)
         self._open_mavlink(cfg)
         self._open_live(cfg)
+
+    def _warm_up(self) -> None:
+        """Compiles the pipeline's kernels. numba saves each new kernel to its cache after
+        compiling it and raises when the disk refuses the file (full, read-only); the kernel
+        is in memory all the same, so the next call goes on to the next kernel: a full disk
+        costs the cache, never the start."""
+        for attempt in range(64):  # bounded: one kernel more per attempt, a pipeline has ~10
+            try:
+                self.pipeline.warm_up()
+                return
+            except OSError as exc:
+                if attempt == 0:
+                    log.warning("compiled kernels not cached: %s", exc)
+        self.pipeline.warm_up()
 
     def _open_live(self, cfg: config_mod.Config) -> None:
         if cfg.live["enabled"]:
@@ -175,10 +189,11 @@ class Service:
         signal.signal(signal.SIGINT, self.request_stop)
         signal.signal(signal.SIGHUP, self.request_reload)
 
-    def report(self, text: str, severity: int = 6) -> None:
-        """A health message: STATUSTEXT on MAVLink, the service log and /log."""
+    def report(self, text: str, severity: int = 6, kind: str | None = None) -> None:
+        """A health message: STATUSTEXT on MAVLink, the service log and /log. ``kind`` puts
+        the STATUSTEXT under the rate limit of that kind (``statustext_limit``)."""
         if self.mavlink is not None:
-            self.mavlink.statustext(severity, text)
+            self.mavlink.statustext(severity, text, kind)
         self.log_event(text, severity)
 
     def log_event(self, text: str, severity: int = 6) -> None:
@@ -326,21 +341,39 @@ class Service:
             self.log_writer.write_loop(now, loop)
             if self.mavlink is not None:
                 self.log_writer.write_mavlink(now, self.mavlink.stats())
-            status = self.log_writer.status
-            if status != self._last_log_status and status != "starting":
-                self._last_log_status = status
-                if status == "error":
-                    self.report(f"flight log: {self.log_writer.last_error}", 3)
-                elif status == "ok" and self._log_failed_before:
-                    self.report("flight log: writing again", 6)
-                self._log_failed_before |= status == "error"
+            self._report_log_status(self.log_writer)
+
+    def _report_log_status(self, writer: Any) -> None:
+        """STATUSTEXT + journal + /log when logging stops (the path and the system's error
+        text) and when it resumes (what the outage cost); rate-limited as kind "flight log"."""
+        status = writer.status
+        if status == self._last_log_status or status == "starting":
+            return
+        self._last_log_status = status
+        if status == "error":
+            self.report(f"flight log stopped: {writer.last_error}; retrying", 3, kind="flight log")
+        elif status == "ok" and writer.last_outage is not None:
+            out = writer.last_outage
+            self.report(f"flight log resumed: {out.samples} samples ({out.seconds:.1f} s) not logged", 5,
+                        kind="flight log")
+
+    def log_summary(self) -> str:
+        """The flight log's part of the final summary: files, and what is not in them."""
+        w = self.log_writer
+        if w is None:
+            return "log: off"
+        gone = w.not_logged()
+        files = f"log: {len(w.files)} file{'s' if len(w.files) != 1 else ''} in {w.directory}"
+        if not gone.messages:
+            return f"{files}, everything logged"
+        return (f"{files}, not logged: {gone.samples} samples, {gone.messages} messages, {gone.seconds:.1f} s "
+                f"({w.outages} outage{'s' if w.outages != 1 else ''}; last error: {w.last_error or 'none'})")
 
     _last_overruns: int | None = None
     _last_loss = LossCounts()
     _mag_rejected = False
     _last_lost = False
     _last_log_status = "ok"
-    _log_failed_before = False
     last_load_percent = 0.0
 
     def record_calibration(self, kind: str) -> None:
@@ -477,7 +510,7 @@ class Service:
             self.pipeline.mag_timeout_ns = int(new.estimator["mag_timeout_s"] * 1e9)
         else:
             self._build_estimation(new)
-            self.pipeline.warm_up()
+            self._warm_up()
             self._use_source_calibration()
             if self.log_writer is not None and new.log == old_cfg.log:
                 self.log_writer.new_file()  # a fresh estimator: its own file replays exactly

@@ -636,6 +636,9 @@ class FlightLogWriter:
         if now < self._next_retry:
             return False
         try:
+            if self.directory.exists() and not self.directory.is_dir():
+                # mkdir would say "File exists", which reads as if all were well
+                raise NotADirectoryError(errno_mod.ENOTDIR, os.strerror(errno_mod.ENOTDIR), str(self.directory))
             self.directory.mkdir(parents=True, exist_ok=True)
             stamp = _dt.datetime.now(_dt.timezone.utc)
             base = log_file_name(self.prefix, stamp)

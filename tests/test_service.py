@@ -253,7 +253,7 @@ def test_unwritable_log_directory_is_reported_and_publishing_goes_on(tmp_path, g
     seen = {"report": False, "attitude": 0}
 
     def enough(m) -> bool:
-        seen["report"] |= m.get_type() == "STATUSTEXT" and m.text.startswith("flight log:")
+        seen["report"] |= m.get_type() == "STATUSTEXT" and m.text.startswith("flight log stopped:")
         seen["attitude"] += m.get_type() == "ATTITUDE"
         return seen["report"] and seen["attitude"] >= 10
 
@@ -262,7 +262,7 @@ def test_unwritable_log_directory_is_reported_and_publishing_goes_on(tmp_path, g
     finally:
         run.stop()
     texts = [m.text for m in msgs if m.get_type() == "STATUSTEXT"]
-    assert any(t.startswith("flight log:") for t in texts), texts
+    assert any(t.startswith("flight log stopped:") for t in texts), texts
     # publishing goes on, on its 20 Hz schedule
     t_ms = [m.time_boot_ms for m in msgs if m.get_type() == "ATTITUDE"]
     assert_stream_on_schedule(t_ms, 20)
