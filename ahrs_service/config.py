@@ -183,6 +183,18 @@ def _finite_table(key: str, v: Any) -> dict:
     return v
 
 
+def _vector3(lo: float, hi: float) -> Checker:
+    """Three finite numbers, each in [lo, hi]."""
+    number = _number(lo, hi)
+
+    def check(key: str, v: Any) -> list[float]:
+        if not isinstance(v, list) or len(v) != 3:
+            raise ConfigError(f"{key}: {v!r} is not a list of 3 numbers; accepted: 3 numbers in [{lo}, {hi}]")
+        return [number(f"{key}[{i}]", x) for i, x in enumerate(v)]
+
+    return check
+
+
 def _optional(check: Checker) -> Checker:
     return lambda key, v: None if v is None else check(key, v)
 
@@ -226,6 +238,10 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "profile": ("validation", _choice(PROFILES)),
         "loop_profile": (True, _boolean),
         "sensor_errors": (True, _boolean),
+        # simulated sources: a sinusoidal vibration of the airframe, m/s² per body axis, at
+        # vibration_hz (0: none): what VIBRATION measures (docs/simulator.md)
+        "vibration_mss": ([0.0, 0.0, 0.0], _vector3(0.0, 1000.0)),
+        "vibration_hz": (0.0, _number(0.0, 10_000.0)),
         "seed": (0, _number(0, None, integer=True)),
         "can_interface": ("virtual", _string),
         "can_channel": ("ahrs", _string),
@@ -247,6 +263,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "attitude_quaternion_hz": (50.0, _stream_rate(1000.0)),
         "highres_imu_hz": (0.0, _stream_rate(1000.0)),
         "sys_status_hz": (1.0, _stream_rate(50.0)),
+        "vibration_hz": (2.0, _stream_rate(50.0)),
     },
     "mounting": {
         "roll_deg": (0.0, _number(-180.0, 180.0)),

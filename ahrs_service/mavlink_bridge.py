@@ -5,7 +5,8 @@ Parameters the ground station sees (PARAM_REQUEST_LIST):
 * ``EST_<NAME>`` — every tuning parameter of the running estimator (e.g. ``EST_BETA``),
   applied live between two samples and recorded in the flight log;
 * ``MAG_DECL_DEG`` — magnetic declination added to the published heading (true north);
-* ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ`` — publishing rates;
+* ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ``, ``RATE_VIBE_HZ`` —
+  publishing rates;
 * ``LOOP_RATE_HZ`` — the estimation rate (read-only: change it in the configuration).
 """
 
@@ -32,6 +33,7 @@ RATE_PARAMS = {
     "RATE_ATTQ_HZ": "ATTITUDE_QUATERNION",
     "RATE_HRIMU_HZ": "HIGHRES_IMU",
     "RATE_SYSST_HZ": "SYS_STATUS",
+    "RATE_VIBE_HZ": "VIBRATION",
 }
 RATE_CONFIG_KEYS = {
     "HEARTBEAT": "heartbeat_hz",
@@ -39,6 +41,7 @@ RATE_CONFIG_KEYS = {
     "ATTITUDE_QUATERNION": "attitude_quaternion_hz",
     "HIGHRES_IMU": "highres_imu_hz",
     "SYS_STATUS": "sys_status_hz",
+    "VIBRATION": "vibration_hz",
 }
 
 
@@ -197,6 +200,7 @@ class MavlinkBridge:
             comm_errors=diag.bus_errors,
             sensor_faults=diag.saturated + diag.non_finite,
             lost_samples=diag.lost.total,
+            vibration=svc.vibration.levels(),
         )
 
     def tick(self, now_ns: int) -> None:

@@ -33,6 +33,7 @@ from ahrs_service.calibration.storage import calibration_from_config_dict, calib
 from ahrs_service.pipeline import EstimationPipeline
 from ahrs_service.scheduler import DataReadyScheduler, FixedRateScheduler, LoopStats
 from ahrs_service.sources import make_source
+from ahrs_service.vibration import VibrationMonitor
 from ahrs_service.systemd import Notifier
 
 _H = STATE_HEADER.slices  # the state header every estimator shares
@@ -70,6 +71,7 @@ class Service:
         self.log_writer = None
         self.live = None  # the Foxglove live view (live_view.LiveView) when [live] enabled
         self.live_calibration = LiveCalibrator(max_rate_hz=cfg.rates["estimation_hz"])
+        self.vibration = VibrationMonitor()  # VIBRATION's levels and clipping, from every sample row
         # the running fit of a live calibration (see apply_live_calibration) and its kind
         self._live_fit: Future[LiveCalibrationResult] | None = None
         self._live_fit_kind = ""
@@ -249,6 +251,8 @@ class Service:
                 if self.live_calibration.active and self.live_calibration.add(sample):
                     self.start_live_fit()
                 cal = pipeline.process(sample)
+                if cal is not None:
+                    self.vibration.update(pipeline.row, cal.flags)
                 if cal is not None and writer is not None:
                     state = pipeline.estimator.state
                     writer.write_sample(
