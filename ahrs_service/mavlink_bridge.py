@@ -193,7 +193,9 @@ class MavlinkBridge:
             accel=SensorStatus(True, True, health["accel_healthy"]),
             mag_status=SensorStatus(health["mag_present"], mag_used, health["mag_healthy"]),
             estimator=svc.estimator.name,
-            ahrs_healthy=bool(svc.estimator.state[STATE_HEADER.index.initialised]),
+            # a stale estimate is an unhealthy AHRS, as ArduPilot's GCS::update_sensor_status_flags
+            # clears MAV_SYS_STATUS_AHRS when ahrs.healthy() fails (docs/mavlink.md, "Health per sensor")
+            ahrs_healthy=bool(svc.estimator.state[STATE_HEADER.index.initialised]) and fresh,
             reduced_mode=pipeline.reduced or not pipeline.use_mag,
             overruns=st.overruns,
             load_percent=svc.last_load_percent,
