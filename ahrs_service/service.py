@@ -316,8 +316,7 @@ class Service:
         """Lost IMU samples, total and by cause: "0" or "12 (fifo_overflow 12)"."""
         if lost is None:
             lost = self.source.diagnostics.lost if self.source is not None else LossCounts()
-        causes = [f"{k} {v}" for k, v in lost.as_dict().items() if k != "total" and v]
-        return f"{lost.total} ({', '.join(causes)})" if causes else str(lost.total)
+        return lost.summary()
 
     def _housekeeping(self, now: int) -> None:
         st = self.scheduler.stats()
@@ -339,6 +338,8 @@ class Service:
             self.report(f"sensor lost: {diag.get('last_error', '')}" if lost else "sensor back", 3 if lost else 6)
         if self.live is not None or self.log_writer is not None:
             loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced)
+            if self.log_writer is not None:
+                loop["log"] = self.log_writer.stats()  # docs/logs.md: /loop `log`, what was not logged
             if self.live is not None:
                 self.live.publish("/loop", now, loop)
         if self.log_writer is not None:
