@@ -146,7 +146,13 @@ def _import_broad(args: argparse.Namespace) -> int:
 
     if not args.input.is_file():  # h5py's own error names no path
         raise (IsADirectoryError if args.input.is_dir() else FileNotFoundError)(2, "cannot open", str(args.input))
-    summary = import_broad(args.input, args.output, args.start, args.duration)
+    try:
+        summary = import_broad(args.input, args.output, args.start, args.duration)
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        # h5py's errors name no file ("Unable to synchronously open file (file signature not found)")
+        raise OSError(exc.errno, f"not a readable HDF5 recording ({exc})", str(args.input)) from None
     print(json.dumps(summary))
     return 0
 
@@ -221,10 +227,10 @@ def _replay(args: argparse.Namespace) -> int:
     name = args.estimator or log.estimator
     if not name:
         if log.damage is not None:
-            print(f"error: the log names no estimator: its /config was lost to the damage "
+            print(f"ahrs-service replay: error: the log names no estimator: its /config was lost to the damage "
                   f"({log.damage}); give --estimator NAME", file=sys.stderr)
         else:
-            print("error: the log names no estimator (no /config or /attitude); give --estimator NAME",
+            print("ahrs-service replay: error: the log names no estimator (no /config or /attitude); give --estimator NAME",
                   file=sys.stderr)
         return 2
     follow = not args.no_param_changes
@@ -235,7 +241,7 @@ def _replay(args: argparse.Namespace) -> int:
         try:
             blend = blend_time(args.offline_blend)
         except ValueError as exc:
-            print(f"error: {exc}")
+            print(f"ahrs-service replay: error: {exc}", file=sys.stderr)
             return 2
         q = replay_offline(log, name, params, follow, blend_time_s=blend).q
     else:
