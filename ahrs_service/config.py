@@ -477,7 +477,7 @@ def _check_calibration(given: dict[str, Any]) -> dict[str, Any]:
     try:
         SensorCalibration.from_dict(given)
     except ValueError as exc:
-        raise ConfigError(f"calibration.{exc}" if not str(exc).startswith("calibration") else str(exc)) from None
+        raise ConfigError(str(exc) if str(exc).startswith("calibration") else f"calibration: {exc}") from None
     return dict(given)
 
 
