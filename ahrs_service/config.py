@@ -471,9 +471,34 @@ def _check_fifo_board(section: dict[str, Any], bus: str) -> None:
         raise ConfigError(f"source.board_options: {exc}") from None
 
 
+#: the largest magnitude of each [calibration] value that a real sensor's calibration can
+#: have (the terms are offsets of a few units and near-identity matrices); beyond it a value is
+#: a typo, and a finite but absurd one (1e300 rad/s of gyro bias) would overflow the estimate
+CALIBRATION_LIMITS = {
+    "gyro_bias": 10.0,  # rad/s (a gyro off by ~570 °/s is broken, not biased)
+    "acc_bias": 50.0,  # m/s²
+    "acc_scale": 10.0,  # each matrix element
+    "mag_hard_iron": 5000.0,  # µT (the earth field is 25–65 µT; a nearby magnet may add hundreds)
+    "mag_soft_iron": 100.0,  # each matrix element
+    "mounting": 1.0,  # each element of a rotation matrix
+    "mounting_rpy_deg": 360.0,  # each angle, degrees
+}
+
+
 def _check_calibration(given: dict[str, Any]) -> dict[str, Any]:
+    import numpy as np
+
     from ahrs_service.drivers.calibration import SensorCalibration
 
+    for key, value in given.items():  # before from_dict: its matrix checks would overflow on 1e300
+        limit = CALIBRATION_LIMITS.get(key)
+        try:
+            values = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            continue  # not numbers: from_dict names the key and the shape it wants
+        if limit is not None and values.size and np.isfinite(values).all() and np.abs(values).max() > limit * (1 + 1e-9):
+            raise ConfigError(f"calibration.{key}: {value!r} is out of range; accepted: each value within "
+                              f"±{limit:g} (calibration key {key!r})")
     try:
         SensorCalibration.from_dict(given)
     except ValueError as exc:
