@@ -42,6 +42,8 @@ import numba
 import numpy as np
 
 from ahrs_service.drivers.base import ACC_SATURATED, ACC_VALID
+from ahrs_service.estimators import SAMPLE_ROW
+from ahrs_service.estimators.layout import Layout, Slot
 
 FLOOR_HZ = 5.0  # Hz, the floor filter (ArduPilot AP_INERTIAL_SENSOR_ACCEL_VIBE_FLOOR_FILT_HZ)
 VIBE_HZ = 2.0  # Hz, the filter of the squared difference (AP_INERTIAL_SENSOR_ACCEL_VIBE_FILT_HZ)
@@ -64,48 +66,47 @@ class VibrationLevels:
 
 _FLOOR_RC = 1.0 / (2.0 * math.pi * FLOOR_HZ)  # s, the floor filter's time constant
 _VIBE_RC = 1.0 / (2.0 * math.pi * VIBE_HZ)  # s
-# the filter state, one float64 array (one argument for the compiled loop: each argument costs
-# a type check per call, and the service calls it once per sample); named offsets:
-_FLOOR0 = 0  # [0:3] m/s², the 5 Hz floor per body axis x, y, z
-_VIBE0 = 3  # [3:6] (m/s²)², the 2 Hz-filtered squared difference per axis
-_SEEN = 6  # 1.0 once a valid sample came (the floor starts at it)
-_CLIP_LIMIT = 7  # m/s²
-_CLIPPED = 8  # clipped samples since start
-_STATE_SIZE = 9
-_ACC0, _DT = 3, 9  # the accelerometer's first column and the dt column of a sample row
+#: the filter state, one float64 array (one argument for the compiled loop: each argument costs
+#: a type check per call, and the service calls it once per sample)
+STATE = Layout("vibration state", [
+    Slot("floor", 3, "the 5 Hz floor per body axis x, y, z, m/s²"),
+    Slot("vibe_sq", 3, "the 2 Hz-filtered squared difference from the floor per axis, (m/s²)²"),
+    Slot("seen", 1, "1.0 once a valid sample came (the floor starts at it)"),
+    Slot("clip_limit", 1, "a specific force beyond this on any axis is clipping, m/s²"),
+    Slot("clipped", 1, "clipped samples since start"),
+])
+_S = STATE.index  # constants in the compiled loop
+_R = SAMPLE_ROW.index  # the sample row's columns: gyr, acc, mag, dt
 
 
 @numba.njit(cache=True)
 def _vibration_kernel(rows, flags, st):
     """One pass over ``rows`` (n, 10) with ``flags`` (n,), updating the state ``st`` in place."""
-    limit = st[_CLIP_LIMIT]
+    limit = st[_S.clip_limit]
     for i in range(rows.shape[0]):
         f = flags[i]
-        clipped = (f & 16) != 0  # the part saturated (ACC_SATURATED) ...
-        valid = (f & 2) != 0  # ACC_VALID
+        clipped = (f & ACC_SATURATED) != 0  # the part saturated ...
+        valid = (f & ACC_VALID) != 0
         for k in range(3):
-            a = rows[i, _ACC0 + k]
+            a = rows[i, _R.acc + k]
             clipped |= abs(a) > limit  # ... or any axis beyond the limit
             valid &= math.isfinite(a)
         if clipped:
-            st[_CLIPPED] += 1.0
-        dt = rows[i, _DT]
+            st[_S.clipped] += 1.0
+        dt = rows[i, _R.dt]
         if not valid or not (dt > 0.0 and math.isfinite(dt)):
             continue  # no reading to filter
-        if st[_SEEN] == 0.0:
+        if st[_S.seen] == 0.0:
             for k in range(3):
-                st[_FLOOR0 + k] = rows[i, _ACC0 + k]
-            st[_SEEN] = 1.0
+                st[_S.floor + k] = rows[i, _R.acc + k]
+            st[_S.seen] = 1.0
         alpha_floor = dt / (dt + _FLOOR_RC)  # ArduPilot's LowPassFilter: alpha = dt / (dt + RC)
         alpha_vibe = dt / (dt + _VIBE_RC)
         for k in range(3):
-            a = rows[i, _ACC0 + k]
-            st[_FLOOR0 + k] += (a - st[_FLOOR0 + k]) * alpha_floor  # floor at 5 Hz
-            d = a - st[_FLOOR0 + k]
-            st[_VIBE0 + k] += (d * d - st[_VIBE0 + k]) * alpha_vibe  # squared difference at 2 Hz
-
-
-assert ACC_VALID == 2 and ACC_SATURATED == 16  # the kernel's literal bits
+            a = rows[i, _R.acc + k]
+            st[_S.floor + k] += (a - st[_S.floor + k]) * alpha_floor  # floor at 5 Hz
+            d = a - st[_S.floor + k]
+            st[_S.vibe_sq + k] += (d * d - st[_S.vibe_sq + k]) * alpha_vibe  # squared difference at 2 Hz
 
 
 class VibrationMonitor:
@@ -116,19 +117,19 @@ class VibrationMonitor:
 
     def __init__(self, clip_limit_mss: float = CLIP_LIMIT_MSS) -> None:
         self.clip_limit_mss = float(clip_limit_mss)
-        self._st = np.zeros(_STATE_SIZE)
-        self._st[_CLIP_LIMIT] = self.clip_limit_mss
+        self._st = np.zeros(STATE.end)
+        self._st[_S.clip_limit] = self.clip_limit_mss
         self._one_flag = np.zeros(1, dtype=np.int64)
 
     @property
     def floor(self) -> np.ndarray:
         """(3,) m/s², the 5 Hz floor per body axis (a copy)."""
-        return self._st[_FLOOR0:_FLOOR0 + 3].copy()
+        return self._st[STATE.slices.floor].copy()
 
     @property
     def clipping(self) -> int:
         """Clipped samples since start."""
-        return int(self._st[_CLIPPED])
+        return int(self._st[_S.clipped])
 
     def update(self, rows: np.ndarray, flags: np.ndarray | int) -> None:
         """Feeds sample rows (10,) or (n, 10) as fed to the estimator, with their validity
@@ -141,6 +142,6 @@ class VibrationMonitor:
 
     def levels(self) -> VibrationLevels:
         """The levels now (ArduPilot's get_vibration_levels: the square root of each axis)."""
-        x, y, z = np.sqrt(np.maximum(self._st[_VIBE0:_VIBE0 + 3], 0.0)).tolist()
+        x, y, z = np.sqrt(np.maximum(self._st[STATE.slices.vibe_sq], 0.0)).tolist()
         return VibrationLevels(x, y, z, (self.clipping, 0, 0))
 
