@@ -368,7 +368,8 @@ class Service:
         if w is None:
             return "log: off"
         gone = w.not_logged()
-        files = f"log: {len(w.files)} file{'s' if len(w.files) != 1 else ''} in {w.directory}"
+        kept = [p for p in w.files if p.exists()]  # a file deleted while written is not kept
+        files = f"log: {len(kept)} file{'s' if len(kept) != 1 else ''} in {w.directory}"
         if not gone.messages:
             return f"{files}, everything logged"
         return (f"{files}, not logged: {gone.samples} samples, {gone.messages} messages, {gone.seconds:.1f} s "

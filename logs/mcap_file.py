@@ -26,6 +26,7 @@ Requires mcap >= 1.5 (``Writer.flush``; see pyproject.toml).
 
 from __future__ import annotations
 
+import errno
 import os
 import time
 from pathlib import Path
@@ -38,6 +39,11 @@ from ahrs_service.logs.schemas import encode
 
 #: the MCAP header's ``library`` field
 LIBRARY = "ahrs-service"
+
+
+class LogFileDeleted(FileNotFoundError):
+    """The file was deleted (or its folder removed) while it was being written: what it held
+    is gone, and writing on would only fill an inode nobody can open."""
 
 
 class _StagedOutput:
@@ -120,6 +126,8 @@ class McapLogFile:
         self._seq: dict[int, int] = {}
         self.unflushed = 0  # messages written since the last commit (lost if the process dies now)
         self.unflushed_samples = 0  # of which /imu/raw samples
+        self.messages = 0  # messages written into this file, in all
+        self.samples = 0  # of which /imu/raw samples
         self.closed = False
         self._finished = False  # the summary is staged: only commit() is left to do
 
@@ -150,8 +158,10 @@ class McapLogFile:
             cid, int(log_time_ns), data, time.time_ns() if publish_time_ns is None else int(publish_time_ns), seq
         )
         self.unflushed += 1
+        self.messages += 1
         if topic == "/imu/raw":
             self.unflushed_samples += 1
+            self.samples += 1
 
     def add_metadata(self, name: str, data: Mapping[str, Any]) -> None:
         """A metadata record ``name`` with string key/values."""
@@ -165,7 +175,10 @@ class McapLogFile:
 
     def retry(self, fsync: bool = True) -> None:
         """Writes what a failed ``flush`` or ``close`` left staged (raises OSError again if
-        the disk still refuses it); afterwards the file goes on as if nothing had happened."""
+        the disk still refuses it); afterwards the file goes on as if nothing had happened.
+        Raises :class:`LogFileDeleted` when the file has no name on disk any more."""
+        if os.fstat(self._out.fd).st_nlink == 0:
+            raise LogFileDeleted(errno.ENOENT, "deleted while being written", str(self.path))
         self._out.commit(fsync)
         self.unflushed = 0
         self.unflushed_samples = 0

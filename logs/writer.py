@@ -54,7 +54,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ahrs_service.logs.mcap_file import McapLogFile
+from ahrs_service.logs.mcap_file import LogFileDeleted, McapLogFile
 from ahrs_service.logs.schemas import (
     attitude_message,
     encode,
@@ -549,7 +549,8 @@ class FlightLogWriter:
         try:
             f.close(self.fsync)
         except Exception as exc:  # noqa: BLE001
-            self._lose(f.unflushed, f.unflushed_samples)
+            deleted = isinstance(exc, LogFileDeleted)  # then nothing of it is left
+            self._lose(*((f.messages, f.samples) if deleted else (f.unflushed, f.unflushed_samples)))
             self._error(exc, f)
             f.abandon()
 
@@ -605,7 +606,14 @@ class FlightLogWriter:
         be broken): what it held unflushed is lost and the next retry starts a new file."""
         f = self._file
         self._error(exc, f)
-        if isinstance(exc, OSError) and f is not None:
+        if isinstance(exc, LogFileDeleted) and f is not None:
+            # nothing of it can be read any more: all it held is lost; a new file comes next
+            self._lose(f.messages, f.samples)
+            f.unflushed = f.unflushed_samples = 0
+            self._file = None
+            self._stalled = False
+            f.abandon()
+        elif isinstance(exc, OSError) and f is not None:
             self._stalled = True
         else:
             self._file = None

@@ -259,6 +259,50 @@ def test_close_during_an_outage_leaves_a_recoverable_file_or_none(tmp_path, monk
     assert len(w.files) == 1 and list((tmp_path / "b").iterdir()) == [] and w.samples_not_logged == 30
 
 
+def test_log_folder_deleted_then_a_file_in_its_place_mid_run(tmp_path):
+    """rm -rf of the log folder while a file is open, then a regular file where the folder was:
+    the deleted file is noticed at its next flush (not written on into a nameless inode), its
+    samples are counted as not logged, the writer waits out the blocked path with back-off and
+    starts one new file once the folder can be made again."""
+    import shutil
+
+    folder = tmp_path / "logs"
+    w = FlightLogWriter(folder, flush_interval_s=0.05, retry_first_s=0.05, retry_max_s=0.1)
+    i = 0
+
+    def feed(n: int) -> None:
+        nonlocal i
+        for _ in range(n):
+            w.write_raw(i + 1, np.full(10, float(i)), 0)
+            i += 1
+            time.sleep(0.002)
+
+    feed(30)
+    assert _wait_for(lambda: w._file is not None and w._file.committed_bytes > 0)
+    (first,) = w.files
+    shutil.rmtree(folder)
+    folder.write_text("a file where the log folder was")
+    while w.status != "error" and i < 2000:
+        feed(1)
+    assert w.last_error == f"{first}: deleted while being written (ENOENT)"
+    while "ENOTDIR" not in w.last_error and i < 4000:  # the path is blocked: counted, retried
+        feed(1)
+    feed(10)
+    assert w.status == "error" and w.last_error == f"{folder}: Not a directory (ENOTDIR)" and w.files == [first]
+    folder.unlink()
+    while w.status != "ok" and i < 4000:
+        feed(1)
+    feed(20)
+    total = i
+    w.close()
+    (second,) = folder.iterdir()
+    assert w.files == [first, second] and w.outages == 1
+    log = read_log(second)
+    assert log.damage is None and len(log) + w.samples_not_logged == total
+    # the deleted file's 30 first samples at least, and the 10 fed while the path was blocked
+    assert w.samples_not_logged >= 30 + 10
+
+
 def test_rotation_by_size_keeps_every_sample_and_restates_config(tmp_path):
     rows = _rows(3000)
     w = FlightLogWriter(tmp_path, chunk_size=4096, rotate_bytes=40_000, flush_interval_s=0.05)
