@@ -39,6 +39,9 @@ from ahrs_service.logs.schemas import encode
 
 #: the MCAP header's ``library`` field
 LIBRARY = "ahrs-service"
+#: staged bytes beyond which a write commits them at once (without fsync): an import or a
+#: replay that never flushes writes as it goes instead of holding its whole file in memory
+COMMIT_BYTES = 4 * 1024 * 1024
 
 
 class LogFileDeleted(FileNotFoundError):
@@ -162,6 +165,8 @@ class McapLogFile:
         if topic == "/imu/raw":
             self.unflushed_samples += 1
             self.samples += 1
+        if self._out.staged >= COMMIT_BYTES:
+            self.retry(fsync=False)
 
     def add_metadata(self, name: str, data: Mapping[str, Any]) -> None:
         """A metadata record ``name`` with string key/values."""
