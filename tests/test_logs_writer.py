@@ -513,3 +513,19 @@ def test_log_file_writes_the_same_bytes_as_the_mcap_library(tmp_path):
     w.finish()
     ours = path.read_bytes()
     assert len(ours) > 100_000 and ours == out.getvalue()
+
+
+def test_a_file_written_without_flushes_streams_to_disk(tmp_path, monkeypatch):
+    """Imports and replays never flush: past COMMIT_BYTES the staged bytes go to disk as
+    written (whole records), not all at close."""
+    monkeypatch.setattr(mcap_file_mod, "COMMIT_BYTES", 16_384)
+    path = tmp_path / "big.mcap"
+    f = McapLogFile(path, chunk_size=4096)
+    rows = _rows(2000)
+    for i, row in enumerate(rows):
+        f.write("/imu/raw", i + 1, schemas.raw_message(i + 1, row.tolist(), 0, None, None, i))
+        assert f.size - f.committed_bytes < 16_384 + 8192  # never much more than the threshold staged
+    assert f.committed_bytes > 0
+    f.close()
+    log = read_log(path)
+    assert log.damage is None and np.array_equal(log.rows, rows, equal_nan=True)
