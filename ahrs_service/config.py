@@ -137,6 +137,15 @@ def _path(must_exist: bool = False) -> Checker:
     return check
 
 
+def _directory(key: str, v: Any) -> str:
+    """A folder to write into: a non-empty path (made if missing; one that cannot be written
+    is the writer's to report and retry at run time, the service runs on meanwhile)."""
+    v = _path()(key, v)
+    if not v.strip():
+        raise ConfigError(f"{key}: {v!r} is empty; accepted: a folder path (e.g. \"flight-logs\")")
+    return v
+
+
 _ENDPOINT_HELP = ("udpout:HOST:PORT, udpin:HOST:PORT, udp:HOST:PORT, udpbcast:HOST:PORT, tcp:HOST:PORT, "
                   "tcpin:HOST:PORT (PORT 1..65535) or a serial device /dev/NAME[,BAUD]")
 
@@ -286,7 +295,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
     },
     "log": {
         "enabled": (True, _boolean),
-        "directory": ("flight-logs", _path()),
+        "directory": ("flight-logs", _directory),
         "rotate_mb": (0.0, _number(0.0, 1_000_000.0)),  # 0 = no size rotation; at most 1 TB
         "rotate_minutes": (0.0, _number(0.0, 525_600.0)),  # 0 = no time rotation; at most a year
         # the estimator's diagnostics (rest, rejections, form) in /attitude this often, Hz

@@ -61,6 +61,8 @@ def test_every_key_refuses_hostile_values_with_one_line_naming_it(section, key):
     ({"source": {"board_options": {"gyro_rate_hz": float("nan")}}}, "source.board_options.gyro_rate_hz"),
     ({"source": {"type": "recorded", "recorded_path": "/nope/none.mcap"}}, "source.recorded_path"),
     ({"estimator": {"params": {"beta": float("inf")}}}, "estimator.params.beta"),
+    ({"log": {"directory": ""}}, "log.directory"),
+    ({"calibration": {"gyro_bias": [1e300, 0.0, 0.0]}}, "calibration.gyro_bias"),
 ])
 def test_defects_of_the_issue_are_refused_naming_the_key(doc, key):
     with pytest.raises(config_mod.ConfigError) as exc:
