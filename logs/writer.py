@@ -33,7 +33,9 @@ Public API (all keyword arguments after the sample's time, row and flags are nam
     log.close()
 
 Adding a message kind: a record class below (``_Record`` subclass), a ``write_*`` method that
-queues it, and a handler registered in ``FlightLogWriter._HANDLERS``.
+queues it, and a handler registered in ``FlightLogWriter._HANDLERS``. A record that carries
+samples (or several messages) says how many in ``_CARRIES``, and its handler passes them to
+``_ensure_file(messages, samples=…)``, so the "not logged" counts stay exact.
 """
 
 from __future__ import annotations
@@ -171,7 +173,18 @@ class _Close:
     pass
 
 
-_SAMPLE_RECORDS = (_Raw, _Sample)  # the records that carry one /imu/raw sample
+#: samples (/imu/raw rows) and messages each record kind carries, for what a full queue or a
+#: failing disk loses; kinds not listed carry one message and no sample
+_CARRIES: dict[type, Callable[[Any], tuple[int, int]]] = {
+    _Raw: lambda item: (1, 1),
+    _Sample: lambda item: (1, 2 + (item.truth_q is not None)),
+}
+
+
+def _carried(item: Any) -> tuple[int, int]:
+    """(samples, messages) of one queue record."""
+    count = _CARRIES.get(type(item))
+    return (0, 1) if count is None else count(item)
 
 
 @dataclass(frozen=True, slots=True)
@@ -332,9 +345,9 @@ class FlightLogWriter:
         # one producer (the service loop): len() then append() cannot overshoot by more than one
         n = len(self._q)
         if self._closing or n >= self.queue_size:
-            is_sample = type(item) in _SAMPLE_RECORDS
-            self._dropped_full += 1 if type(item) is not _Sample else 2 + (item.truth_q is not None)
-            self._samples_dropped_full += is_sample
+            samples, messages = _carried(item)
+            self._dropped_full += messages
+            self._samples_dropped_full += samples
             return False
         if n == self._wake_at:  # a producer faster than real time: the thread must not sleep on
             self._wake.set()

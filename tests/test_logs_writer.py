@@ -351,7 +351,7 @@ def test_full_queue_drops_and_counts_without_blocking(tmp_path, monkeypatch):
     assert _wait_for(lambda: len(w._q) == 0)  # the thread holds the first sample
     for i in range(1, 16):
         w.write_raw(i, np.zeros(10), 0)  # 10 fit in the queue, 5 do not
-    assert w.dropped == 5
+    assert w.dropped == 5 and w.samples_not_logged == 5
     release.set()
     w.close()
     log = read_log(w.files[0])
