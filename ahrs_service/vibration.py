@@ -80,33 +80,44 @@ _R = SAMPLE_ROW.index  # the sample row's columns: gyr, acc, mag, dt
 
 
 @numba.njit(cache=True)
-def _vibration_kernel(rows, flags, st):
-    """One pass over ``rows`` (n, 10) with ``flags`` (n,), updating the state ``st`` in place."""
+def _step(rows, i, f, st):
+    """One sample: row ``i`` of ``rows`` with validity ``flags`` ``f``; updates ``st`` in place."""
     limit = st[_S.clip_limit]
+    clipped = (f & ACC_SATURATED) != 0  # the part saturated ...
+    valid = (f & ACC_VALID) != 0
+    for k in range(3):
+        a = rows[i, _R.acc + k]
+        clipped |= abs(a) > limit  # ... or any axis beyond the limit
+        valid &= math.isfinite(a)
+    if clipped:
+        st[_S.clipped] += 1.0
+    dt = rows[i, _R.dt]
+    if not valid or not (dt > 0.0 and math.isfinite(dt)):
+        return  # no reading to filter
+    if st[_S.seen] == 0.0:
+        for k in range(3):
+            st[_S.floor + k] = rows[i, _R.acc + k]
+        st[_S.seen] = 1.0
+    alpha_floor = dt / (dt + _FLOOR_RC)  # ArduPilot's LowPassFilter: alpha = dt / (dt + RC)
+    alpha_vibe = dt / (dt + _VIBE_RC)
+    for k in range(3):
+        a = rows[i, _R.acc + k]
+        st[_S.floor + k] += (a - st[_S.floor + k]) * alpha_floor  # floor at 5 Hz
+        d = a - st[_S.floor + k]
+        st[_S.vibe_sq + k] += (d * d - st[_S.vibe_sq + k]) * alpha_vibe  # squared difference at 2 Hz
+
+
+@numba.njit(cache=True)
+def _vibration_block(rows, flags, st):
+    """Every row of ``rows`` (n, 10) with ``flags`` (n,), in order."""
     for i in range(rows.shape[0]):
-        f = flags[i]
-        clipped = (f & ACC_SATURATED) != 0  # the part saturated ...
-        valid = (f & ACC_VALID) != 0
-        for k in range(3):
-            a = rows[i, _R.acc + k]
-            clipped |= abs(a) > limit  # ... or any axis beyond the limit
-            valid &= math.isfinite(a)
-        if clipped:
-            st[_S.clipped] += 1.0
-        dt = rows[i, _R.dt]
-        if not valid or not (dt > 0.0 and math.isfinite(dt)):
-            continue  # no reading to filter
-        if st[_S.seen] == 0.0:
-            for k in range(3):
-                st[_S.floor + k] = rows[i, _R.acc + k]
-            st[_S.seen] = 1.0
-        alpha_floor = dt / (dt + _FLOOR_RC)  # ArduPilot's LowPassFilter: alpha = dt / (dt + RC)
-        alpha_vibe = dt / (dt + _VIBE_RC)
-        for k in range(3):
-            a = rows[i, _R.acc + k]
-            st[_S.floor + k] += (a - st[_S.floor + k]) * alpha_floor  # floor at 5 Hz
-            d = a - st[_S.floor + k]
-            st[_S.vibe_sq + k] += (d * d - st[_S.vibe_sq + k]) * alpha_vibe  # squared difference at 2 Hz
+        _step(rows, i, flags[i], st)
+
+
+@numba.njit(cache=True)
+def _vibration_row(row, flag, st):
+    """One sample row (10,): the service's per-sample path, without making a (1, 10) view."""
+    _step(row.reshape((1, row.shape[0])), 0, flag, st)
 
 
 class VibrationMonitor:
@@ -119,7 +130,6 @@ class VibrationMonitor:
         self.clip_limit_mss = float(clip_limit_mss)
         self._st = np.zeros(STATE.end)
         self._st[_S.clip_limit] = self.clip_limit_mss
-        self._one_flag = np.zeros(1, dtype=np.int64)
 
     @property
     def floor(self) -> np.ndarray:
@@ -135,10 +145,9 @@ class VibrationMonitor:
         """Feeds sample rows (10,) or (n, 10) as fed to the estimator, with their validity
         ``flags`` (an int for one row, else (n,))."""
         if rows.ndim == 1:
-            self._one_flag[0] = flags
-            _vibration_kernel(rows.reshape(1, 10), self._one_flag, self._st)
+            _vibration_row(rows, int(flags), self._st)
         else:
-            _vibration_kernel(rows, np.asarray(flags, dtype=np.int64), self._st)
+            _vibration_block(rows, np.asarray(flags, dtype=np.int64), self._st)
 
     def levels(self) -> VibrationLevels:
         """The levels now (ArduPilot's get_vibration_levels: the square root of each axis)."""
