@@ -107,11 +107,13 @@ class Service:
         for attempt in range(64):  # bounded: one kernel more per attempt, a pipeline has ~10
             try:
                 self.pipeline.warm_up()
+                VibrationMonitor.warm_up()
                 return
             except OSError as exc:
                 if attempt == 0:
                     log.warning("compiled kernels not cached: %s", exc)
         self.pipeline.warm_up()
+        VibrationMonitor.warm_up()
 
     def _open_live(self, cfg: config_mod.Config) -> None:
         if cfg.live["enabled"]:

@@ -149,6 +149,14 @@ class VibrationMonitor:
         else:
             _vibration_block(rows, np.asarray(flags, dtype=np.int64), self._st)
 
+    @staticmethod
+    def warm_up() -> None:
+        """Compiles (or loads from numba's cache) both entries, so the loop's first sample
+        does not pay for it; the state of no monitor is touched."""
+        scratch = VibrationMonitor()
+        scratch.update(np.zeros(10), 0)
+        scratch.update(np.zeros((2, 10)), np.zeros(2, dtype=np.int64))
+
     def levels(self) -> VibrationLevels:
         """The levels now (ArduPilot's get_vibration_levels: the square root of each axis)."""
         x, y, z = np.sqrt(np.maximum(self._st[STATE.slices.vibe_sq], 0.0)).tolist()
