@@ -72,6 +72,7 @@ class Service:
         self.live = None  # the Foxglove live view (live_view.LiveView) when [live] enabled
         self.live_calibration = LiveCalibrator(max_rate_hz=cfg.rates["estimation_hz"])
         self.vibration = VibrationMonitor()  # VIBRATION's levels and clipping, from every sample row
+        self._earlier_log_writers: list[Any] = []  # closed by reloads; for the final summary
         # the running fit of a live calibration (see apply_live_calibration) and its kind
         self._live_fit: Future[LiveCalibrationResult] | None = None
         self._live_fit_kind = ""
@@ -365,17 +366,22 @@ class Service:
                         kind="flight log")
 
     def log_summary(self) -> str:
-        """The flight log's part of the final summary: files, and what is not in them."""
-        w = self.log_writer
-        if w is None:
+        """The flight log's part of the final summary: files, and what is not in them (over
+        every writer of the run: a reload that changed [log] closed the earlier ones)."""
+        writers = [*self._earlier_log_writers, *([self.log_writer] if self.log_writer is not None else [])]
+        if not writers:
             return "log: off"
-        gone = w.not_logged()
-        kept = [p for p in w.files if p.exists()]  # a file deleted while written is not kept
+        w = writers[-1]
+        gone = [x.not_logged() for x in writers]
+        samples, messages = sum(g.samples for g in gone), sum(g.messages for g in gone)
+        seconds, outages = sum(g.seconds for g in gone), sum(x.outages for x in writers)
+        kept = [p for x in writers for p in x.files if p.exists()]  # a file deleted while written is not kept
         files = f"log: {len(kept)} file{'s' if len(kept) != 1 else ''} in {w.directory}"
-        if not gone.messages:
+        if not messages:
             return f"{files}, everything logged"
-        return (f"{files}, not logged: {gone.samples} samples, {gone.messages} messages, {gone.seconds:.1f} s "
-                f"({w.outages} outage{'s' if w.outages != 1 else ''}; last error: {w.last_error or 'none'})")
+        last_error = next((x.last_error for x in reversed(writers) if x.last_error), "none")
+        return (f"{files}, not logged: {samples} samples, {messages} messages, {seconds:.1f} s "
+                f"({outages} outage{'s' if outages != 1 else ''}; last error: {last_error})")
 
     _last_overruns: int | None = None
     _last_loss = LossCounts()
@@ -529,6 +535,7 @@ class Service:
         if new.log != old_cfg.log:
             if self.log_writer is not None:
                 self.log_writer.close()
+                self._earlier_log_writers.append(self.log_writer)  # its counts stay in the summary
             self._open_log(new)
         elif self.log_writer is not None:
             self.log_writer.write_config(time.monotonic_ns(), self.effective_config())
