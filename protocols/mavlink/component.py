@@ -280,6 +280,11 @@ class MavlinkComponent:
         )
         return len(due)
 
+    def send(self, msg: Any) -> None:
+        """Sends one built pymavlink message on every endpoint now (ODOMETRY and other
+        messages built outside the component); errors are counted in ``stats``."""
+        self._send_all(msg)
+
     def send_now(self, name: str, telemetry: Telemetry | None = None) -> bool:
         """Sends message ``name`` once now on every endpoint (``telemetry`` None uses the last
         published one); False if it cannot be built (unknown name or no telemetry yet)."""
