@@ -121,6 +121,8 @@ class Estimator:
             "acc_skipped": int(s[K.ACC_SKIPPED]),
             "mag_skipped": int(s[K.MAG_SKIPPED]),
             "gyr_skipped": int(s[K.GYR_SKIPPED]),
+            # logged with the attitude at log.diagnostics_hz (logs/schemas.py ATTITUDE)
+            "attitude_variance": self.attitude_variance().as_dict(),
         }
 
     # ---------------------------------------------------------------- stepping

@@ -6,7 +6,12 @@ Every estimator answers ``Estimator.attitude_variance()`` with an :class:`Attitu
 * **its own covariance** — the EKF (7 × 7 P) and the quaternion KF (4 × 4 P) carry a
   covariance of the quaternion; :func:`euler_variance_of_quaternion_covariance` maps it onto
   the ZYX angles with the Jacobian of the angles against the normalised quaternion
-  (Σ_e = J P Jᵀ, diagonal kept). The roll/pitch Kalman filter keeps the two variances itself.
+  (Σ_e = J P Jᵀ, diagonal kept). P is how well the state is known *if the model holds*; both
+  models take the accelerometer for gravity alone and the field for undisturbed, so the
+  floors of the default :class:`ErrorModel` (linear acceleration, field distortion) are added
+  for what the model leaves out (:func:`with_unmodelled_floor`). On BROAD, P alone covers
+  the heading error 1σ in under a fifth of the reads (docs/autopilot.md). The roll/pitch
+  Kalman filter keeps its two variances itself (its paper's σ_ξ is large: no floor added).
 * **an error model** — the complementary filters (complementary, Mahony, Madgwick, Valenti,
   immersion and invariance), the single-sample solutions (TRIAD, QUEST) and ``robust`` have
   none. :class:`ErrorModel` gives each angle a floor σ (what the corrections leave: linear
@@ -44,6 +49,10 @@ class AttitudeVariance:
     def unknown(cls) -> "AttitudeVariance":
         return cls(math.nan, math.nan, math.nan)
 
+    def as_dict(self) -> dict[str, float]:
+        """{"roll", "pitch", "yaw"} in rad² (the log writes NaN as null)."""
+        return {"roll": self.roll, "pitch": self.pitch, "yaw": self.yaw}
+
     def sigma_deg(self) -> tuple[float, float, float]:
         """(roll, pitch, yaw) standard deviations, degrees (NaN: unknown)."""
         return tuple(math.sqrt(v) / DEG if v >= 0 else math.nan for v in (self.roll, self.pitch, self.yaw))  # type: ignore[return-value]
@@ -79,6 +88,13 @@ class ErrorModel:
         if not math.isfinite(tilt):
             tilt = math.nan
         return AttitudeVariance(tilt, tilt, yaw)
+
+
+def with_unmodelled_floor(var: AttitudeVariance, model: ErrorModel = ErrorModel()) -> AttitudeVariance:
+    """``var`` plus the model's tilt and heading floors (variances add: independent errors);
+    NaN stays NaN."""
+    t, h = model.tilt_sigma**2, model.heading_sigma**2
+    return AttitudeVariance(var.roll + t, var.pitch + t, var.yaw + h)
 
 
 def euler_jacobian(q: np.ndarray) -> np.ndarray:
