@@ -141,7 +141,7 @@ def _path(must_exist: bool = False) -> Checker:
 
 
 _ENDPOINT_HELP = ("udpout:HOST:PORT, udpin:HOST:PORT, udp:HOST:PORT, udpbcast:HOST:PORT, tcp:HOST:PORT, "
-                  "tcpin:HOST:PORT (PORT 1..65535) or a serial device /dev/NAME[,BAUD]")
+                  "tcpin:HOST:PORT (PORT 1..65535) or a serial device by absolute path /dev/NAME[,BAUD]")
 
 
 def _endpoint(key: str, v: Any) -> str:
@@ -154,7 +154,8 @@ def _endpoint(key: str, v: Any) -> str:
         if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
             raise ConfigError(f"{key}: {v!r} has no valid HOST:PORT; accepted: {_ENDPOINT_HELP}")
         return v
-    if v.startswith("/dev/") or v.upper().startswith("COM"):
+    # an absolute path: /dev/ttyAMA0, a udev link /dev/serial/by-id/..., a pty link elsewhere
+    if v.startswith("/") or v.upper().startswith("COM"):
         device, sep, baud = v.partition(",")
         if sep and (not baud.isdigit() or not 50 <= int(baud) <= 20_000_000):
             raise ConfigError(f"{key}: {v!r} has baud {baud!r}; accepted: {_ENDPOINT_HELP}")

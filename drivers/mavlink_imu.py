@@ -261,7 +261,8 @@ class MavlinkImuSource(ImuSource):
 
     def _update_diagnostics(self) -> None:
         d, s = self.diagnostics, self.link.stats
-        d.device_lost = self.link.state == "lost"
+        # lost, or a device that has not opened since the start
+        d.device_lost = self.link.state == "lost" or (self.link.state == "waiting" and s.open_failures > 0)
         d.bus_errors = s.read_errors + s.send_errors
         d.reinitialisations = s.reopens
         d.dropped_frames = s.bad_data

@@ -58,7 +58,7 @@ def broad_segment(broad_dir):
     rec = Recording.uniform(rows[:, _R.gyr], rows[:, _R.acc], rows[:, _R.mag], np.tile([1.0, 0, 0, 0], (len(rows), 1)),
                             period_us)
     gyr, acc, mag = rec.wire_values()
-    rec.q = estimators.run("mahony", gyr, acc, mag, rate_hz=1e6 / period_us)
+    rec.q = estimators.run("mahony_passive", gyr, acc, mag, rate_hz=1e6 / period_us)
     return rec
 
 
@@ -218,15 +218,20 @@ def test_serial_device_vanishing_and_coming_back(tmp_path, broad_segment):
         rig.run_to_end(expected=0)
         svc = rig.service
         link = svc.source.autopilot_link
-        lost_in_pause = rig.sim.stats.imu_dropped
-        assert lost_in_pause > 100
+        dropped = rig.sim.stats.imu_dropped  # not sent while the device was unplugged
+        assert dropped > 100
+        n = len(rec.rel_us)
         end = time.monotonic() + 10.0
-        while svc.pipeline.samples < len(rec.rel_us) - lost_in_pause and time.monotonic() < end:
+        while svc.pipeline.samples + svc.source.diagnostics.lost.gap < n and time.monotonic() < end:
             time.sleep(0.02)
-        assert svc.pipeline.samples == len(rec.rel_us) - lost_in_pause
-        assert svc.source.diagnostics.lost.gap == lost_in_pause
+        # every sample is estimated or counted lost; the lost ones are those the autopilot did
+        # not send plus those it wrote before the device was opened again (opening a serial
+        # port discards its input, as on hardware)
+        assert svc.pipeline.samples + svc.source.diagnostics.lost.gap == n
+        assert svc.source.diagnostics.lost.gap >= dropped
+        assert svc.pipeline.samples > 300 + 100  # before the unplugging, and after
         assert link.stats.read_errors >= 1 and link.stats.reopens >= 1
-        assert link.stats.losses == 1 and link.stats.recoveries == 1
+        assert link.stats.losses >= 1 and link.stats.recoveries == 1
         # the stream is asked for again after the link came back
         assert len(rig.sim.stats.interval_requests) >= 2
     finally:
