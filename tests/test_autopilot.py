@@ -392,3 +392,72 @@ def test_config_checks_the_autopilot_keys():
         config_mod.validate({"source": {"type": "mavlink", "mavlink_raw_scale": {"acc": -1}}})
     with pytest.raises(config_mod.ConfigError, match=r"^source.mavlink_connection"):
         config_mod.validate({"source": {"type": "mavlink", "mavlink_connection": "udpin:127.0.0.1:99999"}})
+
+
+# ---------------------------------------------------------------------- behind a real MAVProxy
+
+
+def test_behind_mavproxy_between_a_serial_autopilot_and_a_ground_station(tmp_path, broad_segment):
+    """The vehicle's usual set-up: the autopilot on a serial port (a pty pair here), MAVProxy
+    on the companion routing it to the service and to a ground station over UDP; the
+    service's own telemetry enters MAVProxy on a second link and reaches the ground station."""
+    import subprocess
+
+    rec = broad_segment
+    script = Path(sys.executable).with_name("mavproxy.py")
+    if not script.exists():
+        pytest.skip("mavproxy not installed (pip install -e '.[test]')")
+    pty = PtyTransport(tmp_path)
+    service_in, service_out = free_udp_port(), free_udp_port()
+    gcs, gcs_port = make_gcs()
+    proxy = subprocess.Popen(
+        [sys.executable, str(script), f"--master={pty.url}", f"--master=udpin:127.0.0.1:{service_out}",
+         f"--out=udpout:127.0.0.1:{service_in}", f"--out=udpout:127.0.0.1:{gcs_port}", "--daemon",
+         "--non-interactive", "--default-modules=link", "--streamrate=-1", "--no-state", "--nodtr"],
+        cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    messages: list = []
+    stop = threading.Event()
+    listener = threading.Thread(target=drain, args=(gcs, messages, stop), daemon=True)
+    listener.start()
+    svc = thread = sim = None
+    try:
+        cfg = service_config(tmp_path, f"udpin:127.0.0.1:{service_in}", service_out, rec.period_us,
+                             mavlink={"identity": "companion", "system_id": 1, "endpoints": [f"udpout:127.0.0.1:{service_out}"]})
+        svc = Service(cfg, duration_s=90.0)
+        svc.start()
+        thread = threading.Thread(target=svc.run, daemon=True)
+        thread.start()
+        # a bounded wait for MAVProxy to start (its imports take seconds on a loaded host)
+        sim = SimAutopilot(pty, rec, time_limit_s=60.0).start()
+        assert sim.join(90.0)
+        n = len(rec.rel_us)
+        end = time.monotonic() + 10.0
+        while svc.pipeline.samples + svc.source.diagnostics.lost.total < n and time.monotonic() < end:
+            time.sleep(0.02)
+        time.sleep(0.5)
+        assert svc.source.autopilot_link.autopilot.kind == "px4"
+        # the stream request went through MAVProxy to the autopilot
+        assert (mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU, 3500.0) in sim.stats.interval_requests
+        assert svc.pipeline.samples + svc.source.diagnostics.lost.total == n
+        assert svc.pipeline.samples > 0.9 * n
+    finally:
+        if svc is not None:
+            svc.request_stop()
+            thread.join(10)
+            svc.close()
+        if sim is not None:
+            sim.stop()
+        proxy.terminate()
+        try:
+            proxy.wait(10)
+        except subprocess.TimeoutExpired:
+            proxy.kill()
+            proxy.wait(5)
+        stop.set()
+        listener.join(2)
+        gcs.close()
+    ours = [m for m in messages if m.get_type() == "ATTITUDE" and m.get_srcComponent() == mavlink2.MAV_COMP_ID_IMU]
+    autopilot = [m for m in messages if m.get_type() == "HIGHRES_IMU" and m.get_srcComponent() == 1]
+    assert len(ours) >= 10  # the service's ATTITUDE, through MAVProxy
+    assert len(autopilot) > 0.5 * len(rec.rel_us)  # the autopilot's own stream, routed beside it
+    assert _named(messages, "ATT_DIFF")
