@@ -8,8 +8,8 @@ service keeps to the flight controller). ``source.mavlink_imu`` picks the messag
 ======== ============= ==================================================================
 key      message       units on the wire → ours
 ======== ============= ==================================================================
-highres  HIGHRES_IMU   m/s², rad/s, gauss (×100 → µT), °C; ``time_usec`` µs;
-                       ``fields_updated`` bits 6–8 mark a new magnetometer reading
+highres  HIGHRES_IMU   m/s², rad/s, gauss (×100 → µT; ArduPilot: see below), °C;
+                       ``time_usec`` µs; ``fields_updated`` bits 6–8: new field reading
 scaled   SCALED_IMU    mG (×9.80665e-3 → m/s²), mrad/s (×1e-3), mgauss (×0.1 → µT),
 scaled2  SCALED_IMU2   cdegC; ``time_boot_ms`` ms (coarse: fine to ~200 Hz)
 scaled3  SCALED_IMU3
@@ -20,7 +20,8 @@ raw      RAW_IMU       counts × ``source.mavlink_raw_scale`` (acc, gyr, mag per
 What the autopilots send (docs/autopilot.md cites the functions): PX4 streams HIGHRES_IMU
 (``MavlinkStreamHighresIMU``, from ``vehicle_imu``/``sensor_combined``) and SCALED_IMU*
 but not RAW_IMU; ArduPilot sends all of them, RAW_IMU with the same mG/mrad/s/mgauss scale as
-SCALED_IMU, which is the default ``mavlink_raw_scale``. Every reading is FRD body axes of the
+SCALED_IMU, which is the default ``mavlink_raw_scale``, and its HIGHRES_IMU field in units of
+1e-3 mgauss (:data:`ARDUPILOT_HIGHRES_MAG_TO_UT`, applied when the HEARTBEAT says ArduPilot). Every reading is FRD body axes of the
 autopilot, specific force (−g on z at rest), the service's own convention.
 
 Times: each message carries the autopilot's time of the sample. Those times go through the
@@ -74,6 +75,11 @@ IMU_MESSAGES = {
 #: ArduPilot's RAW_IMU scale (the SCALED_IMU units): m/s², rad/s, µT per count
 ARDUPILOT_RAW_SCALE = {"acc": G * 1e-3, "gyr": 1e-3, "mag": MGAUSS_TO_UT}
 
+#: ArduPilot's HIGHRES_IMU field: GCS_MAVLINK::send_highres_imu (libraries/GCS_MAVLink/
+#: GCS_Common.cpp) sends Compass::get_field() (milligauss) × 1000 although the message
+#: defines gauss, so one unit is 1e-3 mgauss = 1e-4 µT
+ARDUPILOT_HIGHRES_MAG_TO_UT = 1e-4
+
 #: no IMU message this long after a request: ask again, s
 REQUEST_RETRY_S = 1.0
 #: a jump of the autopilot's time beyond this (or backwards) is a new timeline, not lost samples
@@ -107,10 +113,11 @@ class _Reading:
     temperature_c: float | None
 
 
-def decode_highres(msg: Any) -> _Reading:
-    """HIGHRES_IMU (#105): m/s², rad/s, gauss, °C; the magnetometer counts as new only when
-    ``fields_updated`` says so."""
-    mag = np.array([msg.xmag, msg.ymag, msg.zmag], dtype=float) * GAUSS_TO_UT
+def decode_highres(msg: Any, mag_to_ut: float = GAUSS_TO_UT) -> _Reading:
+    """HIGHRES_IMU (#105): m/s², rad/s, field × ``mag_to_ut`` (gauss by the message's
+    definition: ×100; see :data:`ARDUPILOT_HIGHRES_MAG_TO_UT`), °C; the magnetometer counts as
+    new only when ``fields_updated`` says so."""
+    mag = np.array([msg.xmag, msg.ymag, msg.zmag], dtype=float) * mag_to_ut
     return _Reading(int(msg.time_usec), np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=float),
                     np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float), mag,
                     bool(int(msg.fields_updated) & _HIGHRES_MAG_BITS), float(msg.temperature))
@@ -182,7 +189,9 @@ class MavlinkImuSource(ImuSource):
     # ------------------------------------------------------------------ reader thread
     def _decode(self, msg: Any) -> _Reading:
         if self.message == "highres":
-            return decode_highres(msg)
+            ap = self.link.autopilot
+            kind = ap.kind if ap is not None else ""
+            return decode_highres(msg, ARDUPILOT_HIGHRES_MAG_TO_UT if kind == "ardupilot" else GAUSS_TO_UT)
         if self.message == "raw":
             return decode_raw(msg, self.raw_scale)
         return decode_scaled(msg)

@@ -57,10 +57,19 @@ class Recording:
                    np.asarray(acc, np.float32), (np.asarray(mag_ut) / 100.0).astype(np.float32),
                    np.asarray(q, float))
 
-    def wire_values(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """gyr rad/s, acc m/s², mag µT as the service decodes HIGHRES_IMU (float64 of the
-        float32 values; the field ×100 from gauss)."""
-        return (self.gyr.astype(np.float64), self.acc.astype(np.float64), self.mag_gauss.astype(np.float64) * 100.0)
+    def highres_mag(self, kind: str) -> np.ndarray:
+        """HIGHRES_IMU's field values as the autopilot sends them (float32): gauss (PX4), or
+        ArduPilot's mgauss × 1000 (GCS_MAVLINK::send_highres_imu)."""
+        if kind == "ardupilot":
+            return (self.mag_gauss.astype(np.float64) * 1e6).astype(np.float32)
+        return self.mag_gauss
+
+    def wire_values(self, kind: str = "px4") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """gyr rad/s, acc m/s², mag µT as the service decodes HIGHRES_IMU from ``kind``
+        (float64 of the float32 values; the field ×100 from gauss, ×1e-4 from ArduPilot's)."""
+        scale = 1e-4 if kind == "ardupilot" else 100.0
+        return (self.gyr.astype(np.float64), self.acc.astype(np.float64),
+                self.highres_mag(kind).astype(np.float64) * scale)
 
 
 class UdpTransport:
@@ -179,6 +188,7 @@ class SimAutopilot:
         self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self.mav.robust_parsing = True
         self.drop = frozenset(drop)
+        self.highres_mag = recording.highres_mag(kind)
         self.attitude_period_us = int(1e6 / attitude_hz)
         self.q_offset = np.array([np.cos(np.radians(attitude_offset_deg) / 2), 0.0, 0.0,
                                   np.sin(np.radians(attitude_offset_deg) / 2)])
@@ -213,6 +223,7 @@ class SimAutopilot:
     def _send_imu(self, i: int) -> None:
         t_us = self.sample_time_us(i)
         g, a, m = self.rec.gyr[i], self.rec.acc[i], self.rec.mag_gauss[i]
+        hm = self.highres_mag[i]
         for name, msg_id in (("HIGHRES_IMU", mavlink.MAVLINK_MSG_ID_HIGHRES_IMU),
                              ("SCALED_IMU", mavlink.MAVLINK_MSG_ID_SCALED_IMU)):
             interval = self.intervals.get(msg_id, 0.0)
@@ -224,7 +235,7 @@ class SimAutopilot:
             if name == "HIGHRES_IMU":
                 msg = mavlink.MAVLink_highres_imu_message(
                     t_us, float(a[0]), float(a[1]), float(a[2]), float(g[0]), float(g[1]), float(g[2]),
-                    float(m[0]), float(m[1]), float(m[2]), 1013.0, 0.0, 0.0, 25.0, 0x1FFF, 0)
+                    float(hm[0]), float(hm[1]), float(hm[2]), 1013.0, 0.0, 0.0, 25.0, 0x1FFF, 0)
             else:
                 msg = mavlink.MAVLink_scaled_imu_message(
                     t_us // 1000, *(int(round(x / G * 1000)) for x in a), *(int(round(x * 1000)) for x in g),

@@ -200,8 +200,9 @@ def test_pty_serial_autopilot_drops_counted_and_estimate_bit_identical(tmp_path,
         rig.close()
     log = rig.log()
     keep = np.setdiff1d(np.arange(len(rec.rel_us)), sorted(drop))
-    # the samples around a loss keep the autopilot's spacing: the estimator integrates the gap
-    gyr, acc, mag = rec.wire_values()
+    # the samples around a loss keep the autopilot's spacing: the estimator integrates the gap;
+    # ArduPilot's field unit in HIGHRES_IMU is its own (drivers/mavlink_imu.py)
+    gyr, acc, mag = rec.wire_values("ardupilot")
     dt = np.diff(rec.rel_us[keep] * 1000) * 1e-9
     first_dt = 1.0 / (1e6 / rec.period_us)  # the service's nominal period for the first sample
     q_ref = estimators.create(ESTIMATOR).run(gyr[keep], acc[keep], mag[keep], dt=np.concatenate([[first_dt], dt]))
