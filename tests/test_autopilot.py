@@ -160,6 +160,11 @@ def test_udp_autopilot_highres_imu_estimates_bit_identical_and_monitor_agrees(tm
         assert rig.sim.stats.interval_requests[0] == (mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU, 3500.0)
         assert svc.pipeline.samples == len(rec.rel_us)
         assert svc.source.diagnostics.lost.total == 0
+        # TIMESYNC with the autopilot converged; its clock is ours minus its boot time
+        assert link.timesync.synced and rig.sim.stats.timesync_replies >= 5
+        assert abs(link.timesync.offset_ns + rig.sim.boot_ns) < 2_000_000
+        # the samples' times on our clock within 2 ms of when the autopilot took them
+        assert abs(link.timeline.offset_ns - rig.sim.boot_ns) < 2_000_000
         monitor = svc.monitor
         assert monitor.compared > 0.8 * rig.sim.stats.attitudes
         assert monitor.warnings == 0
@@ -178,6 +183,12 @@ def test_udp_autopilot_highres_imu_estimates_bit_identical_and_monitor_agrees(tm
     assert not [m for m in rig.gcs_messages if m.get_type() == "STATUSTEXT" and "autopilot" in m.text]
     assert log.counts.get("/monitor", 0) == monitor.compared
     assert log.counts.get("/autopilot/attitude", 0) == monitor.compared
+    # a second body for Foxglove's 3-D panel: frame "autopilot" beside "body" in "ned"
+    from ahrs_service.logs.reader import MessageSource
+    from ahrs_service.logs.schemas import decode
+
+    children = [decode(data)["child_frame_id"] for topic, _, _, data in MessageSource(log.path) if topic == "/tf"]
+    assert children.count("autopilot") == monitor.compared and "body" in children
 
 
 def test_pty_serial_autopilot_drops_counted_and_estimate_bit_identical(tmp_path, broad_segment):

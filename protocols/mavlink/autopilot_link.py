@@ -41,6 +41,7 @@ from typing import Any, Callable, Iterable
 
 from ahrs_service.protocols.mavlink.dialect import mavlink
 from ahrs_service.protocols.mavlink.endpoints import Endpoint
+from ahrs_service.protocols.mavlink.timesync import REQUEST_RATE_HZ, TimeSync
 
 #: no message for this long: the link counts as lost (autopilots beat at 1 Hz, stream faster)
 SILENCE_S = 2.0
@@ -116,8 +117,8 @@ class RemoteTimeline:
     local_ns = remote_us · 1000 + offset_ns, with one *held* offset: it is taken from the best
     estimate available when the first time is mapped and then kept, so consecutive samples keep
     exactly the spacing the autopilot's clock gave them (the estimator integrates that spacing).
-    The estimate is the TIMESYNC one when a synchronised :class:`TimeSync`-like object is
-    attached (``to_local_ns``/``synced``, protocols/mavlink/timesync.py), else the smallest
+    The estimate is the TIMESYNC one when the attached :class:`TimeSync`
+    (protocols/mavlink/timesync.py, used under ``timesync_lock``) is synced, else the smallest
     ``arrival − remote time`` of the last few seconds (the latency floor of the link). When the
     estimate moves more than ``deadband_ns`` away from the held offset (clock drift, a better
     sync), the held offset slews towards it by at most ``slew_ppm`` of the elapsed remote time;
@@ -129,7 +130,8 @@ class RemoteTimeline:
         self.deadband_ns = int(deadband_ns)
         self.slew = float(slew_ppm) * 1e-6
         self.step_ns = int(step_ns)
-        self.timesync: Any = None
+        self.timesync: TimeSync | None = None
+        self.timesync_lock = threading.Lock()
         self.offset_ns: int | None = None
         self.steps = 0
         self._bin_ns = int(window_s * 1e9 / 4)
@@ -151,8 +153,10 @@ class RemoteTimeline:
     def estimate_ns(self, remote_us: int) -> int | None:
         """The best current estimate of local − remote, ns (None before any arrival)."""
         ts = self.timesync
-        if ts is not None and getattr(ts, "synced", False):
-            return int(ts.to_local_ns(int(remote_us))) - int(remote_us) * 1000
+        if ts is not None:
+            with self.timesync_lock:
+                if ts.synced:
+                    return int(ts.to_local_ns(int(remote_us))) - int(remote_us) * 1000
         with self._lock:
             return min(o for _, o in self._bins) if self._bins else None
 
@@ -204,7 +208,14 @@ class AutopilotLink:
         self.silence_ns = int(silence_s * 1e9)
         self.reopen_ns = int(reopen_s * 1e9)
         self.stats = LinkStats()
+        #: TIMESYNC with the autopilot: requested at REQUEST_RATE_HZ by the reader thread once an
+        #: autopilot was heard, its replies and requests handled there on arrival. Other threads
+        #: (ODOMETRY's time stamps) use it under ``timesync_lock``.
+        self.timesync = TimeSync()
         self.timeline = RemoteTimeline()
+        self.timeline.timesync = self.timesync
+        self.timesync_lock = self.timeline.timesync_lock
+        self._next_timesync_ns = 0
         self.autopilot: AutopilotInfo | None = None
         #: increments each time the link comes up (first message, after silence, after a re-open)
         self.session = 0
@@ -306,6 +317,11 @@ class AutopilotLink:
                 continue
             if self.state == "up" and self.last_rx_ns is not None and now - self.last_rx_ns > self.silence_ns:
                 self._went_lost(f"silent for {(now - self.last_rx_ns) / 1e9:.1f} s")
+            if self.autopilot is not None and self.state == "up" and now >= self._next_timesync_ns:
+                self._next_timesync_ns = now + int(1e9 / REQUEST_RATE_HZ)
+                with self.timesync_lock:
+                    request = self.timesync.request(time.monotonic_ns())
+                self.send(request.encode())
             try:
                 fd = ep.conn.port.fileno()
                 ready, _, _ = select.select([fd], [], [], POLL_S)
@@ -358,6 +374,11 @@ class AutopilotLink:
             self.autopilot = AutopilotInfo.from_heartbeat(msg)
         ap = self.autopilot
         from_ap = ap is not None and msg.get_srcSystem() == ap.system_id and msg.get_srcComponent() == ap.component_id
+        if name == "TIMESYNC" and from_ap:
+            with self.timesync_lock:
+                answer = self.timesync.handle(msg, rx_ns)
+            if answer is not None:  # the autopilot asked us: answer at once
+                self.send(answer.encode())
         for sub in self._subs:
             if name in sub.names and (from_ap or not sub.autopilot_only):
                 try:
