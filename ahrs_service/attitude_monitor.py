@@ -134,6 +134,14 @@ class EstimateHistory:
 
 
 @dataclass(frozen=True, slots=True)
+class _AutopilotAttitude:
+    """One attitude message of the autopilot, as received (link thread)."""
+
+    time_boot_ms: int
+    q: tuple[float, float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
 class MonitorEvent:
     """A text for the operator: STATUSTEXT ``severity`` (4 warning, 6 info) and its text."""
 
@@ -153,16 +161,20 @@ class AttitudeMonitor:
         self.threshold_deg = float(threshold_deg)
         self.hold_ns = int(hold_s * 1e9)
         self.history = EstimateHistory()
-        self._inbox: collections.deque[tuple[str, int, tuple[float, float, float, float]]] = \
-            collections.deque(maxlen=256)
+        self._inbox: collections.deque[_AutopilotAttitude] = collections.deque(maxlen=256)
         self._quaternions_seen = False
         self.latest: Disagreement | None = None
         self.warning = False
         self._above_since_ns: int | None = None
+        self.received = 0  # autopilot attitudes taken from the link
         self.compared = 0  # autopilot attitudes compared
         self.unmatched = 0  # autopilot attitudes outside the estimate history (too old, too new, no time map)
         self.warnings = 0
         link.subscribe(["ATTITUDE_QUATERNION", "ATTITUDE"], self._on_attitude)
+
+    def close(self) -> None:
+        """Stops taking the autopilot's attitude (a reload that replaces or disables the monitor)."""
+        self.link.unsubscribe(self._on_attitude)
 
     def _on_attitude(self, msg: Any, rx_ns: int) -> None:
         """Link thread: keep the message's time and quaternion for :meth:`update`."""
@@ -173,7 +185,8 @@ class AttitudeMonitor:
             return  # both streams on: the quaternion is the exact one
         else:
             q = tuple(quat_from_euler(float(msg.roll), float(msg.pitch), float(msg.yaw)))
-        self._inbox.append((msg.get_type(), int(msg.time_boot_ms), q))  # type: ignore[arg-type]
+        self._inbox.append(_AutopilotAttitude(int(msg.time_boot_ms), q))  # type: ignore[arg-type]
+        self.received += 1
 
     def add_estimate(self, t_ns: int, q: Any) -> None:
         """Our estimate q_earth←body (magnetic north, as the estimator keeps it) at ``t_ns``."""
@@ -188,8 +201,9 @@ class AttitudeMonitor:
         events: list[MonitorEvent] = []
         newest = self.history.t[(self.history.head - 1) % self.history.size] if self.history.n else None
         while self._inbox:
-            name, time_ms, q_ap = self._inbox[0]
-            t_ns = self.link.timeline.peek_local_ns(time_ms * 1000)
+            att = self._inbox[0]
+            q_ap = att.q
+            t_ns = self.link.timeline.peek_local_ns(att.time_boot_ms * 1000)
             if t_ns is not None and newest is not None and t_ns > newest:
                 break  # our estimate for that time is not there yet
             self._inbox.popleft()

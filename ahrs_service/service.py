@@ -101,6 +101,9 @@ class Service:
 
     def _open_monitor(self, cfg: config_mod.Config) -> None:
         """The attitude monitor, when the source has an autopilot link (source.type = "mavlink")."""
+        if self.monitor is not None:  # a reload with other [monitor] settings
+            self.monitor.close()
+            self.monitor = None
         link = getattr(self.source, "autopilot_link", None)
         if link is None or not cfg.monitor["enabled"]:
             return
@@ -314,6 +317,7 @@ class Service:
                 self._reload = False
                 self.reload()
                 sched, pipeline, writer, live = self.scheduler, self.pipeline, self.log_writer, self.live
+                monitor = self.monitor
                 was_reduced = pipeline.reduced  # a new pipeline starts in full form
                 _freeze_heap()
             if end_ns is not None and now >= end_ns:
@@ -534,6 +538,8 @@ class Service:
             # another filter has other EST_* parameters: the table is rebuilt with the component
             self.mavlink.close()
             self._open_mavlink(new)
+        if new.monitor != old_cfg.monitor:
+            self._open_monitor(new)
         if new.live != old_cfg.live:  # a new address, rate, or switched on or off
             if self.live is not None:
                 self.live.close()

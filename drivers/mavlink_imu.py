@@ -102,6 +102,14 @@ class RawScale:
 
 
 @dataclass(slots=True)
+class _Queued:
+    """A stamped sample waiting for the loop, with the samples lost just before it."""
+
+    sample: ImuSample
+    lost_before: int
+
+
+@dataclass(slots=True)
 class _Reading:
     """One decoded IMU message, on the autopilot's clock."""
 
@@ -163,7 +171,7 @@ class MavlinkImuSource(ImuSource):
         self.raw_scale = raw_scale or RawScale(**ARDUPILOT_RAW_SCALE)
         self.own_link = own_link
         self.has_mag = True
-        self._queue: collections.deque[tuple[ImuSample, int]] = collections.deque(maxlen=QUEUE_SAMPLES)
+        self._queue: collections.deque[_Queued] = collections.deque(maxlen=QUEUE_SAMPLES)
         self._clock: SampleClock | None = None
         self._index = 0
         self._warmup: list[_Reading] = []
@@ -250,7 +258,7 @@ class MavlinkImuSource(ImuSource):
         if len(self._queue) == self._queue.maxlen:
             self.queue_overflows += 1
             self.diagnostics.lost.host_stall += 1
-        self._queue.append((ImuSample(t_ns, r.gyr, r.acc, mag, flags, temperature_c=r.temperature_c), lost))
+        self._queue.append(_Queued(ImuSample(t_ns, r.gyr, r.acc, mag, flags, temperature_c=r.temperature_c), lost))
 
     # ------------------------------------------------------------------ loop thread
     def _request_stream(self) -> None:
@@ -279,21 +287,20 @@ class MavlinkImuSource(ImuSource):
         d.extra.update(link_losses=s.losses, link_recoveries=s.recoveries, stream_requests=self.requests,
                        timeline_resets=self.timeline_resets, clock_steps=self.link.timeline.steps)
 
-    def _pop(self) -> tuple[ImuSample, int] | None:
+    def _pop(self) -> _Queued | None:
         try:
-            sample, lost = self._queue.popleft()
+            item = self._queue.popleft()
         except IndexError:
             return None
         self.diagnostics.samples += 1
-        if lost:
-            self.diagnostics.lost.gap += lost
-        return sample, lost
+        self.diagnostics.lost.gap += item.lost_before
+        return item
 
     def read(self) -> ImuSample | None:
         self._request_stream()
         self._update_diagnostics()
-        got = self._pop()
-        return None if got is None else got[0]
+        item = self._pop()
+        return None if item is None else item.sample
 
     def read_block(self, max_samples: int = 64) -> SampleBlock:
         """The queued samples, oldest first, ending before a loss (the loss opens the next block)."""
@@ -302,12 +309,14 @@ class MavlinkImuSource(ImuSource):
         samples: list[ImuSample] = []
         lost_before = LossCounts()
         while len(samples) < max_samples and self._queue:
-            if samples and self._queue[0][1]:
+            if samples and self._queue[0].lost_before:
                 break  # a gap: the next block starts with it
-            sample, lost = self._pop()  # type: ignore[misc]
+            item = self._pop()
+            if item is None:
+                break
             if not samples:
-                lost_before.gap = lost
-            samples.append(sample)
+                lost_before.gap = item.lost_before
+            samples.append(item.sample)
         return SampleBlock.from_samples(samples, lost_before)
 
     def close(self) -> None:

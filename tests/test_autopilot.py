@@ -473,3 +473,60 @@ def test_behind_mavproxy_between_a_serial_autopilot_and_a_ground_station(tmp_pat
     assert len(ours) >= 10  # the service's ATTITUDE, through MAVProxy
     assert len(autopilot) > 0.5 * len(rec.rel_us)  # the autopilot's own stream, routed beside it
     assert _named(messages, "ATT_DIFF")
+
+
+def test_link_port_in_use_is_one_clear_error(tmp_path):
+    blocker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    blocker.bind(("127.0.0.1", 0))
+    port = blocker.getsockname()[1]
+    try:
+        svc = Service(service_config(tmp_path, f"udpin:127.0.0.1:{port}", free_udp_port(), 5000))
+        with pytest.raises(OSError, match=rf"cannot open MAVLink endpoint 'udpin:127.0.0.1:{port}'"):
+            svc.start()
+        svc.close()
+    finally:
+        blocker.close()
+
+
+def test_reload_applies_the_monitor_settings(tmp_path):
+    port = free_udp_port()
+    path = tmp_path / "ahrs.toml"
+
+    def write(threshold: float, enabled: bool = True) -> None:
+        path.write_text(f"""
+[source]
+type = "mavlink"
+mavlink_connection = "udpin:127.0.0.1:{port}"
+[mavlink]
+endpoints = ["udpout:127.0.0.1:{free_udp_port()}"]
+[log]
+enabled = false
+[monitor]
+enabled = {str(enabled).lower()}
+threshold_deg = {threshold}
+""")
+
+    write(5.0)
+    svc = Service(config_mod.load(path))
+    svc.start()
+    try:
+        first = svc.monitor
+        assert first.threshold_deg == 5.0
+        write(12.5)
+        svc.reload()
+        assert svc.monitor is not first and svc.monitor.threshold_deg == 12.5
+        # the autopilot's attitude reaches the new monitor, no longer the replaced one
+        ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.sendto(mavlink2.MAVLink_heartbeat_message(2, 12, 0, 0, 4, 3).pack(ap), ("127.0.0.1", port))
+        sock.sendto(_att(10, (1.0, 0.0, 0.0, 0.0)).pack(ap), ("127.0.0.1", port))
+        sock.close()
+        end = time.monotonic() + 5.0
+        while svc.monitor.received == 0 and time.monotonic() < end:
+            time.sleep(0.01)
+        assert svc.monitor.received == 1 and first.received == 0
+        write(12.5, enabled=False)
+        svc.reload()
+        assert svc.monitor is None
+    finally:
+        svc.close()

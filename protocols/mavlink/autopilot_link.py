@@ -231,9 +231,13 @@ class AutopilotLink:
     # ------------------------------------------------------------------ set-up
     def subscribe(self, names: Iterable[str], sink: Sink, *, autopilot_only: bool = True) -> None:
         """Calls ``sink(msg, rx_ns)`` on the reader thread for every message named in ``names``
-        (``autopilot_only``: only those the detected autopilot sent). Subscribe before
-        :meth:`open`."""
-        self._subs.append(_Subscription(frozenset(names), sink, autopilot_only))
+        (``autopilot_only``: only those the detected autopilot sent). Any thread, any time."""
+        # a new list, not an append: the reader thread iterates the old one meanwhile
+        self._subs = [*self._subs, _Subscription(frozenset(names), sink, autopilot_only)]
+
+    def unsubscribe(self, sink: Sink) -> None:
+        """Stops calling ``sink`` (any thread; a message being dispatched may still reach it)."""
+        self._subs = [sub for sub in self._subs if sub.sink != sink]
 
     def open(self) -> None:
         """Opens the connection and starts the reader thread. A connection string that cannot be
