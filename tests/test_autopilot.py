@@ -530,3 +530,39 @@ threshold_deg = {threshold}
         assert svc.monitor is None
     finally:
         svc.close()
+
+
+def test_scaled_imu_from_a_1khz_recording_at_the_rate_asked_for():
+    """SCALED_IMU (mG, mrad/s, mgauss, ms times) asked for at 500 Hz from an autopilot whose
+    IMU runs at 1 kHz: it sends every other sample, and the source measures that rate."""
+    n, period_us = 2000, 1000
+    rng = np.random.default_rng(2)
+    gyr = rng.normal(0, 0.5, (n, 3))
+    acc = np.array([0.0, 0.0, -9.81]) + rng.normal(0, 0.3, (n, 3))
+    rec = Recording.uniform(gyr, acc, np.tile([20.0, 1.0, 45.0], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)), period_us)
+    port = free_udp_port()
+    link = AutopilotLink(f"udpin:127.0.0.1:{port}")
+    src = MavlinkImuSource(link, message="scaled", rate_hz=500.0)
+    src.open()
+    sim = SimAutopilot(UdpTransport(port), rec, kind="ardupilot").start()
+    got = []
+    try:
+        end = time.monotonic() + 20.0
+        while time.monotonic() < end and len(got) < n // 2:
+            block = src.read_block()
+            got.extend(block.samples()) if len(block) else time.sleep(0.005)
+    finally:
+        sim.stop()
+        src.close()
+    assert sim.stats.interval_requests[0] == (mavlink2.MAVLINK_MSG_ID_SCALED_IMU, 2000.0)
+    assert sim.stats.imu_sent["SCALED_IMU"] == n // 2 == len(got)
+    assert src.diagnostics.lost.total == 0
+    assert set(np.diff([s.t_ns for s in got]).tolist()) == {2_000_000}
+    sent = slice(0, n, 2)
+    # the wire's integers: mG, mrad/s, mgauss, back in SI
+    want_acc = np.round(rec.acc[sent].astype(float) / 9.80665 * 1000) * 9.80665e-3
+    want_gyr = np.round(rec.gyr[sent].astype(float) * 1000) * 1e-3
+    assert np.allclose([s.acc for s in got], want_acc, rtol=0, atol=1e-12)
+    assert np.allclose([s.gyr for s in got], want_gyr, rtol=0, atol=1e-12)
+    assert np.allclose([s.mag for s in got], [20.0, 1.0, 45.0], rtol=0, atol=0.05)
+    assert got[0].temperature_c == pytest.approx(25.0)
