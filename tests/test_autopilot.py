@@ -566,3 +566,29 @@ def test_scaled_imu_from_a_1khz_recording_at_the_rate_asked_for():
     assert np.allclose([s.gyr for s in got], want_gyr, rtol=0, atol=1e-12)
     assert np.allclose([s.mag for s in got], [20.0, 1.0, 45.0], rtol=0, atol=0.05)
     assert got[0].temperature_c == pytest.approx(25.0)
+
+
+def test_udpout_link_announces_itself_so_a_listening_autopilot_answers():
+    """``udpout:`` to an autopilot (or router) that only listens: our HEARTBEAT tells it
+    where we are; its stream follows the request."""
+    n = 400
+    rec = Recording.uniform(np.zeros((n, 3)), np.tile([0.0, 0.0, -9.81], (n, 1)), np.tile([20.0, 0.0, 45.0], (n, 1)),
+                            np.tile([1.0, 0, 0, 0], (n, 1)), 5000)
+    transport = UdpTransport(free_udp_port())  # nobody there: it hears from us first
+    link = AutopilotLink(f"udpout:127.0.0.1:{transport.sock.getsockname()[1]}")
+    src = MavlinkImuSource(link, rate_hz=200.0)
+    src.open()
+    sim = SimAutopilot(transport, rec).start()
+    got = 0
+    try:
+        end = time.monotonic() + 15.0
+        while time.monotonic() < end and got < n:
+            block = src.read_block()
+            got += len(block)
+            if not len(block):
+                time.sleep(0.005)
+    finally:
+        sim.stop()
+        src.close()
+    assert sim.stats.received.get("HEARTBEAT", 0) >= 1
+    assert link.autopilot is not None and got == n

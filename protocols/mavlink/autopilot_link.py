@@ -21,6 +21,9 @@ What it detects and survives:
 * **silence** (a UDP peer gone, a cable pulled): no message for ``silence_s`` makes the link
   *lost* (``stats.losses``); the next message makes it *up* again (``stats.recoveries``) and
   starts a new ``session`` — users that configured the autopilot (stream intervals) do it again;
+* **where we are**: our own HEARTBEAT (a companion component, ``MAV_TYPE_IMU``) goes out every
+  ``HEARTBEAT_S``, so an autopilot or router reached with ``udpout:``/``tcp:`` learns our
+  address before it has sent anything;
 * **a vanished device** (a USB serial adapter unplugged, the pty closed): a read error or an
   end of file closes the connection and re-opens it every ``reopen_s`` until it opens
   (``stats.read_errors``, ``stats.reopens``, ``stats.open_failures``).
@@ -41,6 +44,7 @@ from typing import Any, Callable, Iterable
 
 from ahrs_service.protocols.mavlink.dialect import mavlink
 from ahrs_service.protocols.mavlink.endpoints import Endpoint
+from ahrs_service.protocols.mavlink.identity import Identity, encode_heartbeat
 from ahrs_service.protocols.mavlink.timesync import REQUEST_RATE_HZ, TimeSync
 
 #: no message for this long: the link counts as lost (autopilots beat at 1 Hz, stream faster)
@@ -49,6 +53,9 @@ SILENCE_S = 2.0
 REOPEN_S = 0.5
 #: how long one wait on the file descriptor lasts, s (bounds the reaction to stop() and silence)
 POLL_S = 0.05
+#: our HEARTBEAT on the link, s: a ``udpout:``/``tcp:`` autopilot (or router) learns where we are
+#: from it before we have heard anything, and autopilots route to components they have heard
+HEARTBEAT_S = 1.0
 #: messages parsed per read at most (a read of 4 kB holds at most ~90 MAVLink frames)
 _MAX_PER_READ = 256
 
@@ -216,6 +223,10 @@ class AutopilotLink:
         self.timeline.timesync = self.timesync
         self.timesync_lock = self.timeline.timesync_lock
         self._next_timesync_ns = 0
+        self._next_heartbeat_ns = 0
+        # the service's address on this link: a component of the autopilot's vehicle (MAV_TYPE_IMU)
+        self._heartbeat = encode_heartbeat(Identity("companion", self.system_id, self.component_id),
+                                           mavlink.MAV_STATE_ACTIVE)
         self.autopilot: AutopilotInfo | None = None
         #: increments each time the link comes up (first message, after silence, after a re-open)
         self.session = 0
@@ -321,6 +332,9 @@ class AutopilotLink:
                 continue
             if self.state == "up" and self.last_rx_ns is not None and now - self.last_rx_ns > self.silence_ns:
                 self._went_lost(f"silent for {(now - self.last_rx_ns) / 1e9:.1f} s")
+            if now >= self._next_heartbeat_ns:
+                self._next_heartbeat_ns = now + int(HEARTBEAT_S * 1e9)
+                self.send(self._heartbeat)
             if self.autopilot is not None and self.state == "up" and now >= self._next_timesync_ns:
                 self._next_timesync_ns = now + int(1e9 / REQUEST_RATE_HZ)
                 with self.timesync_lock:
