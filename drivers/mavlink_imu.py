@@ -33,7 +33,8 @@ Exactly uniform autopilot times pass the sample clock bit for bit.
 
 The stream is asked for with SET_MESSAGE_INTERVAL at ``source.mavlink_imu_hz`` when the
 autopilot is first heard, again each time the link comes back, and again every
-``REQUEST_RETRY_S`` while no IMU message arrives.
+``REQUEST_RETRY_S`` while no IMU message arrives (a rebooted autopilot streams nothing until
+asked).
 """
 
 from __future__ import annotations
@@ -82,8 +83,9 @@ ARDUPILOT_HIGHRES_MAG_TO_UT = 1e-4
 
 #: no IMU message this long after a request: ask again, s
 REQUEST_RETRY_S = 1.0
-#: a jump of the autopilot's time beyond this (or backwards) is a new timeline, not lost samples
-MAX_GAP_S = 10.0
+#: a jump of the autopilot's time beyond this (or backwards: a reboot) is a new timeline, not
+#: lost samples; shorter gaps (a link down for minutes) are counted sample by sample
+MAX_GAP_S = 3600.0
 #: messages whose spacing sets the sample clock's period before the first sample is handed out
 WARMUP_MESSAGES = 16
 #: samples kept waiting for the loop at most (a loop stalled this long loses the oldest)
@@ -179,7 +181,7 @@ class MavlinkImuSource(ImuSource):
         self._stamped_ns = 0  # the newest stamped sample's autopilot time
         self._requested_session = -1
         self._requested_at_ns = 0
-        self._samples_at_request = 0
+        self._last_imu_rx_ns = 0  # arrival of the newest IMU message (reader thread)
         self.requests = 0  # SET_MESSAGE_INTERVAL commands sent
         self.timeline_resets = 0  # the autopilot's time jumped back or far ahead (reboot)
         self.queue_overflows = 0
@@ -207,6 +209,7 @@ class MavlinkImuSource(ImuSource):
     def _on_message(self, msg: Any, rx_ns: int) -> None:
         """An IMU message arrived (reader thread): decode, stamp, queue."""
         r = self._decode(msg)
+        self._last_imu_rx_ns = rx_ns
         self.link.timeline.arrival(r.remote_us, rx_ns)
         last = self._last_remote_ns
         remote_ns = r.remote_us * 1000
@@ -267,14 +270,15 @@ class MavlinkImuSource(ImuSource):
         if link.autopilot is None:
             return
         fresh_session = link.session != self._requested_session
-        silent = self.diagnostics.samples == self._samples_at_request and \
-            now - self._requested_at_ns > REQUEST_RETRY_S * 1e9
+        # no IMU message for a while, since the request or since the stream stopped (an
+        # autopilot that rebooted streams nothing until asked again)
+        last_heard = max(self._requested_at_ns, self._last_imu_rx_ns)
+        silent = now - last_heard > REQUEST_RETRY_S * 1e9
         if fresh_session or silent:
             if link.set_message_interval(self.msg_name, self.rate_hz):
                 self.requests += 1
             self._requested_session = link.session
             self._requested_at_ns = now
-            self._samples_at_request = self.diagnostics.samples
 
     def _update_diagnostics(self) -> None:
         d, s = self.diagnostics, self.link.stats
