@@ -58,6 +58,7 @@ from ahrs_service.drivers.base import (
     SampleBlock,
 )
 from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink
+from ahrs_service.protocols.mavlink.dialect import mavlink
 from ahrs_service.sample_clock import SampleClock
 
 G = 9.80665
@@ -185,7 +186,10 @@ class MavlinkImuSource(ImuSource):
         self.requests = 0  # SET_MESSAGE_INTERVAL commands sent
         self.timeline_resets = 0  # the autopilot's time jumped back or far ahead (reboot)
         self.queue_overflows = 0
+        self.refusals = 0  # SET_MESSAGE_INTERVAL answered with anything but ACCEPTED
+        self.refusal = ""  # the last refusal, for humans
         link.subscribe([self.msg_name], self._on_message)
+        link.subscribe(["COMMAND_ACK"], self._on_ack)
 
     @property
     def autopilot_link(self) -> AutopilotLink:
@@ -235,6 +239,15 @@ class MavlinkImuSource(ImuSource):
                 self._stamp(w)
             return
         self._stamp(r)
+
+    def _on_ack(self, msg: Any, rx_ns: int) -> None:
+        """The autopilot's answer to our stream request (reader thread): a refusal is counted
+        and named (an autopilot without that message, or a parameter limiting its rate)."""
+        if int(msg.command) != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL or int(msg.result) == mavlink.MAV_RESULT_ACCEPTED:
+            return
+        self.refusals += 1
+        result = mavlink.enums["MAV_RESULT"].get(int(msg.result))
+        self.refusal = f"autopilot refused {self.msg_name} at {self.rate_hz:g} Hz: {result.name if result else msg.result}"
 
     def _stamp(self, r: _Reading, first: bool = False) -> None:
         remote_ns = r.remote_us * 1000
@@ -287,9 +300,10 @@ class MavlinkImuSource(ImuSource):
         d.bus_errors = s.read_errors + s.send_errors
         d.reinitialisations = s.reopens
         d.dropped_frames = s.bad_data
-        d.last_error = s.last_error
+        d.last_error = self.refusal or s.last_error
         d.extra.update(link_losses=s.losses, link_recoveries=s.recoveries, stream_requests=self.requests,
-                       timeline_resets=self.timeline_resets, clock_steps=self.link.timeline.steps)
+                       timeline_resets=self.timeline_resets, clock_steps=self.link.timeline.steps,
+                       stream_refusals=self.refusals)
 
     def _pop(self) -> _Queued | None:
         try:

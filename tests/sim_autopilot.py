@@ -181,7 +181,7 @@ class SimAutopilot:
     def __init__(self, transport, recording: Recording, *, kind: str = "px4", system_id: int = 1,
                  component_id: int = 1, drop: frozenset[int] = frozenset(), attitude_hz: float = 50.0,
                  attitude_offset_deg: float = 0.0, pause: tuple[int, float] | None = None,
-                 time_limit_s: float = 30.0) -> None:
+                 refuse_streams: bool = False, time_limit_s: float = 30.0) -> None:
         self.t = transport
         self.rec = recording
         self.kind = kind
@@ -193,6 +193,7 @@ class SimAutopilot:
         self.q_offset = np.array([np.cos(np.radians(attitude_offset_deg) / 2), 0.0, 0.0,
                                   np.sin(np.radians(attitude_offset_deg) / 2)])
         self.pause = pause
+        self.refuse_streams = refuse_streams  # answer SET_MESSAGE_INTERVAL with DENIED, stream nothing
         self.time_limit_s = time_limit_s
         self.stats = SimStats()
         self.intervals: dict[int, float] = {}  # msg id -> µs (0 = off)
@@ -262,9 +263,11 @@ class SimAutopilot:
                 name = msg.get_type()
                 self.stats.received[name] = self.stats.received.get(name, 0) + 1
                 if name == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-                    self.intervals[int(msg.param1)] = float(msg.param2)
                     self.stats.interval_requests.append((int(msg.param1), float(msg.param2)))
-                    self.send(mavlink.MAVLink_command_ack_message(msg.command, mavlink.MAV_RESULT_ACCEPTED, 0, 0,
+                    if not self.refuse_streams:
+                        self.intervals[int(msg.param1)] = float(msg.param2)
+                    result = mavlink.MAV_RESULT_DENIED if self.refuse_streams else mavlink.MAV_RESULT_ACCEPTED
+                    self.send(mavlink.MAVLink_command_ack_message(msg.command, result, 0, 0,
                                                                   msg.get_srcSystem(), msg.get_srcComponent()))
                 elif name == "TIMESYNC" and msg.tc1 == 0:
                     self.send(mavlink.MAVLink_timesync_message(self.now_us() * 1000, msg.ts1))

@@ -626,3 +626,28 @@ def test_autopilot_reboot_starts_a_new_timeline_without_counting_losses():
     assert rebooted.stats.interval_requests  # asked again: the stream restarted
     t = np.array([s.t_ns for s in got])
     assert np.all(np.diff(t) > 0)
+
+
+def test_a_refused_stream_request_is_counted_named_and_asked_again():
+    n = 50
+    rec = Recording.uniform(np.zeros((n, 3)), np.tile([0.0, 0.0, -9.81], (n, 1)), np.tile([20.0, 0.0, 45.0], (n, 1)),
+                            np.tile([1.0, 0, 0, 0], (n, 1)), 5000)
+    port = free_udp_port()
+    link = AutopilotLink(f"udpin:127.0.0.1:{port}")
+    src = MavlinkImuSource(link, rate_hz=250.0)
+    src.open()
+    sim = SimAutopilot(UdpTransport(port), rec, refuse_streams=True, time_limit_s=2.5).start()
+    try:
+        end = time.monotonic() + 10.0
+        while time.monotonic() < end and src.refusals < 2:
+            assert src.read() is None
+            time.sleep(0.01)
+        sim.stop()  # no more answers: the counters settle
+        time.sleep(0.2)
+        assert src.read() is None  # the source's diagnostics are refreshed as it is read
+    finally:
+        sim.stop()
+        src.close()
+    assert src.refusals >= 2 and len(sim.stats.interval_requests) >= 2
+    assert src.diagnostics.last_error == "autopilot refused HIGHRES_IMU at 250 Hz: MAV_RESULT_DENIED"
+    assert src.diagnostics.extra["stream_refusals"] == src.refusals
