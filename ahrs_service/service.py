@@ -69,6 +69,7 @@ class Service:
         self.mavlink = None
         self.log_writer = None
         self.live = None  # the Foxglove live view (live_view.LiveView) when [live] enabled
+        self.monitor = None  # the autopilot attitude monitor (attitude_monitor.py) beside an autopilot
         self.live_calibration = LiveCalibrator(max_rate_hz=cfg.rates["estimation_hz"])
         # the running fit of a live calibration (see apply_live_calibration) and its kind
         self._live_fit: Future[LiveCalibrationResult] | None = None
@@ -83,7 +84,7 @@ class Service:
         self.pipeline.warm_up()
         if time.monotonic() - t0 > 1.0:
             log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
-        self.source = make_source(cfg.source, cfg.rates["estimation_hz"])
+        self.source = make_source(cfg.source, cfg.rates["estimation_hz"], cfg.mavlink["system_id"])
         self.source.open()
         if not self.source.has_mag:
             # a part without magnetometer (ICM-42688-P, BMI088): no start waiting for a field
@@ -96,6 +97,42 @@ class Service:
         self._open_log(cfg)
         self._open_mavlink(cfg)
         self._open_live(cfg)
+        self._open_monitor(cfg)
+
+    def _open_monitor(self, cfg: config_mod.Config) -> None:
+        """The attitude monitor, when the source has an autopilot link (source.type = "mavlink")."""
+        if self.monitor is not None:  # a reload with other [monitor] settings
+            self.monitor.close()
+            self.monitor = None
+        link = getattr(self.source, "autopilot_link", None)
+        if link is None or not cfg.monitor["enabled"]:
+            return
+        from ahrs_service.attitude_monitor import AttitudeMonitor
+
+        mon = cfg.monitor
+        self.monitor = AttitudeMonitor(link, threshold_deg=mon["threshold_deg"], hold_s=mon["hold_s"])
+        self._monitor_period_ns = int(1e9 / mon["rate_hz"])
+        self._next_monitor_ns = 0
+
+    def _monitor_tick(self, now: int) -> None:
+        """Compares the autopilot's attitudes received so far with ours; at ``[monitor] rate_hz``
+        publishes the disagreement (NAMED_VALUE_FLOAT); logs every comparison; reports the
+        warning and the all-clear (STATUSTEXT through the rate limit, journal, /log)."""
+        from ahrs_service.protocols.mavlink.dialect import mavlink
+
+        comparisons, events = self.monitor.update(self.pipeline.declination_deg)
+        if self.log_writer is not None:
+            for d in comparisons:
+                self.log_writer.write_autopilot_attitude(d)
+        for event in events:
+            self.mavlink.component.statustext(event.severity, event.text, kind="attitude monitor")
+            self.log_event(event.text, event.severity)
+        if now >= self._next_monitor_ns and self.monitor.latest is not None:
+            self._next_monitor_ns = now + self._monitor_period_ns
+            boot_ms = (now - self.boot_ns) // 1_000_000
+            for name, value in self.monitor.named_values():
+                self.mavlink.component.send(
+                    mavlink.MAVLink_named_value_float_message(boot_ms & 0xFFFFFFFF, name.encode(), value))
 
     def _open_live(self, cfg: config_mod.Config) -> None:
         if cfg.live["enabled"]:
@@ -223,6 +260,7 @@ class Service:
         next_diag = next_io
         diag_due = False  # the next logged sample carries the estimator's diagnostics
         live = self.live
+        monitor = self.monitor
         ready_sent = False
         was_reduced = pipeline.reduced
         while not self._stop:
@@ -242,6 +280,8 @@ class Service:
                         truth_q=cal.truth_q, diagnostics=self._diagnostics_for_log() if diag_due else None,
                     )
                     diag_due = False
+                if cal is not None and monitor is not None:
+                    monitor.add_estimate(cal.t_ns, pipeline.estimator.state[_H.q])
             # one attribute test per tick while no fit runs; done() takes a lock only during one
             if self._live_fit is not None and self._live_fit.done():
                 self.apply_live_calibration()
@@ -252,6 +292,8 @@ class Service:
                 self.mavlink.tick(now)
                 if live is not None:
                     live.tick(now)
+                if monitor is not None:
+                    self._monitor_tick(now)
                 if diag_ns is not None and now >= next_diag:
                     next_diag = now + diag_ns
                     diag_due = True
@@ -275,6 +317,7 @@ class Service:
                 self._reload = False
                 self.reload()
                 sched, pipeline, writer, live = self.scheduler, self.pipeline, self.log_writer, self.live
+                monitor = self.monitor
                 was_reduced = pipeline.reduced  # a new pipeline starts in full form
                 _freeze_heap()
             if end_ns is not None and now >= end_ns:
@@ -495,6 +538,8 @@ class Service:
             # another filter has other EST_* parameters: the table is rebuilt with the component
             self.mavlink.close()
             self._open_mavlink(new)
+        if new.monitor != old_cfg.monitor:
+            self._open_monitor(new)
         if new.live != old_cfg.live:  # a new address, rate, or switched on or off
             if self.live is not None:
                 self.live.close()

@@ -264,12 +264,31 @@ LOG = {
     "required": ["timestamp", "level", "message", "name", "file", "line"],
 }
 
+MONITOR = {
+    "title": "ahrs.AttitudeMonitor",
+    "description": "The autopilot's attitude against the service's estimate at the autopilot's time "
+    "(ahrs_service/attitude_monitor.py).",
+    "type": "object",
+    "properties": {
+        "t_ns": _T_NS,
+        "total_deg": _NUM_OR_NULL,
+        "inclination_deg": _NUM_OR_NULL,
+        "heading_deg": {"type": ["number", "null"], "description": "autopilot yaw - ours, deg, [-180, 180)"},
+        "q_autopilot": _QUAT,
+        "q_estimate": _QUAT,
+    },
+    "required": ["t_ns", "total_deg", "inclination_deg", "heading_deg"],
+}
+
 #: topic -> (schema name, JSON Schema)
 CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
     "/imu/raw": ("ahrs.ImuRaw", IMU_RAW),
     "/attitude": ("ahrs.Attitude", ATTITUDE),
     "/attitude/original": ("ahrs.Attitude", ATTITUDE),
     "/attitude/truth": ("ahrs.AttitudeTruth", TRUTH),
+    # beside an autopilot: its own attitude (estimator "autopilot") and the comparison
+    "/autopilot/attitude": ("ahrs.Attitude", ATTITUDE),
+    "/monitor": ("ahrs.AttitudeMonitor", MONITOR),
     "/loop": ("ahrs.LoopStats", LOOP),
     "/config": ("ahrs.Config", CONFIG),
     "/params": ("ahrs.ParamChange", PARAM_CHANGE),
@@ -400,12 +419,13 @@ def truth_message(t_ns: int, q: list[float], movement: bool | None = None, sourc
     }
 
 
-def tf_message(t_ns: int, q: list[float]) -> dict[str, Any]:
-    """foxglove.FrameTransform of the body frame in the NED frame (rotation in x, y, z, w order)."""
+def tf_message(t_ns: int, q: list[float], child: str = "body") -> dict[str, Any]:
+    """foxglove.FrameTransform of the body frame (or ``child``: ``"autopilot"``, the autopilot's
+    attitude beside an autopilot) in the NED frame (rotation in x, y, z, w order)."""
     return {
         "timestamp": {"sec": int(t_ns) // 1_000_000_000, "nsec": int(t_ns) % 1_000_000_000},
         "parent_frame_id": "ned",
-        "child_frame_id": "body",
+        "child_frame_id": child,
         "translation": {"x": 0.0, "y": 0.0, "z": 0.0},
         "rotation": {"x": q[1], "y": q[2], "z": q[3], "w": q[0]},
     }

@@ -138,6 +138,18 @@ class _Mavlink:
 
 
 @dataclass(slots=True)
+class _AutopilotAttitude:
+    """The autopilot's attitude and its disagreement with ours (attitude_monitor.Disagreement)."""
+
+    t_ns: int
+    q_autopilot: list[float]
+    q_estimate: list[float]
+    total_deg: float
+    inclination_deg: float
+    heading_deg: float
+
+
+@dataclass(slots=True)
 class _Log:
     """A health event for /log (foxglove.Log)."""
 
@@ -401,6 +413,13 @@ class FlightLogWriter:
         debug), mapped to Foxglove's level by :func:`~ahrs_service.logs.schemas.log_level`."""
         self._put(_Log(t_ns, int(severity), str(text)))
 
+    def write_autopilot_attitude(self, d: Any) -> None:
+        """One comparison of the attitude monitor (``attitude_monitor.Disagreement``): the
+        autopilot's attitude on /autopilot/attitude and as frame ``autopilot`` on /tf, the
+        disagreement on /monitor, all at the autopilot's time mapped onto ours."""
+        self._put(_AutopilotAttitude(int(d.t_ns), list(d.q_autopilot), list(d.q_estimate), float(d.total_deg),
+                                     float(d.inclination_deg), float(d.heading_deg)))
+
     def write_mavlink(self, t_ns: int, counters: Mapping[str, Any]) -> None:
         """MAVLink traffic counters."""
         self._put(_Mavlink(t_ns, dict(counters)))
@@ -648,6 +667,15 @@ class FlightLogWriter:
         if self._ensure_file(1):
             self._write("/mavlink", item.t_ns, {"t_ns": int(item.t_ns), "counters": jsonable(item.counters)})
 
+    def _on_autopilot_attitude(self, item: _AutopilotAttitude) -> None:
+        if self._ensure_file(3):
+            t = item.t_ns
+            self._write("/autopilot/attitude", t, attitude_message(t, item.q_autopilot, "autopilot"))
+            self._write("/tf", t, tf_message(t, item.q_autopilot, child="autopilot"))
+            self._write("/monitor", t, {"t_ns": t, "total_deg": item.total_deg,
+                                        "inclination_deg": item.inclination_deg, "heading_deg": item.heading_deg,
+                                        "q_autopilot": item.q_autopilot, "q_estimate": item.q_estimate})
+
     def _on_log(self, item: _Log) -> None:
         if self._ensure_file(1):
             self._write("/log", item.t_ns, log_message(item.t_ns, item.severity, item.text))
@@ -663,6 +691,7 @@ class FlightLogWriter:
         _Truth: _on_truth,
         _Loop: _on_loop,
         _Mavlink: _on_mavlink,
+        _AutopilotAttitude: _on_autopilot_attitude,
         _Log: _on_log,
     }
 
