@@ -280,11 +280,6 @@ class MavlinkComponent:
         )
         return len(due)
 
-    def send(self, msg: Any) -> None:
-        """Sends one built pymavlink message on every endpoint now (ODOMETRY and other
-        messages built outside the component); errors are counted in ``stats``."""
-        self._send_all(msg)
-
     def send_now(self, name: str, telemetry: Telemetry | None = None) -> bool:
         """Sends message ``name`` once now on every endpoint (``telemetry`` None uses the last
         published one); False if it cannot be built (unknown name or no telemetry yet)."""
@@ -309,7 +304,7 @@ class MavlinkComponent:
         return mavlink.MAVLink_autopilot_version_message(caps, 0, 0, 0, 0, zeros8, zeros8, zeros8, 0, 0, 0, [0] * 18)
 
     def send(self, msg: Any) -> None:
-        """Sends one message built elsewhere (NAMED_VALUE_FLOAT of the attitude monitor …) on
+        """Sends one message built elsewhere (NAMED_VALUE_FLOAT of the attitude monitor, ODOMETRY …) on
         every link now; errors are counted like the streams'."""
         self._send_all(msg)
 
