@@ -169,6 +169,7 @@ def test_time_usec_is_in_the_autopilot_clock_after_timesync(peer):
         assert abs(m.time_usec - peer.clock_ns(t) // 1000) <= 2000
 
 
+@pytest.mark.timeout(300)  # the first run compiles the default estimator's kernels
 def test_the_service_streams_odometry_with_its_estimate(tmp_path):
     from test_service import RunningService, collect, make_gcs, service_config
 
