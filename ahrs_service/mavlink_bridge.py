@@ -11,6 +11,7 @@ Parameters the ground station sees (PARAM_REQUEST_LIST):
 
 from __future__ import annotations
 
+import contextlib
 from typing import TYPE_CHECKING, Any
 
 from ahrs_service import estimators
@@ -113,7 +114,10 @@ class MavlinkBridge:
             accel_calibration=lambda action: self._start_collection("accel"),
             max_rate_hz=1e9 / io_period_ns,
         )
-        self.timesync: TimeSync | None = None  # the autopilot link sets it (docs/autopilot.md)
+        # beside an autopilot the service hands over the link's TIMESYNC estimate and the lock
+        # its reader thread updates it under (docs/autopilot.md, "TIMESYNC")
+        self.timesync: TimeSync | None = None
+        self.timesync_lock: Any = contextlib.nullcontext()
         self.odometry = self._odometry_sender(mcfg["odometry"])
 
     # ------------------------------------------------------------------ ODOMETRY (issue 17)
@@ -255,7 +259,9 @@ class MavlinkBridge:
         odometry = self.odometry
         if odometry is not None and odometry.due(now_ns):
             odometry.timesync = self.timesync
-            odometry.tick(now_ns, self.odometry_estimate(now_ns))
+            estimate = self.odometry_estimate(now_ns)
+            with self.timesync_lock:
+                odometry.tick(now_ns, estimate)
         if now_ns >= self._next_poll_ns:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)

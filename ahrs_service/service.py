@@ -98,6 +98,24 @@ class Service:
         self._open_mavlink(cfg)
         self._open_live(cfg)
         self._open_monitor(cfg)
+        self._open_timesync()
+
+    def _open_timesync(self) -> None:
+        """Beside an autopilot (source.type = "mavlink"): ODOMETRY stamps through the link's
+        TIMESYNC estimate, which is logged on /timesync after each accepted sample."""
+        self._autopilot_link = getattr(self.source, "autopilot_link", None)
+        self._timesync_logged_ns = None
+
+    def _timesync_tick(self) -> None:
+        # the link replaces its estimator when the autopilot (re)appears: look it up each time
+        link = self._autopilot_link
+        bridge = self.mavlink
+        bridge.timesync, bridge.timesync_lock = link.timesync, link.timesync_lock
+        with link.timesync_lock:
+            status = link.timesync.last_status
+        if status is not None and status.local_ns != self._timesync_logged_ns and self.log_writer is not None:
+            self._timesync_logged_ns = status.local_ns
+            self.log_writer.write_timesync(status)
 
     def _open_monitor(self, cfg: config_mod.Config) -> None:
         """The attitude monitor, when the source has an autopilot link (source.type = "mavlink")."""
@@ -294,6 +312,8 @@ class Service:
                     live.tick(now)
                 if monitor is not None:
                     self._monitor_tick(now)
+                if self._autopilot_link is not None:
+                    self._timesync_tick()
                 if diag_ns is not None and now >= next_diag:
                     next_diag = now + diag_ns
                     diag_due = True
@@ -538,6 +558,7 @@ class Service:
             # another filter has other EST_* parameters: the table is rebuilt with the component
             self.mavlink.close()
             self._open_mavlink(new)
+            self._open_timesync()
         if new.monitor != old_cfg.monitor:
             self._open_monitor(new)
         if new.live != old_cfg.live:  # a new address, rate, or switched on or off
