@@ -118,6 +118,9 @@ class MavlinkBridge:
         # its reader thread updates it under (docs/autopilot.md, "TIMESYNC")
         self.timesync: TimeSync | None = None
         self.timesync_lock: Any = contextlib.nullcontext()
+        #: the autopilot link's send (AutopilotLink.send), set by the service beside an autopilot:
+        #: ODOMETRY goes there as well as on the endpoints
+        self.autopilot_send: Any = None
         self.odometry = self._odometry_sender(mcfg["odometry"])
 
     # ------------------------------------------------------------------ ODOMETRY (issue 17)
@@ -126,7 +129,12 @@ class MavlinkBridge:
             return None
         self._odometry_epoch = 0
         self._odometry_ref: tuple[Any, float, bool] | None = None
-        return OdometrySender(self.component.send, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]])
+        return OdometrySender(self._send_odometry, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]])
+
+    def _send_odometry(self, msg: Any) -> None:
+        self.component.send(msg)
+        if self.autopilot_send is not None:
+            self.autopilot_send(msg)
 
     def odometry_estimate(self, now_ns: int) -> AttitudeEstimate | None:
         """The published attitude and its variances for ODOMETRY; None before the first sample.

@@ -101,8 +101,9 @@ class Service:
         self._open_timesync()
 
     def _open_timesync(self) -> None:
-        """Beside an autopilot (source.type = "mavlink"): ODOMETRY stamps through the link's
-        TIMESYNC estimate, which is logged on /timesync after each accepted sample."""
+        """Beside an autopilot (source.type = "mavlink"): ODOMETRY goes on the autopilot link
+        too, stamped through the link's TIMESYNC estimate, which is logged on /timesync after
+        each accepted sample."""
         self._autopilot_link = getattr(self.source, "autopilot_link", None)
         self._timesync_logged_ns = None
 
@@ -111,6 +112,7 @@ class Service:
         link = self._autopilot_link
         bridge = self.mavlink
         bridge.timesync, bridge.timesync_lock = link.timesync, link.timesync_lock
+        bridge.autopilot_send = link.send  # ODOMETRY to the autopilot too
         with link.timesync_lock:
             status = link.timesync.last_status
         if status is not None and status.local_ns != self._timesync_logged_ns and self.log_writer is not None:

@@ -48,6 +48,8 @@ def test_odometry_in_the_autopilot_clock_and_timesync_logged(tmp_path, broad_seg
         rig.run_to_end()
         link = rig.service.source.autopilot_link
         assert link.timesync.synced
+        # on the autopilot link as well as on the endpoints
+        assert rig.sim.stats.received.get("ODOMETRY", 0) >= 10
         boot_ns = rig.sim.boot_ns
     finally:
         rig.close()
