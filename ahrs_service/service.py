@@ -70,6 +70,7 @@ class Service:
         self.mavlink = None
         self.log_writer = None
         self.live = None  # the Foxglove live view (live_view.LiveView) when [live] enabled
+        self.monitor = None  # the autopilot attitude monitor (attitude_monitor.py) beside an autopilot
         self.live_calibration = LiveCalibrator(max_rate_hz=cfg.rates["estimation_hz"])
         self.vibration = VibrationMonitor()  # VIBRATION's levels and clipping, from every sample row
         self._earlier_log_writers: list[Any] = []  # closed by reloads; for the final summary
@@ -86,7 +87,7 @@ class Service:
         self._warm_up()
         if time.monotonic() - t0 > 1.0:
             log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
-        self.source = make_source(cfg.source, cfg.rates["estimation_hz"])
+        self.source = make_source(cfg.source, cfg.rates["estimation_hz"], cfg.mavlink["system_id"])
         self.source.open()
         if not self.source.has_mag:
             # a part without magnetometer (ICM-42688-P, BMI088): no start waiting for a field
@@ -99,6 +100,62 @@ class Service:
         self._open_log(cfg)
         self._open_mavlink(cfg)
         self._open_live(cfg)
+        self._open_monitor(cfg)
+        self._open_timesync()
+
+    def _open_timesync(self) -> None:
+        """Beside an autopilot (source.type = "mavlink"): ODOMETRY goes on the autopilot link
+        too, stamped through the link's TIMESYNC estimate, which is logged on /timesync after
+        each accepted sample."""
+        self._autopilot_link = getattr(self.source, "autopilot_link", None)
+        self._timesync_logged_ns = None
+
+    def _timesync_tick(self) -> None:
+        # the link replaces its estimator when the autopilot (re)appears: look it up each time
+        link = self._autopilot_link
+        bridge = self.mavlink
+        bridge.timesync, bridge.timesync_lock = link.timesync, link.timesync_lock
+        bridge.autopilot_send = link.send  # ODOMETRY to the autopilot too
+        with link.timesync_lock:
+            status = link.timesync.last_status
+        if status is not None and status.local_ns != self._timesync_logged_ns and self.log_writer is not None:
+            self._timesync_logged_ns = status.local_ns
+            self.log_writer.write_timesync(status)
+
+    def _open_monitor(self, cfg: config_mod.Config) -> None:
+        """The attitude monitor, when the source has an autopilot link (source.type = "mavlink")."""
+        if self.monitor is not None:  # a reload with other [monitor] settings
+            self.monitor.close()
+            self.monitor = None
+        link = getattr(self.source, "autopilot_link", None)
+        if link is None or not cfg.monitor["enabled"]:
+            return
+        from ahrs_service.attitude_monitor import AttitudeMonitor
+
+        mon = cfg.monitor
+        self.monitor = AttitudeMonitor(link, threshold_deg=mon["threshold_deg"], hold_s=mon["hold_s"])
+        self._monitor_period_ns = int(1e9 / mon["rate_hz"])
+        self._next_monitor_ns = 0
+
+    def _monitor_tick(self, now: int) -> None:
+        """Compares the autopilot's attitudes received so far with ours; at ``[monitor] rate_hz``
+        publishes the disagreement (NAMED_VALUE_FLOAT); logs every comparison; reports the
+        warning and the all-clear (STATUSTEXT through the rate limit, journal, /log)."""
+        from ahrs_service.protocols.mavlink.dialect import mavlink
+
+        comparisons, events = self.monitor.update(self.pipeline.declination_deg)
+        if self.log_writer is not None:
+            for d in comparisons:
+                self.log_writer.write_autopilot_attitude(d)
+        for event in events:
+            self.mavlink.component.statustext(event.severity, event.text, kind="attitude monitor")
+            self.log_event(event.text, event.severity)
+        if now >= self._next_monitor_ns and self.monitor.latest is not None:
+            self._next_monitor_ns = now + self._monitor_period_ns
+            boot_ms = (now - self.boot_ns) // 1_000_000
+            for name, value in self.monitor.named_values():
+                self.mavlink.component.send(
+                    mavlink.MAVLink_named_value_float_message(boot_ms & 0xFFFFFFFF, name.encode(), value))
 
     def _warm_up(self) -> None:
         """Compiles the pipeline's kernels. numba saves each new kernel to its cache after
@@ -243,6 +300,7 @@ class Service:
         next_diag = next_io
         diag_due = False  # the next logged sample carries the estimator's diagnostics
         live = self.live
+        monitor = self.monitor
         ready_sent = False
         was_reduced = pipeline.reduced
         while not self._stop:
@@ -264,6 +322,8 @@ class Service:
                         truth_q=cal.truth_q, diagnostics=self._diagnostics_for_log() if diag_due else None,
                     )
                     diag_due = False
+                if cal is not None and monitor is not None:
+                    monitor.add_estimate(cal.t_ns, pipeline.estimator.state[_H.q])
             # one attribute test per tick while no fit runs; done() takes a lock only during one
             if self._live_fit is not None and self._live_fit.done():
                 self.apply_live_calibration()
@@ -274,6 +334,10 @@ class Service:
                 self.mavlink.tick(now)
                 if live is not None:
                     live.tick(now)
+                if monitor is not None:
+                    self._monitor_tick(now)
+                if self._autopilot_link is not None:
+                    self._timesync_tick()
                 if diag_ns is not None and now >= next_diag:
                     next_diag = now + diag_ns
                     diag_due = True
@@ -297,6 +361,7 @@ class Service:
                 self._reload = False
                 self.reload()
                 sched, pipeline, writer, live = self.scheduler, self.pipeline, self.log_writer, self.live
+                monitor = self.monitor
                 was_reduced = pipeline.reduced  # a new pipeline starts in full form
                 _freeze_heap()
             if end_ns is not None and now >= end_ns:
@@ -543,6 +608,9 @@ class Service:
             # another filter has other EST_* parameters: the table is rebuilt with the component
             self.mavlink.close()
             self._open_mavlink(new)
+            self._open_timesync()
+        if new.monitor != old_cfg.monitor:
+            self._open_monitor(new)
         if new.live != old_cfg.live:  # a new address, rate, or switched on or off
             if self.live is not None:
                 self.live.close()

@@ -62,6 +62,7 @@ from ahrs_service.logs.schemas import (
     encode,
     jsonable,
     log_message,
+    num_or_null,
     raw_message,
     tf_message,
     truth_message,
@@ -142,6 +143,31 @@ class _ParamChange:
 class _Mavlink:
     t_ns: int
     counters: dict
+
+
+@dataclass(slots=True)
+class _AutopilotAttitude:
+    """The autopilot's attitude and its disagreement with ours (attitude_monitor.Disagreement)."""
+
+    t_ns: int
+    q_autopilot: list[float]
+    q_estimate: list[float]
+    total_deg: float
+    inclination_deg: float
+    heading_deg: float
+
+
+@dataclass(slots=True)
+class _Timesync:
+    """The autopilot's clock estimate after one accepted TIMESYNC sample (timesync.TimesyncStatus)."""
+
+    t_ns: int
+    offset_ns: int
+    observed_offset_ns: int
+    drift_ppm: float
+    rtt_ns: int
+    synced: bool
+    samples: int
 
 
 @dataclass(slots=True)
@@ -463,6 +489,19 @@ class FlightLogWriter:
         """A health event on /log (foxglove.Log); ``severity`` is MAVLink's (0 emergency … 7
         debug), mapped to Foxglove's level by :func:`~ahrs_service.logs.schemas.log_level`."""
         self._put(_Log(t_ns, int(severity), str(text)))
+
+    def write_autopilot_attitude(self, d: Any) -> None:
+        """One comparison of the attitude monitor (``attitude_monitor.Disagreement``): the
+        autopilot's attitude on /autopilot/attitude and as frame ``autopilot`` on /tf, the
+        disagreement on /monitor, all at the autopilot's time mapped onto ours."""
+        self._put(_AutopilotAttitude(int(d.t_ns), list(d.q_autopilot), list(d.q_estimate), float(d.total_deg),
+                                     float(d.inclination_deg), float(d.heading_deg)))
+
+    def write_timesync(self, status: Any) -> None:
+        """The TIMESYNC estimate (``timesync.TimesyncStatus``) on /timesync: offset and drift
+        of the autopilot's clock against ours, at the sample's time on our clock."""
+        self._put(_Timesync(int(status.local_ns), int(status.offset_ns), int(status.observed_offset_ns),
+                            float(status.drift_ppm), int(status.rtt_ns), bool(status.synced), int(status.samples)))
 
     def write_mavlink(self, t_ns: int, counters: Mapping[str, Any]) -> None:
         """MAVLink traffic counters."""
@@ -799,6 +838,23 @@ class FlightLogWriter:
         if self._ensure_file(1):
             self._write("/mavlink", item.t_ns, {"t_ns": int(item.t_ns), "counters": jsonable(item.counters)})
 
+    def _on_autopilot_attitude(self, item: _AutopilotAttitude) -> None:
+        if self._ensure_file(3):
+            t = item.t_ns
+            self._write("/autopilot/attitude", t, attitude_message(t, item.q_autopilot, "autopilot"))
+            self._write("/tf", t, tf_message(t, item.q_autopilot, child="autopilot"))
+            self._write("/monitor", t, {"t_ns": t, "total_deg": item.total_deg,
+                                        "inclination_deg": item.inclination_deg, "heading_deg": item.heading_deg,
+                                        "q_autopilot": item.q_autopilot, "q_estimate": item.q_estimate})
+
+    def _on_timesync(self, item: _Timesync) -> None:
+        if self._ensure_file(1):
+            self._write("/timesync", item.t_ns, {
+                "t_ns": item.t_ns, "offset_ns": item.offset_ns, "observed_offset_ns": item.observed_offset_ns,
+                "drift_ppm": num_or_null(item.drift_ppm), "rtt_ns": item.rtt_ns, "synced": item.synced,
+                "samples": item.samples,
+            })
+
     def _on_log(self, item: _Log) -> None:
         if self._ensure_file(1):
             self._write("/log", item.t_ns, log_message(item.t_ns, item.severity, item.text))
@@ -814,6 +870,8 @@ class FlightLogWriter:
         _Truth: _on_truth,
         _Loop: _on_loop,
         _Mavlink: _on_mavlink,
+        _AutopilotAttitude: _on_autopilot_attitude,
+        _Timesync: _on_timesync,
         _Log: _on_log,
     }
 

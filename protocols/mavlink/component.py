@@ -306,6 +306,11 @@ class MavlinkComponent:
         zeros8 = [0] * 8
         return mavlink.MAVLink_autopilot_version_message(caps, 0, 0, 0, 0, zeros8, zeros8, zeros8, 0, 0, 0, [0] * 18)
 
+    def send(self, msg: Any) -> None:
+        """Sends one message built elsewhere (NAMED_VALUE_FLOAT of the attitude monitor, ODOMETRY …) on
+        every link now; errors are counted like the streams'."""
+        self._send_all(msg)
+
     def statustext(self, severity: int, text: str, kind: str | None = None) -> None:
         """Sends ``text`` on every link as STATUSTEXT at MAV_SEVERITY ``severity`` (0..7),
         chunked when longer than 50 bytes. ``kind`` (a short key) puts the text under the rate
