@@ -204,10 +204,10 @@ class AttitudeMonitor:
             att = self._inbox[0]
             q_ap = att.q
             t_ns = self.link.timeline.peek_local_ns(att.time_boot_ms * 1000)
-            if t_ns is not None and newest is not None and t_ns > newest:
-                break  # our estimate for that time is not there yet
+            if t_ns is None or newest is None or t_ns > newest:
+                break  # no time map yet (the IMU source waits for TIMESYNC), or no estimate for that time yet
             self._inbox.popleft()
-            q_est = None if t_ns is None else self.history.at(t_ns)
+            q_est = self.history.at(t_ns)
             if q_est is None:
                 self.unmatched += 1
                 continue

@@ -301,7 +301,8 @@ class SimAutopilot:
                     self._pause(self.pause[1])
                     self.pause = None
                     continue
-                while i < n and self.sample_time_us(i) <= now:
+                pause_at = self.pause[0] if self.pause is not None else n
+                while i < n and i != pause_at and self.sample_time_us(i) <= now:  # a late pass stops at the pause
                     if i in self.drop:
                         self.stats.imu_dropped += 1
                     else:
@@ -330,8 +331,6 @@ class SimAutopilot:
         # the samples due during the pause are skipped: they are lost, as on a real link
         now = self.now_us()
         skip = int(np.searchsorted(self.rec.rel_us + self.stream_start_us, now))  # type: ignore[operator]
-        self.skipped_in_pause = skip - self.pause[0]  # type: ignore[index]
-        self._skip_to = skip
         self.drop = self.drop | frozenset(range(self.pause[0], skip))  # type: ignore[index]
 
     def join(self, timeout: float) -> bool:

@@ -132,7 +132,7 @@ class RemoteTimeline:
     beyond ``step_ns`` it steps (``steps`` counts those; a rebooted autopilot steps too).
     """
 
-    def __init__(self, *, deadband_ns: int = 5_000_000, slew_ppm: float = 200.0, step_ns: int = 50_000_000,
+    def __init__(self, *, deadband_ns: int = 10_000_000, slew_ppm: float = 200.0, step_ns: int = 50_000_000,
                  window_s: float = 4.0) -> None:
         self.deadband_ns = int(deadband_ns)
         self.slew = float(slew_ppm) * 1e-6
@@ -141,6 +141,7 @@ class RemoteTimeline:
         self.timesync_lock = threading.Lock()
         self.offset_ns: int | None = None
         self.steps = 0
+        self.slewed_ns = 0  # total |adjustment| by slewing, ns (0: every spacing is the autopilot's)
         self._bin_ns = int(window_s * 1e9 / 4)
         self._bins: collections.deque[tuple[int, int]] = collections.deque(maxlen=4)  # (bin, min offset)
         self._last_remote_ns: int | None = None
@@ -183,7 +184,9 @@ class RemoteTimeline:
                 self.steps += 1
             elif abs(error) > self.deadband_ns and self._last_remote_ns is not None:
                 most = int((remote_ns - self._last_remote_ns) * self.slew)
-                self.offset_ns += max(-most, min(most, error))
+                change = max(-most, min(most, error))
+                self.offset_ns += change
+                self.slewed_ns += abs(change)
         self._last_remote_ns = remote_ns
         return remote_ns + self.offset_ns
 
