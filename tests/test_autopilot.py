@@ -657,3 +657,33 @@ def test_a_refused_stream_request_is_counted_named_and_asked_again():
     assert src.refusals >= 2 and len(sim.stats.interval_requests) >= 2
     assert src.diagnostics.last_error == "autopilot refused HIGHRES_IMU at 250 Hz: MAV_RESULT_DENIED"
     assert src.diagnostics.extra["stream_refusals"] == src.refusals
+
+
+def test_serial_device_missing_at_start_is_waited_for(tmp_path):
+    n = 200
+    rec = Recording.uniform(np.zeros((n, 3)), np.tile([0.0, 0.0, -9.81], (n, 1)), np.tile([20.0, 0.0, 45.0], (n, 1)),
+                            np.tile([1.0, 0, 0, 0], (n, 1)), 5000)
+    pty = PtyTransport(tmp_path)
+    pty.unplug()  # not there yet: the flight controller is still booting
+    link = AutopilotLink(pty.url, reopen_s=0.2)
+    src = MavlinkImuSource(link, rate_hz=200.0)
+    src.open()  # no error: a serial device is waited for
+    got = 0
+    try:
+        end = time.monotonic() + 5.0
+        while time.monotonic() < end and link.stats.open_failures < 2:
+            assert src.read() is None
+            time.sleep(0.01)
+        assert src.diagnostics.device_lost and "No such file" in src.diagnostics.last_error
+        pty.plug()
+        sim = SimAutopilot(pty, rec).start()
+        end = time.monotonic() + 15.0
+        while time.monotonic() < end and got < n:
+            block = src.read_block()
+            got += len(block)
+            if not len(block):
+                time.sleep(0.005)
+        sim.stop()
+    finally:
+        src.close()
+    assert got == n and link.stats.reopens == 1 and not src.diagnostics.device_lost
