@@ -133,6 +133,15 @@ class Service:
             for name, value in self.monitor.named_values():
                 self.mavlink.component.send(
                     mavlink.MAVLink_named_value_float_message(boot_ms & 0xFFFFFFFF, name.encode(), value))
+            if self.live is not None:  # viewers get the latest comparison at the same rate
+                from ahrs_service.logs import schemas
+
+                d = self.monitor.latest
+                q_ap = list(d.q_autopilot)
+                self.live.publish("/autopilot/attitude", d.t_ns, schemas.attitude_message(d.t_ns, q_ap, "autopilot"))
+                self.live.publish("/tf", d.t_ns, schemas.tf_message(d.t_ns, q_ap, child="autopilot"))
+                self.live.publish("/monitor", d.t_ns, schemas.monitor_message(
+                    d.t_ns, d.total_deg, d.inclination_deg, d.heading_deg, q_ap, list(d.q_estimate)))
 
     def _open_live(self, cfg: config_mod.Config) -> None:
         if cfg.live["enabled"]:

@@ -106,13 +106,14 @@ def service_config(tmp_path, connection: str, gcs_port: int, period_us: int, **s
 class Rig:
     """The service on a thread, the simulated autopilot, and a ground station listening."""
 
-    def __init__(self, tmp_path, rec: Recording, transport, connection: str, **sim_options) -> None:
+    def __init__(self, tmp_path, rec: Recording, transport, connection: str, sections: dict | None = None,
+                 **sim_options) -> None:
         self.gcs, gcs_port = make_gcs()
         self.gcs_messages: list = []
         self._stop = threading.Event()
         self._gcs_thread = threading.Thread(target=drain, args=(self.gcs, self.gcs_messages, self._stop), daemon=True)
         self._gcs_thread.start()
-        cfg = service_config(tmp_path, connection, gcs_port, rec.period_us)
+        cfg = service_config(tmp_path, connection, gcs_port, rec.period_us, **(sections or {}))
         self.service = Service(cfg, duration_s=60.0)
         self.service.start()
         self.thread = threading.Thread(target=self.service.run, daemon=True)
@@ -687,3 +688,44 @@ def test_serial_device_missing_at_start_is_waited_for(tmp_path):
     finally:
         src.close()
     assert got == n and link.stats.reopens == 1 and not src.diagnostics.device_lost
+
+
+def test_live_view_shows_the_autopilot_body_and_the_disagreement(tmp_path, broad_segment):
+    """A Foxglove client of the live view gets frame ``autopilot`` on /tf beside ``body`` and
+    the comparison on /monitor while a 10°-off autopilot streams."""
+    pytest.importorskip("foxglove")
+    websockets = pytest.importorskip("websockets")
+    import asyncio
+    import json
+
+    from ahrs_service.logs.schemas import CHANNELS, validate
+    from tests.test_live_view import SUBPROTOCOLS, _messages, _ops
+    from tests.test_live_view import free_port as free_tcp_port
+
+    rec = broad_segment
+    port = free_udp_port()
+    rig = Rig(tmp_path, rec, UdpTransport(port), f"udpin:127.0.0.1:{port}", attitude_offset_deg=10.0,
+              sections={"live": {"enabled": True, "port": free_tcp_port(), "rate_hz": 20}})
+
+    async def session():
+        async with websockets.connect(f"ws://127.0.0.1:{rig.service.live.port}", subprotocols=SUBPROTOCOLS) as ws:
+            channels: dict = {}
+            while not {"/monitor", "/tf", "/autopilot/attitude"} <= channels.keys():
+                for ch in (await _ops(ws, "advertise"))["channels"]:
+                    channels[ch["topic"]] = ch
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": 1, "channelId": channels["/monitor"]["id"]}, {"id": 2, "channelId": channels["/tf"]["id"]},
+                {"id": 3, "channelId": channels["/autopilot/attitude"]["id"]}]}))
+            return await _messages(ws, {1: "/monitor", 2: "/tf", 3: "/autopilot/attitude"}, count=3, seconds=20.0)
+
+    try:
+        got = asyncio.run(session())
+    finally:
+        rig.close()
+    for topic in ("/monitor", "/tf", "/autopilot/attitude"):
+        assert len(got[topic]) >= 3, topic
+        for _, msg in got[topic]:
+            assert validate(msg, CHANNELS[topic][1]) == []
+    assert {m["child_frame_id"] for _, m in got["/tf"]} == {"body", "autopilot"}
+    assert all(8.0 < m["total_deg"] < 12.0 for _, m in got["/monitor"])
+    assert {m["estimator"] for _, m in got["/autopilot/attitude"]} == {"autopilot"}
