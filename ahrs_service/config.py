@@ -178,6 +178,28 @@ def _endpoints(key: str, v: Any) -> list[str]:
     return out
 
 
+#: [mavlink.odometry]: ODOMETRY out for an autopilot (protocols/mavlink/odometry.py, docs/autopilot.md)
+ODOMETRY_RULES = ("px4", "ardupilot")
+ODOMETRY_DEFAULTS = {"rate_hz": 0.0, "rules": "px4"}
+
+
+def _odometry_table(key: str, v: Any) -> dict:
+    """rate_hz: 0 (off) or 1..200 Hz; rules: which autopilot's handler the fields follow."""
+    given = _table(key, v)
+    out = dict(ODOMETRY_DEFAULTS)
+    for k, value in given.items():
+        if k == "rate_hz":
+            rate = _number(0.0, 200.0)(f"{key}.rate_hz", value)
+            if 0.0 < rate < 1.0:
+                raise ConfigError(f"{key}.rate_hz: {value!r} is too slow; accepted: 0 (off) or a number in [1, 200]")
+            out[k] = rate
+        elif k == "rules":
+            out[k] = _choice(ODOMETRY_RULES)(f"{key}.rules", value)
+        else:
+            raise ConfigError(f"{key}.{k}: unknown key; accepted keys: {', '.join(ODOMETRY_DEFAULTS)}")
+    return out
+
+
 def _finite_table(key: str, v: Any) -> dict:
     """A table whose numbers are all finite (estimator parameters, board options)."""
     v = _table(key, v)
@@ -270,6 +292,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "identity": ("standalone", _choice(IDENTITIES)),
         "system_id": (1, _number(1, 255, integer=True)),
         "signing_key": ("", _signing_key),
+        "odometry": (dict(ODOMETRY_DEFAULTS), _odometry_table),
     },
     # where the vehicle flies: when latitude and longitude are set, the magnetic declination
     # comes from the World Magnetic Model for today (it replaces estimator.declination_deg)

@@ -18,6 +18,9 @@ from ahrs_service.drivers.base import MAG_NEW
 from ahrs_service.estimators import STATE_HEADER
 from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, ParameterTable, SensorStatus, Telemetry
 from ahrs_service.protocols.mavlink.dialect import mavlink
+from ahrs_service.protocols.mavlink.odometry import RULES as ODOMETRY_RULES
+from ahrs_service.protocols.mavlink.odometry import AttitudeEstimate, OdometrySender
+from ahrs_service.protocols.mavlink.timesync import TimeSync
 
 if TYPE_CHECKING:
     from ahrs_service.config import Config
@@ -109,6 +112,47 @@ class MavlinkBridge:
             mag_calibration=lambda action: self._start_collection("mag"),
             accel_calibration=lambda action: self._start_collection("accel"),
             max_rate_hz=1e9 / io_period_ns,
+        )
+        self.timesync: TimeSync | None = None  # the autopilot link sets it (docs/autopilot.md)
+        self.odometry = self._odometry_sender(mcfg["odometry"])
+
+    # ------------------------------------------------------------------ ODOMETRY (issue 17)
+    def _odometry_sender(self, ocfg: dict[str, Any]) -> OdometrySender | None:
+        if ocfg["rate_hz"] <= 0.0:
+            return None
+        self._odometry_epoch = 0
+        self._odometry_ref: tuple[Any, float, bool] | None = None
+        return OdometrySender(self.component.send, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]])
+
+    def odometry_estimate(self, now_ns: int) -> AttitudeEstimate | None:
+        """The published attitude and its variances for ODOMETRY; None before the first sample.
+        The epoch goes up when the estimator object, its initialisation or the declination
+        changes (the heading reference moved: ODOMETRY's reset_counter follows)."""
+        svc = self.svc
+        pipeline = svc.pipeline
+        sample = pipeline.last_sample
+        if sample is None:
+            return None
+        if pipeline.samples != self._samples_seen:
+            self._samples_seen, self._fresh_at_ns = pipeline.samples, now_ns
+        fresh = now_ns - self._fresh_at_ns <= STALE_NS
+        est = svc.estimator
+        initialised = bool(est.state[STATE_HEADER.index.initialised])
+        ref = (id(est), pipeline.declination_deg, initialised)
+        if self._odometry_ref is not None and ref != self._odometry_ref:
+            self._odometry_epoch += 1
+        self._odometry_ref = ref
+        var = est.attitude_variance()
+        heading = pipeline.use_mag and not pipeline.reduced
+        return AttitudeEstimate(
+            t_ns=int(sample.t_ns),
+            q=pipeline.published_quaternion(),
+            body_rate=pipeline.body_rates(),
+            roll_var=var.roll,
+            pitch_var=var.pitch,
+            yaw_var=var.yaw if heading else float("nan"),
+            healthy=initialised and fresh,
+            epoch=self._odometry_epoch,
         )
 
     # ------------------------------------------------------------------ parameters
@@ -208,6 +252,10 @@ class MavlinkBridge:
         component = self.component
         if component.due(now_ns):
             component.publish(now_ns, self.telemetry(now_ns))
+        odometry = self.odometry
+        if odometry is not None and odometry.due(now_ns):
+            odometry.timesync = self.timesync
+            odometry.tick(now_ns, self.odometry_estimate(now_ns))
         if now_ns >= self._next_poll_ns:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)

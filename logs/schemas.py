@@ -109,7 +109,18 @@ ATTITUDE = {
         "yaw": {"type": ["number", "null"], "description": "rad, ZYX Euler, (−π, π]"},
         "estimator": {"type": "string"},
         "gyro_bias": _vec(3, _NUM_OR_NULL, "gyro-bias estimate, rad/s, body FRD"),
-        "diagnostics": {"type": "object", "description": "estimator counters (initialised, *_skipped …)"},
+        "diagnostics": {
+            "type": "object",
+            "description": "estimator counters (initialised, *_skipped …)",
+            "properties": {
+                # issue 17: optional, in the diagnostics the service writes at log.diagnostics_hz
+                "attitude_variance": {
+                    "type": "object",
+                    "description": "variances of roll, pitch, yaw (ZYX), rad²; null: unknown (estimators.uncertainty)",
+                    "properties": {k: {"type": ["number", "null"]} for k in ("roll", "pitch", "yaw")},
+                },
+            },
+        },
     },
     "required": ["t_ns", "q", "roll", "pitch", "yaw", "estimator"],
 }

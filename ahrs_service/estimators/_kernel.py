@@ -44,9 +44,11 @@ STATE_HEADER = Layout(
         Slot("mag_skipped", 1, "count of samples whose magnetometer correction was skipped (includes no magnetometer)"),
         Slot("gyr_skipped", 1, "count of samples whose gyro/dt could not be integrated"),
         Slot("bias", 3, "gyro-bias estimate, rad/s, body frame (zero where not estimated)"),
+        Slot("acc_age", 1, "time since the last usable accelerometer sample, s (inf: none yet)"),
+        Slot("mag_age", 1, "time since the last usable magnetometer sample, s (inf: none yet)"),
     ],
 )
-Q, INITIALISED, ACC_SKIPPED, MAG_SKIPPED, GYR_SKIPPED, BIAS = STATE_HEADER.index
+Q, INITIALISED, ACC_SKIPPED, MAG_SKIPPED, GYR_SKIPPED, BIAS, ACC_AGE, MAG_AGE = STATE_HEADER.index
 HEADER = STATE_HEADER.end  # where an estimator's own slots start
 
 #: slices for Python code outside the kernels: ``state[HEADER_SLICES.bias]``, ``row[ROW_SLICES.mag]``
@@ -58,7 +60,9 @@ _jit = njit(cache=True, inline="always")
 
 @_jit
 def check_sample(s, x, uses_mag):
-    """Validity of the three inputs of one row; counts each skipped correction in the header.
+    """Validity of the three inputs of one row; counts each skipped correction in the header
+    and keeps the age of the newest usable accelerometer and magnetometer sample (the error
+    models of ``uncertainty`` grow with it).
 
     Returns (gyro_ok, acc_ok, mag_ok). gyro_ok also requires a finite dt > 0.
     """
@@ -72,6 +76,14 @@ def check_sample(s, x, uses_mag):
         s[ACC_SKIPPED] += 1.0
     if uses_mag and not mag_ok:
         s[MAG_SKIPPED] += 1.0
+    if acc_ok:
+        s[ACC_AGE] = 0.0
+    elif gyro_ok:
+        s[ACC_AGE] += dt
+    if mag_ok:
+        s[MAG_AGE] = 0.0
+    elif gyro_ok:
+        s[MAG_AGE] += dt
     return gyro_ok, acc_ok, mag_ok
 
 

@@ -304,7 +304,7 @@ class MavlinkComponent:
         return mavlink.MAVLink_autopilot_version_message(caps, 0, 0, 0, 0, zeros8, zeros8, zeros8, 0, 0, 0, [0] * 18)
 
     def send(self, msg: Any) -> None:
-        """Sends one message built elsewhere (NAMED_VALUE_FLOAT of the attitude monitor …) on
+        """Sends one message built elsewhere (NAMED_VALUE_FLOAT of the attitude monitor, ODOMETRY …) on
         every link now; errors are counted like the streams'."""
         self._send_all(msg)
 
