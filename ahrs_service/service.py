@@ -208,6 +208,11 @@ class Service:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
         self.mavlink = MavlinkBridge(self, cfg, io_period_ns=IO_PERIOD_NS)
+        link = getattr(self.source, "autopilot_link", None)
+        if link is not None and self.mavlink.odometry is not None:
+            # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
+            self.mavlink.odometry.send = link.send
+            self.mavlink.timesync = link.clock
 
     # ------------------------------------------------------------------ control
     def request_stop(self, *_: Any) -> None:

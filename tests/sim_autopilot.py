@@ -165,6 +165,7 @@ class SimStats:
     attitudes: int = 0
     interval_requests: list[tuple[int, float]] = field(default_factory=list)  # (msg id, interval µs)
     timesync_replies: int = 0
+    odometry_times_us: list[int] = field(default_factory=list)  # ODOMETRY.time_usec received
     received: dict[str, int] = field(default_factory=dict)
 
 
@@ -269,6 +270,8 @@ class SimAutopilot:
                     result = mavlink.MAV_RESULT_DENIED if self.refuse_streams else mavlink.MAV_RESULT_ACCEPTED
                     self.send(mavlink.MAVLink_command_ack_message(msg.command, result, 0, 0,
                                                                   msg.get_srcSystem(), msg.get_srcComponent()))
+                elif name == "ODOMETRY":
+                    self.stats.odometry_times_us.append(int(msg.time_usec))
                 elif name == "TIMESYNC" and msg.tc1 == 0:
                     self.send(mavlink.MAVLink_timesync_message(self.now_us() * 1000, msg.ts1))
                     self.stats.timesync_replies += 1

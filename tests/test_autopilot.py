@@ -152,11 +152,17 @@ def _named(messages, name):
 def test_udp_autopilot_highres_imu_estimates_bit_identical_and_monitor_agrees(tmp_path, broad_segment):
     rec = broad_segment
     port = free_udp_port()
-    rig = Rig(tmp_path, rec, UdpTransport(port), f"udpin:127.0.0.1:{port}")
+    rig = Rig(tmp_path, rec, UdpTransport(port), f"udpin:127.0.0.1:{port}",
+              sections={"mavlink": {"odometry": {"rate_hz": 20.0, "rules": "px4"}}})
     try:
         rig.run_to_end()
         svc = rig.service
         link = svc.source.autopilot_link
+        # ODOMETRY went to the autopilot on its link, each stamped with the autopilot's own
+        # time of the sample it carries the estimate of
+        sample_times = set((rig.sim.stream_start_us + rec.rel_us).tolist())
+        odometry = rig.sim.stats.odometry_times_us
+        assert len(odometry) >= 20 and set(odometry) <= sample_times
         assert link.autopilot is not None and link.autopilot.kind == "px4"
         assert rig.sim.stats.interval_requests[0] == (mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU, 3500.0)
         assert svc.pipeline.samples == len(rec.rel_us)

@@ -204,6 +204,37 @@ class RemoteTimeline:
         self._last_remote_ns = None
 
 
+class LinkClock:
+    """The link's clocks as other threads see them (ODOMETRY's ``time_usec``): the part of
+    :class:`TimeSync` an :class:`~ahrs_service.protocols.mavlink.odometry.OdometrySender` uses,
+    under the link's lock.
+
+    ``presented_ns`` gives a time of ours in the autopilot's clock once TIMESYNC is synced. For a
+    time the IMU source mapped (a sample's), the exact inverse of that mapping is used: the
+    held offset of the :class:`RemoteTimeline`, so an estimate of a sample is stamped with the
+    very time the autopilot gave that sample (TIMESYNC's estimate may since have moved within
+    the timeline's deadband).
+    """
+
+    def __init__(self, timesync: TimeSync, timeline: RemoteTimeline, lock: threading.Lock) -> None:
+        self._ts, self._timeline, self._lock = timesync, timeline, lock
+
+    @property
+    def synced(self) -> bool:
+        with self._lock:
+            return self._ts.synced
+
+    def presented_ns(self, local_ns: int) -> int:
+        """``local_ns`` (our monotonic ns) in the autopilot's clock, ns; ours until synced."""
+        with self._lock:
+            if not self._ts.synced:
+                return int(local_ns)
+            offset = self._timeline.offset_ns
+            if offset is not None:
+                return int(local_ns) - offset
+            return self._ts.presented_ns(local_ns)
+
+
 class AutopilotLink:
     """One connection to the flight controller, read on a thread (see the module docstring).
 
@@ -225,6 +256,8 @@ class AutopilotLink:
         self.timeline = RemoteTimeline()
         self.timeline.timesync = self.timesync
         self.timesync_lock = self.timeline.timesync_lock
+        #: what ODOMETRY (another thread) uses to stamp its messages in the autopilot's clock
+        self.clock = LinkClock(self.timesync, self.timeline, self.timesync_lock)
         self._next_timesync_ns = 0
         self._next_heartbeat_ns = 0
         # the service's address on this link: a component of the autopilot's vehicle (MAV_TYPE_IMU)
