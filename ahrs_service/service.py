@@ -377,6 +377,9 @@ class Service:
             self.report(f"sensor lost: {diag.get('last_error', '')}" if lost else "sensor back", 3 if lost else 6)
         if self.live is not None or self.log_writer is not None:
             loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced)
+            link = getattr(self.source, "autopilot_link", None)
+            if link is not None:  # the link, TIMESYNC's offset and drift (docs/autopilot.md)
+                loop["autopilot"] = link.status()
             if self.live is not None:
                 self.live.publish("/loop", now, loop)
         if self.log_writer is not None:

@@ -36,6 +36,7 @@ use the same mapping and their times stay consistent.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import select
 import threading
 import time
@@ -337,6 +338,25 @@ class AutopilotLink:
         return self.command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, round(1e6 / rate_hz))
 
     # ------------------------------------------------------------------ state
+    def status(self) -> dict[str, Any]:
+        """The link for the flight log (``/loop`` ``autopilot``, once a second): state, the
+        autopilot, counters, TIMESYNC's offset (remote − local, ns) and drift (ppm), the
+        samples' held offset (local − remote, ns)."""
+        ap = self.autopilot
+        with self.timesync_lock:
+            ts = self.timesync
+            timesync = {"synced": ts.synced, "offset_ns": ts.offset_ns, "drift_ppm": ts.drift_ppm,
+                        **dataclasses.asdict(ts.counters)}
+        tl = self.timeline
+        return {
+            "state": self.state,
+            "session": self.session,
+            "autopilot": None if ap is None else dataclasses.asdict(ap),
+            "link": self.stats.as_dict(),
+            "timesync": timesync,
+            "timeline": {"offset_ns": tl.offset_ns, "slewed_ns": tl.slewed_ns, "steps": tl.steps},
+        }
+
     @property
     def up(self) -> bool:
         return self.state == "up"
