@@ -167,6 +167,10 @@ class MavlinkImuSource(ImuSource):
     """
 
     may_have_backlog = True
+    #: the samples' times are the autopilot's own (recovered here, mapped onto our clock): the
+    #: service must not recover them again as host arrival times (issue 18's block loop reads
+    #: this attribute of ImuSource)
+    times_on_sensor_clock = True
 
     def __init__(self, link: AutopilotLink, *, message: str = "highres", rate_hz: float = 200.0,
                  raw_scale: RawScale | None = None, own_link: bool = True) -> None:

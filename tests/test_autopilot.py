@@ -389,6 +389,19 @@ def test_estimate_history_interpolates_and_refuses_outside():
     assert Disagreement.between(0, q, quat_from_euler(0, 0, 0.55)).total_deg == pytest.approx(0.0, abs=1e-9)
 
 
+def test_estimate_history_takes_blocks_like_single_estimates():
+    one, block = EstimateHistory(size=8), EstimateHistory(size=8)
+    t = np.arange(13, dtype=np.int64) * 10
+    q = np.array([quat_from_euler(0.0, 0.0, 0.1 * k) for k in range(13)])
+    for k in range(13):
+        one.add(int(t[k]), q[k])
+    block.add_many(t[:3], q[:3])
+    block.add_many(t[3:], q[3:])  # longer than the ring: the newest 8 stay
+    for when in (45, 50, 55, 115, 120):
+        assert one.at(when) == block.at(when)
+    assert one.at(45) is None and block.n == one.n == 13
+
+
 def test_remote_timeline_holds_its_offset_within_the_deadband():
     tl = RemoteTimeline(deadband_ns=1_000_000, slew_ppm=100.0, step_ns=50_000_000)
     tl.arrival(1_000, 5_000_000_000 + 1_000_000 + 400_000)  # 400 µs of latency
