@@ -315,6 +315,22 @@ def test_scaled_imu_units():
     assert np.allclose(r.mag, [20.0, 0.0, 45.0]) and r.temperature_c == pytest.approx(25.12)
 
 
+def test_raw_imu_counts_take_the_configured_scale_and_scaled2_decodes_like_scaled():
+    from ahrs_service.drivers.mavlink_imu import RawScale, decode_raw, parse_raw_scale
+
+    raw = mavlink2.MAVLink_raw_imu_message(5_000_123, 0, 0, -4096, 100, 0, -100, 300, 0, 0, 0, 0)
+    r = decode_raw(raw, RawScale(acc=9.80665 / 4096, gyr=0.001, mag=0.15))  # a 4096 LSB/g part
+    assert r.remote_us == 5_000_123
+    assert np.allclose(r.acc, [0, 0, -9.80665]) and np.allclose(r.gyr, [0.1, 0, -0.1]) and np.allclose(r.mag, [45, 0, 0])
+    # unset keys: ArduPilot's RAW_IMU (= SCALED_IMU units, GCS_MAVLINK::send_raw_imu)
+    assert parse_raw_scale({"acc": 0.5}) == RawScale(acc=0.5, gyr=1e-3, mag=0.1)
+    with pytest.raises(ValueError, match="source.mavlink_raw_scale.gyro: unknown"):
+        parse_raw_scale({"gyro": 1.0})
+    two = mavlink2.MAVLink_scaled_imu2_message(1234, 0, 0, -1000, 100, -200, 300, 200, 0, 450, 0)
+    r2 = decode_scaled(two)
+    assert np.allclose(r2.acc, [0, 0, -9.80665]) and r2.temperature_c is None  # 0: not sent
+
+
 # ---------------------------------------------------------------------- the monitor on its own
 
 
