@@ -156,6 +156,15 @@ class Service:
             for name, value in self.monitor.named_values():
                 self.mavlink.component.send(
                     mavlink.MAVLink_named_value_float_message(boot_ms & 0xFFFFFFFF, name.encode(), value))
+            if self.live is not None:  # viewers get the latest comparison at the same rate
+                from ahrs_service.logs import schemas
+
+                d = self.monitor.latest
+                q_ap = list(d.q_autopilot)
+                self.live.publish("/autopilot/attitude", d.t_ns, schemas.attitude_message(d.t_ns, q_ap, "autopilot"))
+                self.live.publish("/tf", d.t_ns, schemas.tf_message(d.t_ns, q_ap, child="autopilot"))
+                self.live.publish("/monitor", d.t_ns, schemas.monitor_message(
+                    d.t_ns, d.total_deg, d.inclination_deg, d.heading_deg, q_ap, list(d.q_estimate)))
 
     def _warm_up(self) -> None:
         """Compiles the pipeline's kernels. numba saves each new kernel to its cache after
@@ -238,6 +247,11 @@ class Service:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
         self.mavlink = MavlinkBridge(self, cfg, io_period_ns=IO_PERIOD_NS)
+        link = getattr(self.source, "autopilot_link", None)
+        if link is not None and self.mavlink.odometry is not None:
+            # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
+            self.mavlink.odometry.send = link.send
+            self.mavlink.timesync = link.clock
 
     # ------------------------------------------------------------------ control
     def request_stop(self, *_: Any) -> None:
@@ -408,6 +422,9 @@ class Service:
             loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced)
             if self.log_writer is not None:
                 loop["log"] = self.log_writer.stats()  # docs/logs.md: /loop `log`, what was not logged
+            link = getattr(self.source, "autopilot_link", None)
+            if link is not None:  # the link, TIMESYNC's offset and drift (docs/autopilot.md)
+                loop["autopilot"] = link.status()
             if self.live is not None:
                 self.live.publish("/loop", now, loop)
         if self.log_writer is not None:

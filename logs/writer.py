@@ -63,6 +63,7 @@ from ahrs_service.logs.schemas import (
     jsonable,
     log_message,
     num_or_null,
+    monitor_message,
     raw_message,
     tf_message,
     truth_message,
@@ -843,9 +844,8 @@ class FlightLogWriter:
             t = item.t_ns
             self._write("/autopilot/attitude", t, attitude_message(t, item.q_autopilot, "autopilot"))
             self._write("/tf", t, tf_message(t, item.q_autopilot, child="autopilot"))
-            self._write("/monitor", t, {"t_ns": t, "total_deg": item.total_deg,
-                                        "inclination_deg": item.inclination_deg, "heading_deg": item.heading_deg,
-                                        "q_autopilot": item.q_autopilot, "q_estimate": item.q_estimate})
+            self._write("/monitor", t, monitor_message(t, item.total_deg, item.inclination_deg, item.heading_deg,
+                                                       item.q_autopilot, item.q_estimate))
 
     def _on_timesync(self, item: _Timesync) -> None:
         if self._ensure_file(1):
