@@ -19,6 +19,7 @@ Every loop is bounded: the recording's length plus ``time_limit_s``.
 from __future__ import annotations
 
 import os
+import select
 import socket
 import termios
 import threading
@@ -138,12 +139,18 @@ class PtyTransport:
         return f"{self.path},921600"
 
     def write(self, data: bytes) -> None:
-        if self.master is None:
-            return
-        try:
-            os.write(self.master, data)
-        except (BlockingIOError, OSError):
-            pass  # the reader is slow or gone: a UART drops bytes too
+        """Writes all of ``data``, waiting (at most 2 s) while the reader is slow: a pty's buffer
+        is a few kB, and a router lagging on a busy host must not lose the stream here (a real
+        UART at 921 600 baud paces the autopilot instead). A reader gone: dropped."""
+        view = memoryview(data)
+        end = time.monotonic() + 2.0
+        while view and self.master is not None and time.monotonic() < end:
+            try:
+                view = view[os.write(self.master, view):]
+            except BlockingIOError:
+                select.select([], [self.master], [], 0.05)
+            except OSError:
+                return
 
     def read(self) -> bytes:
         if self.master is None:
