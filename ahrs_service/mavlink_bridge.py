@@ -5,12 +5,14 @@ Parameters the ground station sees (PARAM_REQUEST_LIST):
 * ``EST_<NAME>`` — every tuning parameter of the running estimator (e.g. ``EST_BETA``),
   applied live between two samples and recorded in the flight log;
 * ``MAG_DECL_DEG`` — magnetic declination added to the published heading (true north);
-* ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ`` — publishing rates;
+* ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ``, ``RATE_VIBE_HZ`` —
+  publishing rates;
 * ``LOOP_RATE_HZ`` — the estimation rate (read-only: change it in the configuration).
 """
 
 from __future__ import annotations
 
+import contextlib
 from typing import TYPE_CHECKING, Any
 
 from ahrs_service import estimators
@@ -35,6 +37,7 @@ RATE_PARAMS = {
     "RATE_ATTQ_HZ": "ATTITUDE_QUATERNION",
     "RATE_HRIMU_HZ": "HIGHRES_IMU",
     "RATE_SYSST_HZ": "SYS_STATUS",
+    "RATE_VIBE_HZ": "VIBRATION",
 }
 RATE_CONFIG_KEYS = {
     "HEARTBEAT": "heartbeat_hz",
@@ -42,6 +45,7 @@ RATE_CONFIG_KEYS = {
     "ATTITUDE_QUATERNION": "attitude_quaternion_hz",
     "HIGHRES_IMU": "highres_imu_hz",
     "SYS_STATUS": "sys_status_hz",
+    "VIBRATION": "vibration_hz",
 }
 
 
@@ -113,7 +117,13 @@ class MavlinkBridge:
             accel_calibration=lambda action: self._start_collection("accel"),
             max_rate_hz=1e9 / io_period_ns,
         )
-        self.timesync: TimeSync | None = None  # the autopilot link sets it (docs/autopilot.md)
+        # beside an autopilot the service hands over the link's TIMESYNC estimate and the lock
+        # its reader thread updates it under (docs/autopilot.md, "TIMESYNC")
+        self.timesync: TimeSync | None = None
+        self.timesync_lock: Any = contextlib.nullcontext()
+        #: the autopilot link's send (AutopilotLink.send), set by the service beside an autopilot:
+        #: ODOMETRY goes there as well as on the endpoints
+        self.autopilot_send: Any = None
         self.odometry = self._odometry_sender(mcfg["odometry"])
 
     # ------------------------------------------------------------------ ODOMETRY (issue 17)
@@ -122,7 +132,12 @@ class MavlinkBridge:
             return None
         self._odometry_epoch = 0
         self._odometry_ref: tuple[Any, float, bool] | None = None
-        return OdometrySender(self.component.send, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]])
+        return OdometrySender(self._send_odometry, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]])
+
+    def _send_odometry(self, msg: Any) -> None:
+        self.component.send(msg)
+        if self.autopilot_send is not None:
+            self.autopilot_send(msg)
 
     def odometry_estimate(self, now_ns: int) -> AttitudeEstimate | None:
         """The published attitude and its variances for ODOMETRY; None before the first sample.
@@ -234,13 +249,16 @@ class MavlinkBridge:
             accel=SensorStatus(True, True, health["accel_healthy"]),
             mag_status=SensorStatus(health["mag_present"], mag_used, health["mag_healthy"]),
             estimator=svc.estimator.name,
-            ahrs_healthy=bool(svc.estimator.state[STATE_HEADER.index.initialised]),
+            # a stale estimate is an unhealthy AHRS, as ArduPilot's GCS::update_sensor_status_flags
+            # clears MAV_SYS_STATUS_AHRS when ahrs.healthy() fails (docs/mavlink.md, "Health per sensor")
+            ahrs_healthy=bool(svc.estimator.state[STATE_HEADER.index.initialised]) and fresh,
             reduced_mode=pipeline.reduced or not pipeline.use_mag,
             overruns=st.overruns,
             load_percent=svc.last_load_percent,
             comm_errors=diag.bus_errors,
             sensor_faults=diag.saturated + diag.non_finite,
             lost_samples=diag.lost.total,
+            vibration=svc.vibration.levels(),
         )
 
     def tick(self, now_ns: int) -> None:
@@ -255,13 +273,15 @@ class MavlinkBridge:
         odometry = self.odometry
         if odometry is not None and odometry.due(now_ns):
             odometry.timesync = self.timesync
-            odometry.tick(now_ns, self.odometry_estimate(now_ns))
+            estimate = self.odometry_estimate(now_ns)
+            with self.timesync_lock:
+                odometry.tick(now_ns, estimate)
         if now_ns >= self._next_poll_ns:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)
 
-    def statustext(self, severity: int, text: str) -> None:
-        self.component.statustext(severity, text)
+    def statustext(self, severity: int, text: str, kind: str | None = None) -> None:
+        self.component.statustext(severity, text, kind)
 
     def stats(self) -> dict[str, Any]:
         return self.component.stats.as_dict()

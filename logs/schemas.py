@@ -280,6 +280,23 @@ MONITOR = {
     "required": ["t_ns", "total_deg", "inclination_deg", "heading_deg"],
 }
 
+TIMESYNC = {
+    "title": "ahrs.Timesync",
+    "description": "The autopilot's clock against ours after each accepted TIMESYNC sample "
+    "(protocols/mavlink/timesync.py, TimesyncStatus).",
+    "type": "object",
+    "properties": {
+        "t_ns": _T_NS,
+        "offset_ns": {"type": "integer", "description": "estimated autopilot − our clock at t_ns, ns"},
+        "observed_offset_ns": {"type": "integer", "description": "this sample's offset, ns"},
+        "drift_ppm": _NUM_OR_NULL,
+        "rtt_ns": {"type": "integer", "description": "this sample's round trip, ns"},
+        "synced": {"type": "boolean"},
+        "samples": {"type": "integer", "description": "accepted samples in the estimate"},
+    },
+    "required": ["t_ns", "offset_ns", "drift_ppm", "rtt_ns", "synced"],
+}
+
 #: topic -> (schema name, JSON Schema)
 CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
     "/imu/raw": ("ahrs.ImuRaw", IMU_RAW),
@@ -289,6 +306,7 @@ CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
     # beside an autopilot: its own attitude (estimator "autopilot") and the comparison
     "/autopilot/attitude": ("ahrs.Attitude", ATTITUDE),
     "/monitor": ("ahrs.AttitudeMonitor", MONITOR),
+    "/timesync": ("ahrs.Timesync", TIMESYNC),
     "/loop": ("ahrs.LoopStats", LOOP),
     "/config": ("ahrs.Config", CONFIG),
     "/params": ("ahrs.ParamChange", PARAM_CHANGE),

@@ -18,6 +18,7 @@ a closure over it) is compiled anew at every start — seconds of start-up for t
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, ClassVar
 
 import numpy as np
@@ -83,7 +84,7 @@ class Estimator:
         """State before the first sample: identity attitude, not initialised, zero counters."""
         s = np.zeros(self.state_size)
         s[K.Q] = 1.0
-        s[K.ACC_AGE] = s[K.MAG_AGE] = np.inf  # no usable accelerometer or field sample yet
+        s[K.ACC_AGE] = s[K.MAG_AGE] = K.NO_SAMPLE_YET
         return s
 
     def reset(self) -> None:
@@ -110,7 +111,7 @@ class Estimator:
         if not s[K.INITIALISED]:
             return AttitudeVariance.unknown()
         return self.error_model.variance(
-            float(s[K.ACC_AGE]), float(s[K.MAG_AGE]), self.observes_heading and self.uses_mag
+            sample_age(s[K.ACC_AGE]), sample_age(s[K.MAG_AGE]), self.observes_heading and self.uses_mag
         )
 
     @property
@@ -166,6 +167,11 @@ class Estimator:
         out = np.empty((rows.shape[0], 4))
         self.batch(self.state, self._p, rows, out)
         return out
+
+
+def sample_age(age: float) -> float:
+    """A header ``acc_age`` / ``mag_age`` in s, ``inf`` before the first usable sample."""
+    return math.inf if age < 0.0 else float(age)
 
 
 def stack_rows(gyr: Any, acc: Any, mag: Any, dt: Any) -> np.ndarray:

@@ -207,6 +207,6 @@ class QuaternionKF(Estimator):
         var = with_unmodelled_floor(
             euler_variance_of_quaternion_covariance(s[K.HEADER_SLICES.q], s[STATE.slices.p].reshape(4, 4))
         )
-        if not np.isfinite(s[K.MAG_AGE]):
+        if s[K.MAG_AGE] < 0.0:  # K.NO_SAMPLE_YET
             return AttitudeVariance(var.roll, var.pitch, float("nan"))
         return var

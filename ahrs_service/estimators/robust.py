@@ -67,7 +67,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators import robust_blocks as B
-from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.base import Estimator, sample_age
 from ahrs_service.estimators.robust_layout import DEG, N_PARAMS, P, ST, STATE, STATE_SIZE, RobustParams
 from ahrs_service.estimators.robust_mag import hard_iron_and_consistency, heading
 from ahrs_service.estimators.uncertainty import AttitudeVariance, ErrorModel
@@ -359,7 +359,7 @@ class RobustEstimator(Estimator):
             return AttitudeVariance.unknown()
         sigma_b = np.sqrt(np.maximum(np.diag(s[STATE.slices.bias_p].reshape(3, 3)), 0.0)) * BIAS_P_UNIT
         m = self.error_model
-        tilt = m.tilt_sigma**2 + (float(max(sigma_b[0], sigma_b[1])) * float(s[K.ACC_AGE])) ** 2
-        unused = float(s[K.MAG_AGE]) + (float(s[ST.mag_reject_t]) if s[ST.mag_dist] else 0.0)
+        tilt = m.tilt_sigma**2 + (float(max(sigma_b[0], sigma_b[1])) * sample_age(s[K.ACC_AGE])) ** 2
+        unused = sample_age(s[K.MAG_AGE]) + (float(s[ST.mag_reject_t]) if s[ST.mag_dist] else 0.0)
         yaw = m.heading_sigma**2 + (float(sigma_b[2]) * unused) ** 2 if np.isfinite(unused) else float("nan")
         return AttitudeVariance(tilt, tilt, yaw)

@@ -12,8 +12,10 @@ not used; five such samples in a row mean the remote clock jumped (a reboot) and
 starts again (``MAX_DEVIATION_SAMPLE``, ``MAX_CONSECUTIVE_HIGH_DEVIATION``).
 
 The filter itself differs from PX4's double exponential smoothing (which needs 500 exchanges,
-``CONVERGENCE_WINDOW``, before it calls itself converged): a least-squares line through the
-last ``WINDOW`` accepted samples, offset against our time. Its slope is the drift (ppm) and
+``CONVERGENCE_WINDOW``, before it calls itself converged): a least-squares line, offset
+against our time, through the last ``WINDOW`` accepted samples, each weighted by how much its
+round trip exceeds the shortest (a delay queued on one way only shows as a longer round
+trip, and biases that sample's offset by up to half of it; ``RTT_FLOOR_NS``). Its slope is the drift (ppm) and
 its value at a time is the offset there, so a synced estimate is usable after ``MIN_SAMPLES``
 exchanges (half a second at the 10 Hz request rate) and stays unbiased under a constant drift.
 
@@ -45,8 +47,12 @@ MAX_DEVIATION_NS = 100_000_000
 MAX_CONSECUTIVE_DEVIATIONS = 5
 #: accepted samples before the estimate is called synced
 MIN_SAMPLES = 5
-#: accepted samples the line is fitted through (at 10 Hz: the last 6.4 s)
-WINDOW = 64
+#: accepted samples kept (at 10 Hz: the last 25.6 s; a long span for the drift's slope)
+WINDOW = 256
+#: the fit weighs a sample by 1 / (half its round trip's excess over the window's shortest +
+#: this)²: a long round trip is a queue on one way, which biases the offset by up to half of
+#: it; this floor stands for the error of the shortest exchanges themselves, ns
+RTT_FLOOR_NS = 50_000
 #: our requests remembered to match replies (a reply whose ts1 we never sent is another system's)
 PENDING = 32
 #: how often the owner should call :meth:`TimeSync.request`, Hz (PX4 asks at 10 Hz too)
@@ -101,6 +107,7 @@ class TimesyncCounters:
 class _Sample:
     local_ns: int  # round-trip midpoint, our clock
     offset_ns: int  # remote − local observed
+    rtt_ns: int
 
 
 class TimeSync:
@@ -209,7 +216,7 @@ class TimeSync:
                 self.reset()  # the remote clock jumped (PX4: "time jump detected")
             return None
         self._deviations = 0
-        self._samples.append(_Sample(mid, observed))
+        self._samples.append(_Sample(mid, observed, rtt))
         self.counters.accepted += 1
         self._fit()
         self.last_status = TimesyncStatus(
@@ -224,15 +231,24 @@ class TimeSync:
         return None
 
     def _fit(self) -> None:
-        # least squares offset = a + b (t − t0), t0 the newest sample's time: the line's value
-        # where it is used most (now) is its intercept, the best-determined number
+        # weighted least squares offset = a + b (t − t0), t0 the newest sample's time (the
+        # line's value where it is used, now, is its intercept). A sample's offset can be off by
+        # up to half of what its round trip exceeds the shortest one (a queue on one way), so
+        # its weight is 1 / (that excess / 2 + RTT_FLOOR_NS)²
         samples = self._samples
         t0 = samples[-1].local_ns
-        n = len(samples)
-        ts = [float(s.local_ns - t0) for s in samples]
-        ys = [float(s.offset_ns) for s in samples]
-        mt = sum(ts) / n
-        my = sum(ys) / n
-        stt = sum((t - mt) ** 2 for t in ts)
-        b = 0.0 if n < 2 or stt <= 0.0 else sum((t - mt) * (y - my) for t, y in zip(ts, ys)) / stt
+        rtt_min = min(s.rtt_ns for s in samples)
+        sw = st = sy = 0.0
+        rows = []
+        for s in samples:
+            w = 1.0 / (0.5 * (s.rtt_ns - rtt_min) + RTT_FLOOR_NS) ** 2
+            t, y = float(s.local_ns - t0), float(s.offset_ns)
+            rows.append((w, t, y))
+            sw += w
+            st += w * t
+            sy += w * y
+        mt, my = st / sw, sy / sw
+        stt = sum(w * (t - mt) ** 2 for w, t, _ in rows)
+        sty = sum(w * (t - mt) * (y - my) for w, t, y in rows)
+        b = 0.0 if len(rows) < 2 or stt <= 0.0 else sty / stt
         self._t0, self._b, self._a = t0, b, my - b * mt
