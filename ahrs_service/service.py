@@ -15,6 +15,7 @@ and records it itself — between two samples like any other change.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import signal
@@ -114,7 +115,9 @@ class Service:
         # the link replaces its estimator when the autopilot (re)appears: look it up each time
         link = self._autopilot_link
         bridge = self.mavlink
-        bridge.timesync, bridge.timesync_lock = link.timesync, link.timesync_lock
+        # the link's clock (AutopilotLink.clock) takes the link's lock itself, and stamps the
+        # estimate of a sample with the very time the autopilot gave that sample
+        bridge.timesync, bridge.timesync_lock = link.clock, contextlib.nullcontext()
         bridge.autopilot_send = link.send  # ODOMETRY to the autopilot too
         with link.timesync_lock:
             status = link.timesync.last_status
@@ -247,11 +250,6 @@ class Service:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
         self.mavlink = MavlinkBridge(self, cfg, io_period_ns=IO_PERIOD_NS)
-        link = getattr(self.source, "autopilot_link", None)
-        if link is not None and self.mavlink.odometry is not None:
-            # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
-            self.mavlink.odometry.send = link.send
-            self.mavlink.timesync = link.clock
 
     # ------------------------------------------------------------------ control
     def request_stop(self, *_: Any) -> None:
