@@ -78,17 +78,14 @@ _jit = njit(cache=True, inline="always")
 @_jit
 def _update_coefficients(s, p, dt):
     """Recomputes the cached low-pass coefficients when dt or a time constant changed."""
-    if (
-        s[ST.coef_dt] != dt
-        or s[ST.coef_tau_acc] != p[P.tau_acc]
-        or s[ST.coef_tau_rest] != p[P.rest_filter_tau]
-        or s[ST.coef_tau_acc_rest] != p[P.tau_acc_rest]
+    if B.cache_is_stale(
+        s,
+        (ST.coef_dt, ST.coef_tau_acc, ST.coef_tau_rest, ST.coef_tau_acc_rest),
+        (dt, p[P.tau_acc], p[P.rest_filter_tau], p[P.tau_acc_rest]),
     ):
         B.butter2_coefficients(s, ST.ca, dt, p[P.tau_acc])
         B.butter2_coefficients(s, ST.cr, dt, p[P.rest_filter_tau])
         B.butter2_coefficients(s, ST.car, dt, p[P.tau_acc_rest])
-        s[ST.coef_dt], s[ST.coef_tau_acc], s[ST.coef_tau_rest] = dt, p[P.tau_acc], p[P.rest_filter_tau]
-        s[ST.coef_tau_acc_rest] = p[P.tau_acc_rest]
 
 
 @_jit
