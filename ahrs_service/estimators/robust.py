@@ -19,7 +19,9 @@ NED/FRD. The project's own: the output lead and the magnetic features marked so 
 * q_a (E6←I): inclination correction. The accelerometer is rotated into I and low-pass
   filtered there (2nd-order, τ_acc), so linear accelerations that average out over a few
   seconds (tapping, translation) cannot tilt the estimate; q_a turns the filtered vector onto
-  the vertical (VQF eq. 7–10);
+  the vertical (VQF eq. 7–10). τ_acc follows the tilt rate (the project's own, see
+  ``_accel_time_constant``): longer while the sensor tilts slowly, as a vehicle in flight
+  does, so that sustained accelerations average out;
 * q_δ (E←E6): rotation about the vertical by the heading offset δ, a first-order filter of
   the magnetometer's heading disagreement (τ_mag, VQF eq. 11–12) gated by the magnetic
   rejection features below.
@@ -84,7 +86,9 @@ def _accel_time_constant(s, p):
     axes): r = b + ε |ω̄_h|. A low-pass of time constant τ leaves a drift error ≈ r τ and an
     acceleration error that falls with τ; their sum is smallest for τ ∝ 1/√r, hence
     τ = tau_acc_max / √(1 + |ω̄_h| / tilt_rate_ref), with tilt_rate_ref = b/ε, never below
-    tau_acc. Rounded to 0.05 s so the coefficient cache holds between changes.
+    tau_acc. Rounded to 0.05 s so the coefficient cache holds between changes; the filters
+    keep their delay states across a change, and a step of 0.05 s in 3–6 s moves their output
+    by about 1 % of the (small) difference between input and output.
     """
     ref = p[P.tilt_rate_ref] * DEG
     if ref <= 0.0:
