@@ -116,6 +116,17 @@ class EstimateHistory:
         self.head = (self.head + 1) % self.size
         self.n += 1
 
+    def add_many(self, t_ns: np.ndarray, q: np.ndarray) -> None:
+        """A block of estimates: (n,) int64 times, ns, and (n, 4) quaternions, oldest first."""
+        added = n = len(t_ns)
+        if n >= self.size:  # only the newest ``size`` can be kept
+            t_ns, q, n = t_ns[-self.size:], q[-self.size:], self.size
+        idx = (self.head + np.arange(n)) % self.size
+        self.t[idx] = t_ns
+        self.q[idx] = q
+        self.head = (self.head + n) % self.size
+        self.n += added
+
     def at(self, t_ns: int) -> tuple[float, float, float, float] | None:
         """The estimate at ``t_ns`` (interpolated), or None outside the kept span."""
         count = min(self.n, self.size)
@@ -192,6 +203,10 @@ class AttitudeMonitor:
         """Our estimate q_earth←body (magnetic north, as the estimator keeps it) at ``t_ns``."""
         self.history.add(t_ns, q)
 
+    def add_estimates(self, t_ns: np.ndarray, q: np.ndarray) -> None:
+        """A block of our estimates (a sample block's times, ns, and quaternions, oldest first)."""
+        self.history.add_many(t_ns, q)
+
     def update(self, declination_deg: float = 0.0) -> tuple[list[Disagreement], list[MonitorEvent]]:
         """Compares every autopilot attitude received since the last call whose time the
         history covers (later ones wait for the next call); returns the comparisons and any
@@ -204,10 +219,10 @@ class AttitudeMonitor:
             att = self._inbox[0]
             q_ap = att.q
             t_ns = self.link.timeline.peek_local_ns(att.time_boot_ms * 1000)
-            if t_ns is not None and newest is not None and t_ns > newest:
-                break  # our estimate for that time is not there yet
+            if t_ns is None or newest is None or t_ns > newest:
+                break  # no time map yet (the IMU source waits for TIMESYNC), or no estimate for that time yet
             self._inbox.popleft()
-            q_est = None if t_ns is None else self.history.at(t_ns)
+            q_est = self.history.at(t_ns)
             if q_est is None:
                 self.unmatched += 1
                 continue

@@ -140,6 +140,15 @@ def _path(must_exist: bool = False) -> Checker:
     return check
 
 
+def _directory(key: str, v: Any) -> str:
+    """A folder to write into: a non-empty path (made if missing; one that cannot be written
+    is the writer's to report and retry at run time, the service runs on meanwhile)."""
+    v = _path()(key, v)
+    if not v.strip():
+        raise ConfigError(f"{key}: {v!r} is empty; accepted: a folder path (e.g. \"flight-logs\")")
+    return v
+
+
 _ENDPOINT_HELP = ("udpout:HOST:PORT, udpin:HOST:PORT, udp:HOST:PORT, udpbcast:HOST:PORT, tcp:HOST:PORT, "
                   "tcpin:HOST:PORT (PORT 1..65535) or a serial device by absolute path /dev/NAME[,BAUD]")
 
@@ -209,6 +218,18 @@ def _finite_table(key: str, v: Any) -> dict:
     return v
 
 
+def _vector3(lo: float, hi: float) -> Checker:
+    """Three finite numbers, each in [lo, hi]."""
+    number = _number(lo, hi)
+
+    def check(key: str, v: Any) -> list[float]:
+        if not isinstance(v, list) or len(v) != 3:
+            raise ConfigError(f"{key}: {v!r} is not a list of 3 numbers; accepted: 3 numbers in [{lo}, {hi}]")
+        return [number(f"{key}[{i}]", x) for i, x in enumerate(v)]
+
+    return check
+
+
 def _optional(check: Checker) -> Checker:
     return lambda key, v: None if v is None else check(key, v)
 
@@ -252,6 +273,10 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "profile": ("validation", _choice(PROFILES)),
         "loop_profile": (True, _boolean),
         "sensor_errors": (True, _boolean),
+        # simulated sources: a sinusoidal vibration of the airframe, m/s² per body axis, at
+        # vibration_hz (0: none): what VIBRATION measures (docs/simulator.md)
+        "vibration_mss": ([0.0, 0.0, 0.0], _vector3(0.0, 1000.0)),
+        "vibration_hz": (0.0, _number(0.0, 10_000.0)),
         "seed": (0, _number(0, None, integer=True)),
         "can_interface": ("virtual", _string),
         "can_channel": ("ahrs", _string),
@@ -280,6 +305,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "attitude_quaternion_hz": (50.0, _stream_rate(1000.0)),
         "highres_imu_hz": (0.0, _stream_rate(1000.0)),
         "sys_status_hz": (1.0, _stream_rate(50.0)),
+        "vibration_hz": (2.0, _stream_rate(50.0)),
     },
     "mounting": {
         "roll_deg": (0.0, _number(-180.0, 180.0)),
@@ -303,7 +329,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
     },
     "log": {
         "enabled": (True, _boolean),
-        "directory": ("flight-logs", _path()),
+        "directory": ("flight-logs", _directory),
         "rotate_mb": (0.0, _number(0.0, 1_000_000.0)),  # 0 = no size rotation; at most 1 TB
         "rotate_minutes": (0.0, _number(0.0, 525_600.0)),  # 0 = no time rotation; at most a year
         # the estimator's diagnostics (rest, rejections, form) in /attitude this often, Hz
@@ -502,13 +528,38 @@ def _check_fifo_board(section: dict[str, Any], bus: str) -> None:
         raise ConfigError(f"source.board_options: {exc}") from None
 
 
+#: the largest magnitude of each [calibration] value that a real sensor's calibration can
+#: have (the terms are offsets of a few units and near-identity matrices); beyond it a value is
+#: a typo, and a finite but absurd one (1e300 rad/s of gyro bias) would overflow the estimate
+CALIBRATION_LIMITS = {
+    "gyro_bias": 10.0,  # rad/s (a gyro off by ~570 °/s is broken, not biased)
+    "acc_bias": 50.0,  # m/s²
+    "acc_scale": 10.0,  # each matrix element
+    "mag_hard_iron": 5000.0,  # µT (the earth field is 25–65 µT; a nearby magnet may add hundreds)
+    "mag_soft_iron": 100.0,  # each matrix element
+    "mounting": 1.0,  # each element of a rotation matrix
+    "mounting_rpy_deg": 360.0,  # each angle, degrees
+}
+
+
 def _check_calibration(given: dict[str, Any]) -> dict[str, Any]:
+    import numpy as np
+
     from ahrs_service.drivers.calibration import SensorCalibration
 
+    for key, value in given.items():  # before from_dict: its matrix checks would overflow on 1e300
+        limit = CALIBRATION_LIMITS.get(key)
+        try:
+            values = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            continue  # not numbers: from_dict names the key and the shape it wants
+        if limit is not None and values.size and np.isfinite(values).all() and np.abs(values).max() > limit * (1 + 1e-9):
+            raise ConfigError(f"calibration.{key}: {value!r} is out of range; accepted: each value within "
+                              f"±{limit:g} (calibration key {key!r})")
     try:
         SensorCalibration.from_dict(given)
     except ValueError as exc:
-        raise ConfigError(f"calibration.{exc}" if not str(exc).startswith("calibration") else str(exc)) from None
+        raise ConfigError(str(exc) if str(exc).startswith("calibration") else f"calibration: {exc}") from None
     return dict(given)
 
 

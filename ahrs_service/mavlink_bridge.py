@@ -5,7 +5,8 @@ Parameters the ground station sees (PARAM_REQUEST_LIST):
 * ``EST_<NAME>`` — every tuning parameter of the running estimator (e.g. ``EST_BETA``),
   applied live between two samples and recorded in the flight log;
 * ``MAG_DECL_DEG`` — magnetic declination added to the published heading (true north);
-* ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ`` — publishing rates;
+* ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ``, ``RATE_VIBE_HZ`` —
+  publishing rates;
 * ``LOOP_RATE_HZ`` — the estimation rate (read-only: change it in the configuration).
 """
 
@@ -36,6 +37,7 @@ RATE_PARAMS = {
     "RATE_ATTQ_HZ": "ATTITUDE_QUATERNION",
     "RATE_HRIMU_HZ": "HIGHRES_IMU",
     "RATE_SYSST_HZ": "SYS_STATUS",
+    "RATE_VIBE_HZ": "VIBRATION",
 }
 RATE_CONFIG_KEYS = {
     "HEARTBEAT": "heartbeat_hz",
@@ -43,6 +45,7 @@ RATE_CONFIG_KEYS = {
     "ATTITUDE_QUATERNION": "attitude_quaternion_hz",
     "HIGHRES_IMU": "highres_imu_hz",
     "SYS_STATUS": "sys_status_hz",
+    "VIBRATION": "vibration_hz",
 }
 
 
@@ -246,13 +249,16 @@ class MavlinkBridge:
             accel=SensorStatus(True, True, health["accel_healthy"]),
             mag_status=SensorStatus(health["mag_present"], mag_used, health["mag_healthy"]),
             estimator=svc.estimator.name,
-            ahrs_healthy=bool(svc.estimator.state[STATE_HEADER.index.initialised]),
+            # a stale estimate is an unhealthy AHRS, as ArduPilot's GCS::update_sensor_status_flags
+            # clears MAV_SYS_STATUS_AHRS when ahrs.healthy() fails (docs/mavlink.md, "Health per sensor")
+            ahrs_healthy=bool(svc.estimator.state[STATE_HEADER.index.initialised]) and fresh,
             reduced_mode=pipeline.reduced or not pipeline.use_mag,
             overruns=st.overruns,
             load_percent=svc.last_load_percent,
             comm_errors=diag.bus_errors,
             sensor_faults=diag.saturated + diag.non_finite,
             lost_samples=diag.lost.total,
+            vibration=svc.vibration.levels(),
         )
 
     def tick(self, now_ns: int) -> None:
@@ -274,8 +280,8 @@ class MavlinkBridge:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)
 
-    def statustext(self, severity: int, text: str) -> None:
-        self.component.statustext(severity, text)
+    def statustext(self, severity: int, text: str, kind: str | None = None) -> None:
+        self.component.statustext(severity, text, kind)
 
     def stats(self) -> dict[str, Any]:
         return self.component.stats.as_dict()

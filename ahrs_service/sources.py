@@ -42,6 +42,10 @@ def simulated_imu(source_cfg: dict[str, Any]):
     from ahrs_service.drivers.sim.sensor_model import PART_MODELS
 
     trajectory = profile(source_cfg["profile"], looping=source_cfg["loop_profile"])
+    if any(source_cfg["vibration_mss"]) and source_cfg["vibration_hz"] > 0:
+        from ahrs_service.drivers.sim.motion import Vibrating
+
+        trajectory = Vibrating(trajectory, source_cfg["vibration_mss"], source_cfg["vibration_hz"])
     if source_cfg["sensor_errors"]:
         # analog(): the register devices quantise and saturate at their configured range
         gyr, acc, mag = (PART_MODELS[p].analog() for p in _BOARD_PARTS[source_cfg["board"]])

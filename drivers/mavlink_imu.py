@@ -28,7 +28,8 @@ Times: each message carries the autopilot's time of the sample. Those times go t
 sample clock (:class:`~ahrs_service.sample_clock.SampleClock`, indexed mode: the index is the
 autopilot's time in tracked periods, so a gap of m periods counts m − 1 lost samples —
 sequence numbers cannot be used, they count all of a sender's messages) and are then mapped
-onto our monotonic clock by the link's :class:`RemoteTimeline` (TIMESYNC when synchronised).
+onto our monotonic clock by the link's :class:`RemoteTimeline` (TIMESYNC when synchronised:
+the first samples wait up to ``SYNC_WAIT_S`` for it, so the offset they keep is TIMESYNC's).
 Exactly uniform autopilot times pass the sample clock bit for bit.
 
 The stream is asked for with SET_MESSAGE_INTERVAL at ``source.mavlink_imu_hz`` when the
@@ -89,6 +90,11 @@ REQUEST_RETRY_S = 1.0
 MAX_GAP_S = 3600.0
 #: messages whose spacing sets the sample clock's period before the first sample is handed out
 WARMUP_MESSAGES = 16
+#: how long the first samples wait for TIMESYNC to converge, s: the offset the samples' times
+#: keep (RemoteTimeline) is then TIMESYNC's from the start instead of the arrival times' (late
+#: by the link's latency, tens of ms on a busy or slow link); an autopilot that does not answer
+#: TIMESYNC costs this once
+SYNC_WAIT_S = 2.0
 #: samples kept waiting for the loop at most (a loop stalled this long loses the oldest)
 QUEUE_SAMPLES = 4096
 
@@ -161,6 +167,10 @@ class MavlinkImuSource(ImuSource):
     """
 
     may_have_backlog = True
+    #: the samples' times are the autopilot's own (recovered here, mapped onto our clock): the
+    #: service must not recover them again as host arrival times (issue 18's block loop reads
+    #: this attribute of ImuSource)
+    times_on_sensor_clock = True
 
     def __init__(self, link: AutopilotLink, *, message: str = "highres", rate_hz: float = 200.0,
                  raw_scale: RawScale | None = None, own_link: bool = True) -> None:
@@ -228,7 +238,7 @@ class MavlinkImuSource(ImuSource):
             # the stream's real rate, from its first spacings: an autopilot may not give the
             # rate asked for, and the sample clock's periods must be the stream's own
             self._warmup.append(r)
-            if len(self._warmup) < WARMUP_MESSAGES:
+            if len(self._warmup) < WARMUP_MESSAGES or not self._may_start():
                 return
             spacing = float(np.median(np.diff([w.remote_us for w in self._warmup]))) * 1000
             self._clock = SampleClock(1e9 / spacing if spacing > 0 else self.rate_hz)
@@ -248,6 +258,15 @@ class MavlinkImuSource(ImuSource):
         self.refusals += 1
         result = mavlink.enums["MAV_RESULT"].get(int(msg.result))
         self.refusal = f"autopilot refused {self.msg_name} at {self.rate_hz:g} Hz: {result.name if result else msg.result}"
+
+    def _may_start(self) -> bool:
+        """Whether the first samples may be stamped: TIMESYNC is synced, or waited for long
+        enough (``SYNC_WAIT_S`` of autopilot time), or the wait would overflow the queue."""
+        with self.link.timesync_lock:
+            if self.link.timesync.synced:
+                return True
+        waited_us = self._warmup[-1].remote_us - self._warmup[0].remote_us
+        return waited_us >= SYNC_WAIT_S * 1e6 or len(self._warmup) >= QUEUE_SAMPLES
 
     def _stamp(self, r: _Reading, first: bool = False) -> None:
         remote_ns = r.remote_us * 1000

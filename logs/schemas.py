@@ -437,6 +437,14 @@ def truth_message(t_ns: int, q: list[float], movement: bool | None = None, sourc
     }
 
 
+def monitor_message(t_ns: int, total_deg: float, inclination_deg: float, heading_deg: float,
+                    q_autopilot: list[float], q_estimate: list[float]) -> dict[str, Any]:
+    """The /monitor message: the autopilot's attitude against ours at the autopilot's time
+    (ahrs_service/attitude_monitor.py), degrees; both q_earth←body [w, x, y, z] (NED/FRD)."""
+    return {"t_ns": int(t_ns), "total_deg": num_or_null(total_deg), "inclination_deg": num_or_null(inclination_deg),
+            "heading_deg": num_or_null(heading_deg), "q_autopilot": list(q_autopilot), "q_estimate": list(q_estimate)}
+
+
 def tf_message(t_ns: int, q: list[float], child: str = "body") -> dict[str, Any]:
     """foxglove.FrameTransform of the body frame (or ``child``: ``"autopilot"``, the autopilot's
     attitude beside an autopilot) in the NED frame (rotation in x, y, z, w order)."""

@@ -165,6 +165,7 @@ class SimStats:
     attitudes: int = 0
     interval_requests: list[tuple[int, float]] = field(default_factory=list)  # (msg id, interval µs)
     timesync_replies: int = 0
+    odometry_times_us: list[int] = field(default_factory=list)  # ODOMETRY.time_usec received
     received: dict[str, int] = field(default_factory=dict)
 
 
@@ -269,6 +270,8 @@ class SimAutopilot:
                     result = mavlink.MAV_RESULT_DENIED if self.refuse_streams else mavlink.MAV_RESULT_ACCEPTED
                     self.send(mavlink.MAVLink_command_ack_message(msg.command, result, 0, 0,
                                                                   msg.get_srcSystem(), msg.get_srcComponent()))
+                elif name == "ODOMETRY":
+                    self.stats.odometry_times_us.append(int(msg.time_usec))
                 elif name == "TIMESYNC" and msg.tc1 == 0:
                     self.send(mavlink.MAVLink_timesync_message(self.now_us() * 1000, msg.ts1))
                     self.stats.timesync_replies += 1
@@ -301,7 +304,8 @@ class SimAutopilot:
                     self._pause(self.pause[1])
                     self.pause = None
                     continue
-                while i < n and self.sample_time_us(i) <= now:
+                pause_at = self.pause[0] if self.pause is not None else n
+                while i < n and i != pause_at and self.sample_time_us(i) <= now:  # a late pass stops at the pause
                     if i in self.drop:
                         self.stats.imu_dropped += 1
                     else:
@@ -330,8 +334,6 @@ class SimAutopilot:
         # the samples due during the pause are skipped: they are lost, as on a real link
         now = self.now_us()
         skip = int(np.searchsorted(self.rec.rel_us + self.stream_start_us, now))  # type: ignore[operator]
-        self.skipped_in_pause = skip - self.pause[0]  # type: ignore[index]
-        self._skip_to = skip
         self.drop = self.drop | frozenset(range(self.pause[0], skip))  # type: ignore[index]
 
     def join(self, timeout: float) -> bool:

@@ -36,6 +36,7 @@ use the same mapping and their times stay consistent.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import select
 import threading
 import time
@@ -132,7 +133,7 @@ class RemoteTimeline:
     beyond ``step_ns`` it steps (``steps`` counts those; a rebooted autopilot steps too).
     """
 
-    def __init__(self, *, deadband_ns: int = 5_000_000, slew_ppm: float = 200.0, step_ns: int = 50_000_000,
+    def __init__(self, *, deadband_ns: int = 10_000_000, slew_ppm: float = 200.0, step_ns: int = 50_000_000,
                  window_s: float = 4.0) -> None:
         self.deadband_ns = int(deadband_ns)
         self.slew = float(slew_ppm) * 1e-6
@@ -141,6 +142,7 @@ class RemoteTimeline:
         self.timesync_lock = threading.Lock()
         self.offset_ns: int | None = None
         self.steps = 0
+        self.slewed_ns = 0  # total |adjustment| by slewing, ns (0: every spacing is the autopilot's)
         self._bin_ns = int(window_s * 1e9 / 4)
         self._bins: collections.deque[tuple[int, int]] = collections.deque(maxlen=4)  # (bin, min offset)
         self._last_remote_ns: int | None = None
@@ -183,7 +185,9 @@ class RemoteTimeline:
                 self.steps += 1
             elif abs(error) > self.deadband_ns and self._last_remote_ns is not None:
                 most = int((remote_ns - self._last_remote_ns) * self.slew)
-                self.offset_ns += max(-most, min(most, error))
+                change = max(-most, min(most, error))
+                self.offset_ns += change
+                self.slewed_ns += abs(change)
         self._last_remote_ns = remote_ns
         return remote_ns + self.offset_ns
 
@@ -199,6 +203,37 @@ class RemoteTimeline:
             self._bins.clear()
         self.offset_ns = None
         self._last_remote_ns = None
+
+
+class LinkClock:
+    """The link's clocks as other threads see them (ODOMETRY's ``time_usec``): the part of
+    :class:`TimeSync` an :class:`~ahrs_service.protocols.mavlink.odometry.OdometrySender` uses,
+    under the link's lock.
+
+    ``presented_ns`` gives a time of ours in the autopilot's clock once TIMESYNC is synced. For a
+    time the IMU source mapped (a sample's), the exact inverse of that mapping is used: the
+    held offset of the :class:`RemoteTimeline`, so an estimate of a sample is stamped with the
+    very time the autopilot gave that sample (TIMESYNC's estimate may since have moved within
+    the timeline's deadband).
+    """
+
+    def __init__(self, timesync: TimeSync, timeline: RemoteTimeline, lock: threading.Lock) -> None:
+        self._ts, self._timeline, self._lock = timesync, timeline, lock
+
+    @property
+    def synced(self) -> bool:
+        with self._lock:
+            return self._ts.synced
+
+    def presented_ns(self, local_ns: int) -> int:
+        """``local_ns`` (our monotonic ns) in the autopilot's clock, ns; ours until synced."""
+        with self._lock:
+            if not self._ts.synced:
+                return int(local_ns)
+            offset = self._timeline.offset_ns
+            if offset is not None:
+                return int(local_ns) - offset
+            return self._ts.presented_ns(local_ns)
 
 
 class AutopilotLink:
@@ -222,6 +257,8 @@ class AutopilotLink:
         self.timeline = RemoteTimeline()
         self.timeline.timesync = self.timesync
         self.timesync_lock = self.timeline.timesync_lock
+        #: what ODOMETRY (another thread) uses to stamp its messages in the autopilot's clock
+        self.clock = LinkClock(self.timesync, self.timeline, self.timesync_lock)
         self._next_timesync_ns = 0
         self._next_heartbeat_ns = 0
         # the service's address on this link: a component of the autopilot's vehicle (MAV_TYPE_IMU)
@@ -301,6 +338,25 @@ class AutopilotLink:
         return self.command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, round(1e6 / rate_hz))
 
     # ------------------------------------------------------------------ state
+    def status(self) -> dict[str, Any]:
+        """The link for the flight log (``/loop`` ``autopilot``, once a second): state, the
+        autopilot, counters, TIMESYNC's offset (remote − local, ns) and drift (ppm), the
+        samples' held offset (local − remote, ns)."""
+        ap = self.autopilot
+        with self.timesync_lock:
+            ts = self.timesync
+            timesync = {"synced": ts.synced, "offset_ns": ts.offset_ns, "drift_ppm": ts.drift_ppm,
+                        **dataclasses.asdict(ts.counters)}
+        tl = self.timeline
+        return {
+            "state": self.state,
+            "session": self.session,
+            "autopilot": None if ap is None else dataclasses.asdict(ap),
+            "link": self.stats.as_dict(),
+            "timesync": timesync,
+            "timeline": {"offset_ns": tl.offset_ns, "slewed_ns": tl.slewed_ns, "steps": tl.steps},
+        }
+
     @property
     def up(self) -> bool:
         return self.state == "up"
