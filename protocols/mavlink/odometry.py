@@ -158,8 +158,9 @@ class OdometrySender:
 
     send: callable taking a pymavlink message (the bridge's endpoints, or the autopilot
         link); its exceptions are counted, never raised.
-    timesync: when given and synced, time_usec is in the autopilot's clock
-        (``TimeSync.presented_ns``); otherwise our monotonic µs.
+    timesync: a ``TimeSync`` or anything with its ``synced`` and ``presented_ns`` (beside an
+        autopilot: ``AutopilotLink.clock``, which locks for itself); when synced, time_usec is
+        in the autopilot's clock, otherwise our monotonic µs.
     Drive with :meth:`tick` from one thread; the schedule is absolute (anchor + k / rate).
     """
 
