@@ -15,7 +15,6 @@ and records it itself — between two samples like any other change.
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import logging
 import signal
@@ -105,20 +104,13 @@ class Service:
         self._open_timesync()
 
     def _open_timesync(self) -> None:
-        """Beside an autopilot (source.type = "mavlink"): ODOMETRY goes on the autopilot link
-        too, stamped through the link's TIMESYNC estimate, which is logged on /timesync after
-        each accepted sample."""
+        """Beside an autopilot (source.type = "mavlink"): the link's TIMESYNC estimate is logged
+        on /timesync after each accepted sample (ODOMETRY's link and clock: _open_mavlink)."""
         self._autopilot_link = getattr(self.source, "autopilot_link", None)
         self._timesync_logged_ns = None
 
     def _timesync_tick(self) -> None:
-        # the link replaces its estimator when the autopilot (re)appears: look it up each time
         link = self._autopilot_link
-        bridge = self.mavlink
-        # the link's clock (AutopilotLink.clock) takes the link's lock itself, and stamps the
-        # estimate of a sample with the very time the autopilot gave that sample
-        bridge.timesync, bridge.timesync_lock = link.clock, contextlib.nullcontext()
-        bridge.autopilot_send = link.send  # ODOMETRY to the autopilot too
         with link.timesync_lock:
             status = link.timesync.last_status
         if status is not None and status.local_ns != self._timesync_logged_ns and self.log_writer is not None:
@@ -250,6 +242,11 @@ class Service:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
         self.mavlink = MavlinkBridge(self, cfg, io_period_ns=IO_PERIOD_NS)
+        link = getattr(self.source, "autopilot_link", None)
+        if link is not None and self.mavlink.odometry is not None:
+            # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
+            self.mavlink.odometry.send = link.send
+            self.mavlink.timesync = link.clock
 
     # ------------------------------------------------------------------ control
     def request_stop(self, *_: Any) -> None:
