@@ -109,13 +109,26 @@ def test_service_publishes_the_levels_of_a_shaking_board(tmp_path, gcs):
         run.stop()
     vib = [m for m in _vibrations(msgs) if m.time_usec > 5_000_000]  # settled: 2 Hz filter, 5 s
     assert vib, [m.get_type() for m in msgs][-20:]
-    rate = 1.0 / float(np.median(read_log(run.service.log_writer.files[0]).rows[:, 9]))  # the part's own rate
+    log = read_log(run.service.log_writer.files[0])
+    rate = 1.0 / float(np.median(log.rows[:, 9]))  # the part's own rate
     assert rate == pytest.approx(200.0, rel=0.03)
-    for axis, a in zip("xyz", amplitude):
-        got = float(np.median([getattr(m, f"vibration_{axis}") for m in vib]))
-        # 3 %: the 2 Hz filter's ripple (±1.7 % at 30 Hz) and the part's quantisation noise
-        expected = steady_level(a, freq, rate) if a else 0.0
-        assert got == pytest.approx(expected, rel=0.03, abs=0.05), axis
+    # what was published is the computation over the rows the service was fed (the log's),
+    # gaps included: replayed offline up to the last message's sample, the same levels
+    last = vib[-1]
+    upto = (log.t_ns - run.service.boot_ns) // 1000 <= last.time_usec
+    offline = VibrationMonitor()
+    offline.update(log.rows[upto], log.flags[upto])
+    lv = offline.levels()
+    for axis in "xyz":  # float32 on the wire; the newest row may be one past the stamp
+        assert getattr(last, f"vibration_{axis}") == pytest.approx(getattr(lv, axis), rel=0.01, abs=1e-3), axis
+    # and against the analytic value of the sinusoid: a host so loaded that the FIFO overflowed
+    # fed the filters gaps (long dt), which the analytic value does not model; the bound holds
+    # for a run without loss (3 %: the 2 Hz filter's ripple ±1.7 % at 30 Hz and quantisation)
+    if run.service.source.diagnostics.lost.total == 0:
+        for axis, a in zip("xyz", amplitude):
+            got = float(np.median([getattr(m, f"vibration_{axis}") for m in vib]))
+            expected = steady_level(a, freq, rate) if a else 0.0
+            assert got == pytest.approx(expected, rel=0.03, abs=0.05), axis
     assert all(m.clipping_0 == m.clipping_1 == m.clipping_2 == 0 for m in vib)
 
 
