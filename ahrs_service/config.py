@@ -465,31 +465,8 @@ def _check_calibration(given: dict[str, Any]) -> dict[str, Any]:
 
 
 def to_toml(cfg: dict[str, dict[str, Any]]) -> str:
-    """A TOML rendering of a configuration dict (for --print-default and saving calibration)."""
-    lines: list[str] = []
-    for section, keys in cfg.items():
-        nested = {k: v for k, v in keys.items() if isinstance(v, dict)}
-        lines.append(f"[{section}]")
-        for k, v in keys.items():
-            if v is None:
-                lines.append(f"# {k} = (not set)")
-            elif not isinstance(v, dict):
-                lines.append(f"{k} = {_toml_value(v)}")
-        lines.append("")
-        for k, v in nested.items():
-            lines.append(f"[{section}.{k}]")
-            lines.extend(f"{kk} = {_toml_value(vv)}" for kk, vv in v.items())
-            lines.append("")
-    return "\n".join(lines)
+    """A TOML rendering of a configuration dict (``run --print-default``, ``calibrate``'s
+    printout): :func:`ahrs_service.config_file.render`."""
+    from ahrs_service.config_file import render  # config_file imports this module
 
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if hasattr(v, "tolist"):
-        return _toml_value(v.tolist())
-    return repr(v)
+    return render(cfg)
