@@ -24,7 +24,7 @@ from concurrent.futures import Future, wait
 from typing import Any
 
 from ahrs_service import config as config_mod
-from ahrs_service import estimators
+from ahrs_service import estimators, kernels
 from ahrs_service.estimators import STATE_HEADER
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID, ImuSource, LossCounts
 from ahrs_service.drivers.calibration import SensorCalibration
@@ -73,12 +73,21 @@ class Service:
         # the running fit of a live calibration (see apply_live_calibration) and its kind
         self._live_fit: Future[LiveCalibrationResult] | None = None
         self._live_fit_kind = ""
+        self.compiler = kernels.ReloadCompiler()  # a reload to an estimator not yet compiled
 
     # ------------------------------------------------------------------ set-up
     def start(self) -> None:
         cfg = self.cfg
         self._build_estimation(cfg)
         self.scheduler = FixedRateScheduler(cfg.rates["estimation_hz"])
+        if self.notifier.enabled:
+            # under systemd a first start compiles for up to minutes: a child does it while
+            # this process keeps extending systemd's start timeout (EXTEND_TIMEOUT_USEC)
+            child = kernels.compile_in_child([self.estimator.name], self.notifier, stop=lambda: self._stop)
+            if self._stop:
+                return
+            if not child.ok:
+                log.warning("compiling in a child process failed (%s); compiling here", child.error)
         t0 = time.monotonic()
         self.pipeline.warm_up()
         if time.monotonic() - t0 > 1.0:
@@ -300,7 +309,19 @@ class Service:
         causes = [f"{k} {v}" for k, v in lost.as_dict().items() if k != "total" and v]
         return f"{lost.total} ({', '.join(causes)})" if causes else str(lost.total)
 
+    def _loop_counters(self) -> kernels.LoopCounters:
+        sched = self.scheduler
+        return kernels.LoopCounters(sched.ticks, sched.missed_ticks, sched.overruns, self.pipeline.samples)
+
     def _housekeeping(self, now: int) -> None:
+        if self.compiler.child is not None:  # a reload waits for a child compile
+            self.notifier.extend_timeout(kernels.EXTEND_TIMEOUT_S)
+            done = self.compiler.poll(self._loop_counters())
+            if done is not None and done.ok:
+                self._reload = True  # the loop calls reload() at the end of this tick
+            elif done is not None:
+                self.report(f"reload refused: compiling {done.name} failed: {done.error}", 3)
+                self.notifier.ready(self.status_line())
         st = self.scheduler.stats()
         self.last_load_percent = st.load_percent
         self.notifier.status(self.status_line(st))
@@ -465,6 +486,12 @@ class Service:
         if new.source != self.cfg.source:
             self.report("reload: source changes need a restart; source kept", 4)
             new.raw["source"] = self.cfg.source
+        name = new.estimator["name"]
+        if self.compiler.needed(name, self.estimator.name, self._loop_counters()):
+            # numba holds the interpreter lock while compiling: a child compiles, the loop runs
+            # on with the old estimator, and _housekeeping repeats this reload when it is done
+            self.report(f"reload: compiling {name} in a child process; {self.estimator.name} runs meanwhile", 6)
+            return
         old_cfg, self.cfg = self.cfg, new
         same_filter = new.estimator["name"] == old_cfg.estimator["name"]
         if same_filter and new.calibration == old_cfg.calibration and new.mounting == old_cfg.mounting:
@@ -477,7 +504,12 @@ class Service:
             self.pipeline.mag_timeout_ns = int(new.estimator["mag_timeout_s"] * 1e9)
         else:
             self._build_estimation(new)
+            t0 = time.monotonic_ns()
             self.pipeline.warm_up()
+            compiled = self.compiler.last
+            if compiled is not None and compiled.name == name and compiled.load_ms is None:
+                compiled.load_ms = (time.monotonic_ns() - t0) / 1e6
+                self.report(compiled.text(), 6)
             self._use_source_calibration()
             if self.log_writer is not None and new.log == old_cfg.log:
                 self.log_writer.new_file()  # a fresh estimator: its own file replays exactly
@@ -510,6 +542,7 @@ class Service:
         """Stops everything after :meth:`run` has returned. A live-calibration fit still
         running gets at most ``LIVE_FIT_CLOSE_WAIT_S`` to finish (see :meth:`_settle_live_fit`)."""
         self.notifier.stopping()
+        self.compiler.close()
         try:
             self._settle_live_fit(LIVE_FIT_CLOSE_WAIT_S)
         except Exception as exc:  # applying it must not keep the parts below open
