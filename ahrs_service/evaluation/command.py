@@ -6,7 +6,7 @@ import argparse
 
 from ahrs_service import execution
 from ahrs_service.evaluation.broad import ENV_VAR
-from ahrs_service.cli import add_offline_options
+from ahrs_service.cli import add_offline_options, lazy_command
 from ahrs_service.evaluation.dido import ENV_VAR as DIDO_ENV_VAR
 
 
@@ -54,7 +54,7 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
     add_offline_options(p, "also score the offline (forward-backward, non-causal) mode of every column, as '<name>+offline'")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     execution.add_arguments(p)
-    p.set_defaults(func=_run)
+    p.set_defaults(func=lazy_command("ahrs_service.evaluation.report:main"))
 
 
     t = subparsers.add_parser(
@@ -80,17 +80,5 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
     t.add_argument("--out", default=None, metavar="FILE", help="preset file to write (default ./ESTIMATOR.preset.json)")
     t.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     execution.add_arguments(t)
-    t.set_defaults(func=_tune)
+    t.set_defaults(func=lazy_command("ahrs_service.evaluation.tuning:main"))
 
-
-def _tune(args: argparse.Namespace) -> int:
-    from ahrs_service.evaluation.tuning import main
-
-    return main(args)
-
-
-def _run(args: argparse.Namespace) -> int:
-    # imported here so that `ahrs-service --help` stays fast
-    from ahrs_service.evaluation.report import main
-
-    return main(args)

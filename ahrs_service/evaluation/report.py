@@ -30,7 +30,7 @@ from ahrs_service import estimators
 from ahrs_service.estimators import offline as offline_mode
 from ahrs_service.estimators.base import stack_rows, time_steps
 from ahrs_service.evaluation import broad, dido, metrics, peers, stats
-from ahrs_service.execution import Runner, RunnerError, open_runner, worker_cache
+from ahrs_service.execution import Runner, open_runner, worker_cache
 
 #: ``--dataset`` name → the module that reads it (same functions: default_dir, check_dir,
 #: list_trials, list_groups, load_trial, CITATION).
@@ -541,12 +541,8 @@ def main(args: Any) -> int:
         plot_files.append(plots.error_over_time(trial, errors, columns, out_dir, source.CITATION))
 
     progress = not args.quiet and sys.stderr.isatty()
-    try:
-        runner = open_runner(getattr(args, "workers", 1), getattr(args, "scheduler", None))
-    except RunnerError as exc:
-        print(f"ahrs-service evaluate: error: {exc}", file=sys.stderr)
-        return 2
-    with runner:
+    # a RunnerError (scheduler out of reach, bad --workers) is cli.main's one line
+    with open_runner(getattr(args, "workers", 1), getattr(args, "scheduler", None)) as runner:
         results = evaluate(
             data_dir, columns, trial_names, progress=progress, on_trial=on_trial, dataset=dataset, runner=runner
         )

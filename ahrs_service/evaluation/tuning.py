@@ -177,7 +177,7 @@ def _command_line(args: Any) -> str:
 
 def main(args: Any) -> int:
     """Entry of ``ahrs-service tune``."""
-    from ahrs_service.execution import RunnerError, open_runner
+    from ahrs_service.execution import open_runner
 
     try:
         data_dir = broad.check_dir(args.data if args.data else broad.default_dir())
@@ -187,8 +187,8 @@ def main(args: Any) -> int:
         check_space(args.estimator, space)
         if args.budget < 1:
             raise ValueError(f"--budget must be at least 1, not {args.budget}")
-        runner = open_runner(args.workers, args.scheduler)
-    except (FileNotFoundError, ValueError, RunnerError) as exc:
+        runner = open_runner(args.workers, args.scheduler)  # RunnerError: cli.main's one line
+    except (FileNotFoundError, ValueError) as exc:
         print(f"ahrs-service tune: error: {exc}", file=sys.stderr)
         return 2
     with runner:
