@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from pathlib import Path
 from typing import Callable
 
 from ahrs_service.execution import RunnerError
@@ -105,6 +106,10 @@ def main(argv: list[str] | None = None) -> int:
     except RunnerError as exc:
         print(f"ahrs-service {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except ValueError as exc:  # bad input a command found (an unknown estimator, a bad value)
+        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f"ahrs-service {args.command}: error: {text}", file=sys.stderr)
+        return 2
 
 
 def path_error(exc: OSError) -> str:
@@ -112,6 +117,10 @@ def path_error(exc: OSError) -> str:
     what = {FileNotFoundError: "does not exist", IsADirectoryError: "is a directory, not a file",
             NotADirectoryError: "is not a directory", PermissionError: "permission denied"}
     reason = next((text for cls, text in what.items() if isinstance(exc, cls)), None)
+    if isinstance(exc, FileNotFoundError) and exc.filename is not None:
+        parent = Path(exc.filename).parent
+        if not parent.is_dir():  # a file to be written: its folder is what is missing
+            reason = f"its folder {parent} does not exist"
     reason = reason or exc.strerror or str(exc)
     reason = reason.splitlines()[0] if reason else type(exc).__name__
     return f"{exc.filename}: {reason}" if exc.filename is not None else reason

@@ -49,9 +49,11 @@ def warm_up(name: str) -> float:
     """Compiles (or loads from the cache) every kernel the service's per-sample path uses
     with estimator ``name``, in this process; returns the seconds it took."""
     from ahrs_service.pipeline import EstimationPipeline
+    from ahrs_service.vibration import VibrationMonitor
 
     t0 = time.monotonic()
     EstimationPipeline(estimators.create(name)).warm_up()
+    VibrationMonitor.warm_up()  # the service's warm-up does both (Service._warm_up)
     return time.monotonic() - t0
 
 
