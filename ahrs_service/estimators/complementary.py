@@ -50,6 +50,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.quaternion import quat_from_euler, quat_integrate, quat_to_euler
 
@@ -70,6 +71,11 @@ def _check_omega0(omega0: float) -> None:
         raise ValueError(f"omega0 must be > 0, got {omega0}")
 
 
+def _check_acc_gate(acc_gate: float) -> None:
+    if not acc_gate > 0:
+        raise ValueError(f"acc_gate must be > 0, got {acc_gate}")
+
+
 @dataclass
 class ComplementaryReducedParams:
     """Tuning of :class:`ComplementaryReduced`.
@@ -82,11 +88,13 @@ class ComplementaryReducedParams:
         (0.05–0.4 tried).
     """
 
-    omega0: float = 0.2
-    acc_gate: float = 0.1
+    # paper: no ω0 given (0.2, the value used before tuning), no gate (1e9)
+    omega0: float = tunable(0.2, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
+    acc_gate: float = tunable(0.1, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
         _check_omega0(self.omega0)
+        _check_acc_gate(self.acc_gate)
 
 
 @dataclass
@@ -103,12 +111,13 @@ class ComplementaryFullParams:
     acc_gate: as for the reduced form; 0.1 scores best on BROAD.
     """
 
-    omega0: float = 0.2
-    declination: float = 0.0
-    acc_gate: float = 0.1
+    omega0: float = tunable(0.2, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
+    declination: float = tunable(0.0, paper=0.0)  # rad; a site constant, not tuned
+    acc_gate: float = tunable(0.1, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
         _check_omega0(self.omega0)
+        _check_acc_gate(self.acc_gate)
 
 
 _inline = njit(cache=True, inline="always")

@@ -36,6 +36,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.triad import align_down, down_direction
 from ahrs_service.quaternion import quat_from_rotvec, quat_mul, quat_normalize, quat_rotate_inv
@@ -67,11 +68,11 @@ class ImmersionInvarianceParams:
     mu_bar: μ̄_a, saturation of the accelerometer-deviation term. Default 10 (the paper).
     """
 
-    gamma1: float = 0.5
-    gamma2: float = 0.7
-    gamma3: float = 0.9
-    xi_bar: float = -30.0
-    mu_bar: float = 10.0
+    gamma1: float = tunable(0.5, paper=0.5, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    gamma2: float = tunable(0.7, paper=0.7, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    gamma3: float = tunable(0.9, paper=0.9, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    xi_bar: float = tunable(-30.0, paper=-30.0, search=SearchRange(-50.0, -0.1))  # 1/s, negative
+    mu_bar: float = tunable(10.0, paper=10.0, search=SearchRange(0.0, 30.0))
 
     def __post_init__(self) -> None:
         for key in ("gamma1", "gamma2", "gamma3"):

@@ -25,6 +25,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.quaternion import quat_from_euler, quat_to_euler
 
@@ -59,8 +60,9 @@ class KalmanRollPitchParams:
     sigma_xi: measurement noise σ_ξ, the accelerometer-angle noise, rad. Default 3 (the paper).
     """
 
-    sigma_zeta: float = 5.0
-    sigma_xi: float = 3.0
+    # only σ_ζ/σ_ξ sets the gain: σ_ξ stays at the paper's value and σ_ζ alone is searched
+    sigma_zeta: float = tunable(5.0, paper=5.0, search=SearchRange(0.005, 20.0, log=True))  # rad/s
+    sigma_xi: float = tunable(3.0, paper=3.0)  # rad
 
     def __post_init__(self) -> None:
         if not self.sigma_zeta >= 0:

@@ -19,6 +19,13 @@ on its own sensor. Gravity's reference is NED down; the field's is the measured 
 into the earth frame by R̂ with its horizontal part laid on north, b = (|h_xy|, 0, h_z),
 so no dip has to be configured. For the direct filter R_y is taken, to the same order, as
 R̂ exp(S(ϱ)), so the measured rate is turned by the rotation vector ϱ.
+Heading-only field correction (the default; ``mag_heading_only = 1``): the field term is
+projected onto the estimated vertical, ϱ = λ₁ v_a × v̂_a + λ₂ (v̂_a v̂_aᵀ)(v_m × v̂_m), so the
+magnetometer turns the estimate about earth's down axis only and a disturbed field cannot
+tilt it. This is the form of the filters' authors' later work: M.-D. Hua, G. Ducard,
+T. Hamel, R. Mahony, K. Rudin, "Implementation of a Nonlinear Attitude Estimator for Aerial
+Robotic Vehicles", IEEE Trans. Control Systems Technology 22(1), 2014 (eq. 12). The paper's
+form, where the field corrects all three axes, is ``mag_heading_only = 0`` (``preset="paper"``).
 Without a usable magnetometer sample only the gravity term acts (IMU form: roll and pitch
 corrected, yaw from the gyro); without a usable accelerometer sample ϱ = 0.
 """
@@ -33,6 +40,7 @@ from numba import njit
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.layout import param_index
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.triad import down_direction
 from ahrs_service.quaternion import quat_from_rotvec, quat_integrate, quat_rotate, quat_rotate_inv, vec_cross
 
@@ -51,12 +59,16 @@ class MahonyParams:
     with small kp (docs/estimators-paper2.md).
     """
 
-    kp: float = 25.0
-    ki: float = 10.0
-    w_acc: float = 1.0
-    w_mag: float = 1.0
+    # λ₁ only scales k_p: w_acc stays at 1 and the field's weight λ₂ is searched
+    kp: float = tunable(25.0, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
+    ki: float = tunable(10.0, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
+    w_acc: float = tunable(1.0, paper=1.0)
+    w_mag: float = tunable(1.0, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
+    mag_heading_only: float = tunable(1.0, paper=0.0)  # 1: Hua et al. 2014 heading-only field term; 0: the paper's
 
     def __post_init__(self) -> None:
+        if self.mag_heading_only not in (0.0, 1.0):
+            raise ValueError(f"mag_heading_only must be 0 (the paper's field term) or 1 (heading only), got {self.mag_heading_only}")
         if not self.kp >= 0:
             raise ValueError(f"kp must be >= 0, got {self.kp}")
         for key in ("ki", "w_acc", "w_mag"):
@@ -70,6 +82,7 @@ _P = param_index(MahonyParams)  # indices of the packed parameter vector, by fie
 @njit(cache=True, inline="always")
 def _mahony_step(s, p, x, direct):
     kp, ki, w_acc, w_mag = p[_P.kp], p[_P.ki], p[_P.w_acc], p[_P.w_mag]
+    heading_only = p[_P.mag_heading_only] != 0.0
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
         return
@@ -89,6 +102,11 @@ def _mahony_step(s, p, x, direct):
             vm = (x[6] / nm, x[7] / nm, x[8] / nm)
             h = quat_rotate(qp, vm)
             cm = vec_cross(vm, quat_rotate_inv(qp, (math.sqrt(h[0] * h[0] + h[1] * h[1]), 0.0, h[2])))
+            if heading_only:
+                # Hua et al. 2014, eq. 12: (v̂_a v̂_aᵀ) v_m × v̂_m, only the part about the vertical
+                d = quat_rotate_inv(qp, (0.0, 0.0, 1.0))
+                c = cm[0] * d[0] + cm[1] * d[1] + cm[2] * d[2]
+                cm = (c * d[0], c * d[1], c * d[2])
             rx, ry, rz = rx + w_mag * cm[0], ry + w_mag * cm[1], rz + w_mag * cm[2]
         if direct:
             # eq. 33: the measured rate carried through R_y = R̂ exp(S(ϱ)): R̃ (Ω_y − b̂)

@@ -26,6 +26,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.quest import DIP, learn_dip, quest_quat
 from ahrs_service.estimators.quest import STATE as QUEST_STATE
@@ -58,11 +59,12 @@ class QuaternionKFParams:
     w_acc, w_mag: QUEST weights ρ₁, ρ₂ (eq. 17). Default 2 and 2 (the paper).
     """
 
-    sigma_zeta: float = 0.1
-    sigma_xi: float = 0.1
-    p0: float = 1.0
-    w_acc: float = 2.0
-    w_mag: float = 2.0
+    # QUEST's weights act through their ratio: w_acc stays, w_mag is searched
+    sigma_zeta: float = tunable(0.1, paper=0.1, search=SearchRange(1e-4, 1.0, log=True))  # 1/s
+    sigma_xi: float = tunable(0.1, paper=0.1, search=SearchRange(1e-3, 10.0, log=True))
+    p0: float = tunable(1.0, paper=1.0)
+    w_acc: float = tunable(2.0, paper=2.0)
+    w_mag: float = tunable(2.0, paper=2.0, search=SearchRange(0.01, 20.0, log=True))
 
     def __post_init__(self) -> None:
         for key in ("sigma_zeta", "p0"):

@@ -44,6 +44,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import param_index
 from ahrs_service.quaternion import quat_mul, quat_normalize, quat_rotate
 
@@ -68,11 +69,12 @@ class ValentiParams:
         between which the accelerometer gain falls from alpha to zero (annex 3: 0.1, 0.2).
     """
 
-    alpha: float = 0.002
-    beta: float = 0.001
-    gain_rate_hz: float = 100.0
-    adaptive_low: float = 0.1
-    adaptive_high: float = 0.2
+    # paper: annex 3's gains; the two thresholds' ranges are disjoint, so low < high holds
+    alpha: float = tunable(0.002, paper=0.03, search=SearchRange(1e-4, 0.1, log=True))
+    beta: float = tunable(0.001, paper=0.3, search=SearchRange(1e-5, 0.3, log=True))
+    gain_rate_hz: float = tunable(100.0, paper=100.0)  # Hz; a unit of alpha and beta, not tuned
+    adaptive_low: float = tunable(0.1, paper=0.1, search=SearchRange(0.02, 0.3))
+    adaptive_high: float = tunable(0.2, paper=0.2, search=SearchRange(0.35, 1.0))
 
     def __post_init__(self) -> None:
         for name in ("alpha", "beta"):
