@@ -51,6 +51,14 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         metavar="NAME.KEY=VALUE",
         help="tuning parameter for one column, e.g. madgwick.beta=0.05 (repeatable)",
     )
+    p.add_argument(
+        "--preset",
+        action="append",
+        default=[],
+        metavar="paper|FILE",
+        help="paper: every selected paper filter at its source paper's values instead of the tuned defaults; "
+        "FILE: a preset file (ahrs-service tune) for its estimator (repeatable; --param overrides)",
+    )
     add_offline_options(p, "also score the offline (forward-backward, non-causal) mode of every column, as '<name>+offline'")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     execution.add_arguments(p)
