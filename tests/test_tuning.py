@@ -31,9 +31,9 @@ def test_tiny_tune_writes_a_loadable_preset(broad_dir, tmp_path, capsys):
     assert set(preset["validation"]) == set(preset["recordings"]) and len(preset["recordings"]) >= 2
     assert all(r.startswith("broad/") for r in preset["recordings"])
     assert preset["validation_by_dataset"]["broad"] == pytest.approx(np.mean(list(preset["validation"].values())))
-    assert preset["validation_objective_deg"] == pytest.approx(preset["validation_by_dataset"]["broad"])
+    assert preset["validation_objective"] == pytest.approx(preset["validation_by_dataset"]["broad"])
     # one data set: the objective is the plain mean of the best trial's per-recording scores
-    assert preset["train_objective_deg"] == pytest.approx(np.mean(list(preset["train"].values())))
+    assert preset["train_objective"] == pytest.approx(np.mean(list(preset["train"].values())))
     assert preset["metrics"] == {"broad": "total rmse"}
     est = estimators.create("madgwick", preset=out)
     assert est.get_params()["beta"] == preset["params"]["beta"]
@@ -80,10 +80,13 @@ def test_bad_presets_name_the_problem(tmp_path):
         estimators.create("madgwick", preset=p)
 
 
-def test_objective_weighs_the_data_sets_equally():
+def test_objective_is_the_worse_data_set_against_its_target():
     per = np.array([1.0, 3.0, 5.0, 10.0])
-    assert tuning.objective(per, ["broad", "broad", "broad", "dido"]) == pytest.approx((3.0 + 10.0) / 2)
-    assert tuning.objective(per, ["dido"] * 4) == pytest.approx(4.75)
+    # BROAD mean 3 (target 6: 0.5), DIDO 10 (target 5: 2.0): the worse one counts
+    assert tuning.objective(per, ["broad", "broad", "broad", "dido"]) == pytest.approx(2.0)
+    # without heading BROAD is judged on inclination against 3 deg
+    assert tuning.objective(np.array([6.0, 1.0]), ["broad", "dido"], False) == pytest.approx(2.0)
+    assert tuning.objective(per, ["dido"] * 4) == pytest.approx(4.75)  # one data set: degrees
     assert tuning.metric_of("broad", True) == "total_rmse"
     assert tuning.metric_of("broad", False) == tuning.metric_of("dido", True) == "inclination_rmse"
 
@@ -101,9 +104,11 @@ def test_tune_on_both_data_sets_scores_each_on_its_metric(broad_dir):
         result = tuning.tune("madgwick", recs, tuning.search_space("madgwick"), budget=2, runner=runner)
     assert result.metrics == {"broad": "total rmse", "dido": "inclination rmse"}
     assert set(result.train) == set(result.validation) == {r.label for r in recs}
-    assert result.train_objective_deg == pytest.approx(np.mean(list(result.train.values())))
+    b, d = (result.train[r.label] for r in recs)
+    assert result.train_objective == pytest.approx(max(b / 6.0, d / 5.0))
     assert set(result.validation_by_dataset) == {"broad", "dido"}
-    assert result.validation_objective_deg == pytest.approx(np.mean(list(result.validation.values())))
+    vb, vd = (result.validation[r.label] for r in recs)
+    assert result.validation_objective == pytest.approx(max(vb / 6.0, vd / 5.0))
 
 
 def test_cli_both_with_one_data_folder_is_a_one_line_error(broad_dir, capsys):

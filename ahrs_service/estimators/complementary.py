@@ -81,11 +81,11 @@ class ComplementaryReducedParams:
     """Tuning of :class:`ComplementaryReduced`.
 
     omega0: cut-off of the low-pass, rad/s. Below it the attitude follows gravity, above it
-        the gyroscope. The paper gives no value; 0.2 rad/s scores best on the BROAD
-        development recordings (inclination RMSE, values 0.05–2 tried).
+        the gyroscope. The paper gives no value (``preset="paper"``: 0.2).
     acc_gate: largest relative error |‖f‖ − g|/g of a specific-force sample still used for
-        roll and pitch. The paper has no gate (use 1e9 for that); 0.1 scores best on BROAD
-        (0.05–0.4 tried).
+        roll and pitch. The paper has no gate (``preset="paper"``: 1e9).
+    Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+    are ``preset="paper"``.
     """
 
     # paper: no ω0 given (0.2, the value used before tuning), no gate (1e9)
@@ -102,13 +102,14 @@ class ComplementaryFullParams:
     """Tuning of :class:`ComplementaryFull`.
 
     omega0: cut-off of the low-pass, rad/s, for all three angles (see the reduced form).
-        0.2 rad/s scores best on the BROAD development recordings.
     declination: magnetic declination, rad, positive when magnetic north lies east of true
         north (eq. 44). Default 0: heading against magnetic north. For runs outside the
         service only: the service turns every estimator's output to true north itself
         (``estimator.declination_deg`` or ``[location]``, MAVLink MAG_DECL_DEG), so a declination set
         here as well would count twice.
-    acc_gate: as for the reduced form; 0.1 scores best on BROAD.
+    acc_gate: as for the reduced form.
+    Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+    are ``preset="paper"``.
     """
 
     omega0: float = tunable(0.2, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s

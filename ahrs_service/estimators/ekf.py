@@ -71,8 +71,9 @@ MAG_REF_TAU = 10.0
 class QuaternionEKFParams:
     """Tuning of :class:`QuaternionEKF` (the paper leaves Q and R to the user).
 
-    Defaults are the values that score best on the BROAD development recordings (grid over
-    gyro_noise 0.003–0.03, acc_noise 0.05–0.5, mag_noise 0.2–2, bias_noise 1e-5–1e-3).
+    Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+    are ``preset="paper"``. The paper gives no Q
+    or R: ``paper`` holds the values used before tuning, with the gate off.
 
     gyro_noise: gyroscope white noise σ_g, rad/s (sets Q of the quaternion).
     bias_noise: bias random walk σ_b, rad/s/√s (sets Q of the bias).

@@ -29,8 +29,9 @@ class MadgwickParams:
     """Tuning of :class:`Madgwick`.
 
     beta: gain of the gradient step, rad/s — the assumed gyroscope measurement error
-        (eq. 45). Default 0.1; BROAD's authors found 0.12 best over their whole benchmark,
-        0.1 scores best on the development recordings of ``../shared/data/broad``.
+        (eq. 45). Paper (Madgwick's own value): 0.1; BROAD's authors found 0.12 best over their
+        whole benchmark. Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+        are ``preset="paper"``.
     """
 
     # paper: Madgwick's own value 0.1 (his reference implementation's betaDef)

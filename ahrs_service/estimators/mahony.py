@@ -49,31 +49,68 @@ from ahrs_service.quaternion import quat_from_rotvec, quat_integrate, quat_rotat
 class MahonyParams:
     """Tuning of :class:`MahonyDirect` and :class:`MahonyPassive`.
 
-    kp: proportional gain k_p of eq. 33/34, 1/s. Default 25 (the paper).
-    ki: bias gain k_i of eq. 33/34, 1/s². Default 10 (the paper).
-    w_acc, w_mag: weights λ₁, λ₂ of gravity and field in eq. 35. Default 1 and 1 (Mahony et
-        al. 2008; the paper gives none).
+    Defaults: the preset tuned on BROAD and DIDO together (ahrs_service/estimators/tuned/,
+    docs/tuning.md); ``preset="paper"`` gives the paper's values (in brackets).
+
+    kp: proportional gain k_p of eq. 33/34, 1/s (paper 25).
+    ki: bias gain k_i of eq. 33/34, 1/s² (paper 10).
+    w_acc, w_mag: weights λ₁, λ₂ of gravity and field in eq. 35 (1 and 1: Mahony et al. 2008;
+        the paper gives none).
+    mag_heading_only: 1 (default) projects the field term onto the estimated vertical, as in
+        Hua et al. 2014, so the magnetometer corrects heading only; 0 is the paper's term,
+        which lets a disturbed field tilt the estimate (paper 0).
+    acc_gate: not in the paper: a sample whose specific-force magnitude is off g by more than
+        acc_gate·g gives no gravity term (as the complementary filter's gate; paper 1e9, off).
     The paper's gains suit its 565 Hz robot-arm runs and follow BROAD's accelerations (mean
-    total RMSE about 40°); the passive filter scores best on BROAD near kp = 0.4, ki = 0.001
-    (10.9°). The direct filter turns the gyro rate by the noisy R̃ and gets worse, not better,
-    with small kp (docs/estimators-paper2.md).
+    total RMSE about 40°). The direct filter also turns the gyro rate by the noisy R̃, which
+    only small weights λ keep quiet (docs/estimators-paper2.md).
     """
 
-    # λ₁ only scales k_p: w_acc stays at 1 and the field's weight λ₂ is searched
+    # the passive filter sees λ₁ only through k_p λ₁, but the direct one also turns the measured
+    # rate by ϱ (eq. 33), which λ₁ and λ₂ scale alone: both weights are searched
     kp: float = tunable(25.0, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
     ki: float = tunable(10.0, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
-    w_acc: float = tunable(1.0, paper=1.0)
+    w_acc: float = tunable(1.0, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
     w_mag: float = tunable(1.0, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
     mag_heading_only: float = tunable(1.0, paper=0.0)  # 1: Hua et al. 2014 heading-only field term; 0: the paper's
+    # not in the paper (as the complementary filter's acc_gate): no gravity term from a sample
+    # with |‖f‖ − g| > acc_gate·g; 1e9 (the paper) never gates
+    acc_gate: float = tunable(1e9, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
         if self.mag_heading_only not in (0.0, 1.0):
             raise ValueError(f"mag_heading_only must be 0 (the paper's field term) or 1 (heading only), got {self.mag_heading_only}")
         if not self.kp >= 0:
             raise ValueError(f"kp must be >= 0, got {self.kp}")
+        if not self.acc_gate > 0:
+            raise ValueError(f"acc_gate must be > 0, got {self.acc_gate}")
         for key in ("ki", "w_acc", "w_mag"):
             if not getattr(self, key) >= 0:
                 raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
+
+
+@dataclass
+class MahonyDirectParams(MahonyParams):
+    """:class:`MahonyParams` at the direct filter's own tuned defaults (same fields, same order)."""
+
+    kp: float = tunable(25.0, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
+    ki: float = tunable(10.0, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
+    w_acc: float = tunable(1.0, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
+    w_mag: float = tunable(1.0, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
+    mag_heading_only: float = tunable(1.0, paper=0.0)
+    acc_gate: float = tunable(1e9, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+
+
+@dataclass
+class MahonyPassiveParams(MahonyParams):
+    """:class:`MahonyParams` at the passive filter's own tuned defaults (same fields, same order)."""
+
+    kp: float = tunable(25.0, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
+    ki: float = tunable(10.0, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
+    w_acc: float = tunable(1.0, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
+    w_mag: float = tunable(1.0, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
+    mag_heading_only: float = tunable(1.0, paper=0.0)
+    acc_gate: float = tunable(1e9, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
 
 _P = param_index(MahonyParams)  # indices of the packed parameter vector, by field name
@@ -83,6 +120,7 @@ _P = param_index(MahonyParams)  # indices of the packed parameter vector, by fie
 def _mahony_step(s, p, x, direct):
     kp, ki, w_acc, w_mag = p[_P.kp], p[_P.ki], p[_P.w_acc], p[_P.w_mag]
     heading_only = p[_P.mag_heading_only] != 0.0
+    acc_gate = p[_P.acc_gate]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
         return
@@ -96,7 +134,9 @@ def _mahony_step(s, p, x, direct):
     if acc_ok:
         # eq. 35, first order: ϱ = λ₁ v_a × v̂_a (+ λ₂ v_m × v̂_m)
         ca = vec_cross(down_direction(x), quat_rotate_inv(qp, (0.0, 0.0, 1.0)))
-        rx, ry, rz = w_acc * ca[0], w_acc * ca[1], w_acc * ca[2]
+        fn = math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
+        wa = w_acc if abs(fn - K.GRAVITY) <= acc_gate * K.GRAVITY else 0.0  # gate: not the paper's
+        rx, ry, rz = wa * ca[0], wa * ca[1], wa * ca[2]
         if mag_ok:
             nm = math.sqrt(x[6] * x[6] + x[7] * x[7] + x[8] * x[8])
             vm = (x[6] / nm, x[7] / nm, x[8] / nm)
@@ -147,7 +187,7 @@ class MahonyDirect(Estimator):
     """Mahony's direct complementary filter with gyro-bias estimation (eq. 33, R_y by eq. 35)."""
 
     name = "mahony_direct"
-    Params = MahonyParams
+    Params = MahonyDirectParams
     uses_mag = True
     observes_heading = True
     step = staticmethod(mahony_direct_step)
@@ -158,7 +198,7 @@ class MahonyPassive(Estimator):
     """Mahony's passive complementary filter with gyro-bias estimation (eq. 34, R_y by eq. 35)."""
 
     name = "mahony_passive"
-    Params = MahonyParams
+    Params = MahonyPassiveParams
     uses_mag = True
     observes_heading = True
     step = staticmethod(mahony_passive_step)

@@ -58,15 +58,16 @@ class ValentiParams:
     """Tuning of :class:`Valenti`.
 
     alpha: accelerometer gain, the fraction of the tilt delta applied per sample at
-        ``gain_rate_hz`` (eq. 54). Default 0.002, best on the BROAD development recordings;
-        the third paper's annex 3 uses 0.03, which on BROAD follows linear acceleration far
-        too closely (30° mean total RMSE against 8°).
-    beta: magnetometer gain, the same for the heading delta (eq. 60–61). Default 0.001,
-        best on BROAD; the annex's 0.3 makes heading as noisy as the magnetometer.
+        ``gain_rate_hz`` (eq. 54). The third paper's annex 3 (``preset="paper"``) uses 0.03,
+        which on BROAD follows linear acceleration far too closely (30° mean total RMSE).
+    beta: magnetometer gain, the same for the heading delta (eq. 60–61). The annex's 0.3
+        makes heading as noisy as the magnetometer.
     gain_rate_hz: the sample rate at which alpha and beta are per-sample fractions, Hz.
-        Default 100, the rate of the third paper's data.
+        100, the rate of the third paper's data.
     adaptive_low, adaptive_high: relative specific-force magnitude errors |‖f‖ − g|/g
         between which the accelerometer gain falls from alpha to zero (annex 3: 0.1, 0.2).
+    Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+    are ``preset="paper"``.
     """
 
     # paper: annex 3's gains; the two thresholds' ranges are disjoint, so low < high holds

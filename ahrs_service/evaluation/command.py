@@ -71,16 +71,16 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "Optuna (TPE) over the search space declared on the estimator's Params fields (or --space); "
             "every (trial x recording) is one task of the execution layer; objective: mean RMSE over the "
-            "recordings (BROAD total, or inclination without heading; DIDO inclination), the two data sets "
-            "weighed equally with --dataset both; leave-one-recording-out validation and "
+            "recordings (BROAD total, or inclination without heading; DIDO inclination); with --dataset both "
+            "the worse data set relative to its target; leave-one-recording-out validation and "
             "parameter importances reported; the best parameters written as a preset file that "
             "estimators.create(name, preset=PATH) accepts."
         ),
     )
     t.add_argument("estimator", metavar="ESTIMATOR")
     t.add_argument("--dataset", choices=["broad", "dido", "both"], default="broad",
-                   help="recordings to tune on: broad (default), dido, or both (objective: the mean of the two "
-                   "data sets' mean RMSE)")
+                   help="recordings to tune on: broad (default), dido, or both (objective: the worse data set's "
+                   "mean RMSE over its target, BROAD 6 deg / 3 deg inclination, DIDO 5 deg)")
     t.add_argument("--data", metavar="DIR", default=None,
                    help=f"folder of the one data set (default: ${ENV_VAR} / ${DIDO_ENV_VAR}, else ../shared/data/...); "
                    "not with --dataset both")
