@@ -73,7 +73,10 @@ def test_static_inclination_exact_without_magnetometer(name, attitude):
 @pytest.mark.parametrize("omega", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0.3, -0.5, 1.0]])
 def test_constant_rotation_with_magnetometer(name, omega):
     q, gyr, acc, mag = constant_rotation(omega, RATE, 20.0, start=(0.1, 0.2, 0.3))
-    est = estimators.run(name, gyr, acc, mag, rate_hz=RATE)
+    # the KF at the paper's σ's, which this bound was set for (its tuned σ_ξ trusts QUEST 6×
+    # less, so the first-order prediction error below builds up to about 1.1e-3°)
+    preset = "paper" if name == "quaternion_kf" else None
+    est = estimators.run(name, gyr, acc, mag, rate_hz=RATE, preset=preset)
     total, _, _ = error_deg(est, q)
     # algebraic fixes are exact; the KF's prediction A = I + (h/2)Ω is first order, and its
     # renormalised error stays below 2e-4°
@@ -285,7 +288,8 @@ def _broad_rmse(path, name, **params):
     return rmse(total), rmse(incl)
 
 
-# measured RMSE (°) with the defaults on trial 02 (slow rotation) and 24 (tapping):
+# measured RMSE (°) with the paper's values (preset "paper"; the defaults until the tuned
+# presets, whose accuracy tests/test_tuned_accuracy.py checks) on trial 02 (slow rotation) and 24 (tapping):
 # total for estimators with a magnetometer, inclination for the others; bound = measured + ~10 %
 BROAD_BOUNDS = {
     "triad": {"02": 9.8, "24": 23.3},  # measured 8.92, 21.19
@@ -302,5 +306,5 @@ BROAD_BOUNDS = {
 def test_broad_accuracy(broad_dir, name):
     for trial, bound in BROAD_BOUNDS[name].items():
         path = next(broad_dir.glob(f"{trial}_*.hdf5"))
-        total, incl = _broad_rmse(path, name)
+        total, incl = _broad_rmse(path, name, **({} if name in ("triad", "quest") else {"preset": "paper"}))
         assert (total if name in MAG else incl) < bound, (name, trial, total, incl)

@@ -97,7 +97,7 @@ def test_out_of_bounds_search_ranges_name_the_field():
     with pytest.raises(ValueError, match=r"unknown parameter 'gain' in the search space of 'ekf'"):
         tuning.check_space("ekf", {"gain": SearchRange(0.1, 1.0)})
     # a pair tied by low < high passes when declared disjoint, fails when crossed
-    tuning.check_space("valenti", {"adaptive_low": SearchRange(0.02, 0.3), "adaptive_high": SearchRange(0.35, 1.0)})
+    tuning.check_space("valenti", {"adaptive_low": SearchRange(0.01, 0.15), "adaptive_high": SearchRange(0.16, 1.0)})
     with pytest.raises(ValueError, match="adaptive_low"):
         tuning.check_space("valenti", {"adaptive_low": SearchRange(0.02, 0.5), "adaptive_high": SearchRange(0.35, 0.4)})
 

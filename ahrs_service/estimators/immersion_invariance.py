@@ -71,8 +71,8 @@ class ImmersionInvarianceParams:
     gamma1: float = tunable(0.5, paper=0.5, search=SearchRange(0.01, 10.0, log=True))  # 1/s
     gamma2: float = tunable(0.7, paper=0.7, search=SearchRange(0.01, 10.0, log=True))  # 1/s
     gamma3: float = tunable(0.9, paper=0.9, search=SearchRange(0.01, 10.0, log=True))  # 1/s
-    xi_bar: float = tunable(-30.0, paper=-30.0, search=SearchRange(-300.0, -0.1))  # 1/s, negative
-    mu_bar: float = tunable(10.0, paper=10.0, search=SearchRange(0.0, 100.0))
+    xi_bar: float = tunable(-30.0, paper=-30.0, search=SearchRange(-50.0, -0.1))  # 1/s, negative
+    mu_bar: float = tunable(10.0, paper=10.0, search=SearchRange(0.0, 30.0))
 
     def __post_init__(self) -> None:
         for key in ("gamma1", "gamma2", "gamma3"):
