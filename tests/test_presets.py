@@ -145,7 +145,7 @@ def _disturbed_field_run(heading_only: float) -> np.ndarray:
     field = np.tile([20.0, 0.0, 45.0], (n, 1))
     a = np.radians(60.0)
     field[200:] = np.array([np.cos(a) * 20.0, np.sin(a) * 20.0, 45.0])
-    return estimators.run("mahony_passive", gyr, acc, field, rate_hz=rate, kp=1.0, ki=0.0,
+    return estimators.run("mahony_passive", gyr, acc, field, rate_hz=rate, kp=1.0, ki=0.0, w_acc=1.0, w_mag=1.0,
                           mag_heading_only=heading_only)
 
 
