@@ -89,8 +89,8 @@ class ComplementaryReducedParams:
     """
 
     # paper: no ω0 given (0.2, the value used before tuning), no gate (1e9)
-    omega0: float = tunable(1.256, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
-    acc_gate: float = tunable(0.01323, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
+    omega0: float = tunable(1.256369248913567, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
+    acc_gate: float = tunable(0.01323054450827564, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
 
     def __post_init__(self) -> None:
         _check_omega0(self.omega0)
@@ -112,9 +112,9 @@ class ComplementaryFullParams:
     are ``preset="paper"``.
     """
 
-    omega0: float = tunable(0.1106, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
+    omega0: float = tunable(0.11060220269330527, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
     declination: float = tunable(0.0, paper=0.0)  # rad; a site constant, not tuned
-    acc_gate: float = tunable(0.1379, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
+    acc_gate: float = tunable(0.1378805157568786, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
 
     def __post_init__(self) -> None:
         _check_omega0(self.omega0)

@@ -90,13 +90,13 @@ class QuaternionEKFParams:
     """
 
     # paper: Q and R left to the user (the values used before tuning), no gate (1e9)
-    gyro_noise: float = tunable(0.01307, paper=0.01, search=SearchRange(1e-3, 0.3, log=True))  # rad/s
-    bias_noise: float = tunable(8.515e-05, paper=1e-5, search=SearchRange(1e-7, 1e-3, log=True))  # rad/s/√s
-    acc_noise: float = tunable(0.1596, paper=0.2, search=SearchRange(0.02, 2.0, log=True))
-    mag_noise: float = tunable(0.3072, paper=0.3, search=SearchRange(0.05, 5.0, log=True))
+    gyro_noise: float = tunable(0.01307412846488109, paper=0.01, search=SearchRange(1e-3, 0.3, log=True))  # rad/s
+    bias_noise: float = tunable(8.51543990786931e-05, paper=1e-5, search=SearchRange(1e-7, 1e-3, log=True))  # rad/s/√s
+    acc_noise: float = tunable(0.15957174291329135, paper=0.2, search=SearchRange(0.02, 2.0, log=True))
+    mag_noise: float = tunable(0.30724152088240236, paper=0.3, search=SearchRange(0.05, 5.0, log=True))
     init_attitude_std: float = tunable(0.01, paper=0.01)
     init_bias_std: float = tunable(0.01, paper=0.01)  # rad/s
-    mag_gate: float = tunable(0.06157, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    mag_gate: float = tunable(0.061570629232089474, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
         for name in ("gyro_noise", "acc_noise", "mag_noise", "init_attitude_std", "mag_gate"):

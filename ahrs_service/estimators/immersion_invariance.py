@@ -68,11 +68,11 @@ class ImmersionInvarianceParams:
     mu_bar: μ̄_a, saturation of the accelerometer-deviation term. Paper: 10.
     """
 
-    gamma1: float = tunable(0.3196, paper=0.5, search=SearchRange(0.01, 10.0, log=True))  # 1/s
-    gamma2: float = tunable(0.08263, paper=0.7, search=SearchRange(0.01, 10.0, log=True))  # 1/s
-    gamma3: float = tunable(1.241, paper=0.9, search=SearchRange(0.01, 10.0, log=True))  # 1/s
-    xi_bar: float = tunable(-36.48, paper=-30.0, search=SearchRange(-50.0, -0.1))  # 1/s, negative
-    mu_bar: float = tunable(13.88, paper=10.0, search=SearchRange(0.0, 30.0))
+    gamma1: float = tunable(0.3195622329848435, paper=0.5, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    gamma2: float = tunable(0.08263080669913137, paper=0.7, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    gamma3: float = tunable(1.2405959628063916, paper=0.9, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    xi_bar: float = tunable(-36.48106260208669, paper=-30.0, search=SearchRange(-50.0, -0.1))  # 1/s, negative
+    mu_bar: float = tunable(13.87743600281825, paper=10.0, search=SearchRange(0.0, 30.0))
 
     def __post_init__(self) -> None:
         for key in ("gamma1", "gamma2", "gamma3"):

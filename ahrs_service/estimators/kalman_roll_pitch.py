@@ -65,9 +65,9 @@ class KalmanRollPitchParams:
     """
 
     # only σ_ζ/σ_ξ sets the gain: σ_ξ stays at the paper's value and σ_ζ alone is searched
-    sigma_zeta: float = tunable(1.036, paper=5.0, search=SearchRange(0.005, 20.0, log=True))  # rad/s
+    sigma_zeta: float = tunable(1.0363149748633103, paper=5.0, search=SearchRange(0.005, 20.0, log=True))  # rad/s
     sigma_xi: float = tunable(3.0, paper=3.0)  # rad
-    acc_gate: float = tunable(0.02805, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    acc_gate: float = tunable(0.028051961277792185, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
         if not self.sigma_zeta >= 0:

@@ -35,7 +35,7 @@ class MadgwickParams:
     """
 
     # paper: Madgwick's own value 0.1 (his reference implementation's betaDef)
-    beta: float = tunable(0.0771, paper=0.1, search=SearchRange(0.005, 1.0, log=True))  # rad/s
+    beta: float = tunable(0.07710439415510881, paper=0.1, search=SearchRange(0.005, 1.0, log=True))  # rad/s
 
     def __post_init__(self) -> None:
         if self.beta < 0:

@@ -93,24 +93,24 @@ class MahonyParams:
 class MahonyDirectParams(MahonyParams):
     """:class:`MahonyParams` at the direct filter's own tuned defaults (same fields, same order)."""
 
-    kp: float = tunable(25.28, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
-    ki: float = tunable(4.209e-05, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
-    w_acc: float = tunable(0.01558, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
-    w_mag: float = tunable(0.01641, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
+    kp: float = tunable(25.281570545804, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
+    ki: float = tunable(4.209355054011459e-05, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
+    w_acc: float = tunable(0.015578192138000827, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
+    w_mag: float = tunable(0.016407770891012818, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
     mag_heading_only: float = tunable(1.0, paper=0.0)
-    acc_gate: float = tunable(0.06608, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    acc_gate: float = tunable(0.0660808053772176, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
 
 @dataclass
 class MahonyPassiveParams(MahonyParams):
     """:class:`MahonyParams` at the passive filter's own tuned defaults (same fields, same order)."""
 
-    kp: float = tunable(3.983, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
-    ki: float = tunable(3.648e-05, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
-    w_acc: float = tunable(0.07734, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
-    w_mag: float = tunable(0.09234, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
+    kp: float = tunable(3.9829087937635066, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
+    ki: float = tunable(3.647554896509165e-05, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
+    w_acc: float = tunable(0.07733754823380287, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
+    w_mag: float = tunable(0.09234330643498717, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
     mag_heading_only: float = tunable(1.0, paper=0.0)
-    acc_gate: float = tunable(0.09078, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    acc_gate: float = tunable(0.0907772200483565, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
 
 _P = param_index(MahonyParams)  # indices of the packed parameter vector, by field name

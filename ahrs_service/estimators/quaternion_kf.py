@@ -63,12 +63,12 @@ class QuaternionKFParams:
     """
 
     # QUEST's weights act through their ratio: w_acc stays, w_mag is searched
-    sigma_zeta: float = tunable(0.1009, paper=0.1, search=SearchRange(1e-4, 1.0, log=True))  # 1/s
-    sigma_xi: float = tunable(0.6257, paper=0.1, search=SearchRange(1e-3, 10.0, log=True))
+    sigma_zeta: float = tunable(0.10094164493325111, paper=0.1, search=SearchRange(1e-4, 1.0, log=True))  # 1/s
+    sigma_xi: float = tunable(0.6257141649842257, paper=0.1, search=SearchRange(1e-3, 10.0, log=True))
     p0: float = tunable(1.0, paper=1.0)
     w_acc: float = tunable(2.0, paper=2.0)
-    w_mag: float = tunable(3.533, paper=2.0, search=SearchRange(0.01, 20.0, log=True))
-    acc_gate: float = tunable(0.04302, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    w_mag: float = tunable(3.532682259000227, paper=2.0, search=SearchRange(0.01, 20.0, log=True))
+    acc_gate: float = tunable(0.043018582363782934, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
         for key in ("sigma_zeta", "p0"):

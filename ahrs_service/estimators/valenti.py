@@ -71,11 +71,11 @@ class ValentiParams:
     """
 
     # paper: annex 3's gains; the two thresholds' ranges are disjoint, so low < high holds
-    alpha: float = tunable(0.002306, paper=0.03, search=SearchRange(1e-4, 0.1, log=True))
-    beta: float = tunable(0.0008379, paper=0.3, search=SearchRange(1e-5, 0.3, log=True))
+    alpha: float = tunable(0.002306161017305611, paper=0.03, search=SearchRange(1e-4, 0.1, log=True))
+    beta: float = tunable(0.0008378618072402205, paper=0.3, search=SearchRange(1e-5, 0.3, log=True))
     gain_rate_hz: float = tunable(100.0, paper=100.0)  # Hz; a unit of alpha and beta, not tuned
-    adaptive_low: float = tunable(0.03038, paper=0.1, search=SearchRange(0.01, 0.15))
-    adaptive_high: float = tunable(0.1603, paper=0.2, search=SearchRange(0.16, 1.0))
+    adaptive_low: float = tunable(0.030377944941125664, paper=0.1, search=SearchRange(0.01, 0.15))
+    adaptive_high: float = tunable(0.16031685415305122, paper=0.2, search=SearchRange(0.16, 1.0))
 
     def __post_init__(self) -> None:
         for name in ("alpha", "beta"):
