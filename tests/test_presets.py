@@ -81,6 +81,17 @@ def test_shipped_tuned_preset_is_the_default(name):
     assert estimators.create(name, preset=path).get_params() == defaults
 
 
+def test_run_with_paper_preset_is_the_run_at_the_papers_values():
+    rng = np.random.default_rng(5)
+    gyr = rng.normal(0.0, 0.2, (400, 3))
+    acc = np.array([0.0, 0.0, -9.81]) + rng.normal(0.0, 0.5, (400, 3))
+    mag = np.array([20.0, 0.0, 45.0]) + rng.normal(0.0, 1.0, (400, 3))
+    for name in ("mahony_direct", "valenti"):
+        paper = estimators.run(name, gyr, acc, mag, rate_hz=100.0, preset="paper")
+        assert np.array_equal(paper, estimators.run(name, gyr, acc, mag, rate_hz=100.0, **PAPER_VALUES[name]))
+        assert not np.array_equal(paper, estimators.run(name, gyr, acc, mag, rate_hz=100.0))  # the default differs
+
+
 def test_robust_and_single_shot_have_no_paper_preset():
     for name in ("robust", "triad"):
         with pytest.raises(ValueError, match=f"{name!r} has no preset 'paper'"):
