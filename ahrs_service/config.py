@@ -295,6 +295,9 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
     "estimator": {
         "name": ("robust", _estimator_name),
         "params": ({}, _finite_table),
+        # "" = the tuned defaults; "paper" = the source paper's values; else a preset file
+        # (ahrs-service tune): its values sit under estimator.params, which override them
+        "preset": ("", _string),
         "mag_timeout_s": (0.5, _number(0.01, 60.0)),
         "declination_deg": (0.0, _number(-180.0, 180.0)),
     },
@@ -441,6 +444,16 @@ def read_toml(path: Path) -> dict[str, Any]:
 def _check_estimator_params(section: dict[str, Any]) -> None:
     from ahrs_service import estimators
 
+    if section["preset"]:
+        from ahrs_service.estimators.presets import load_preset
+
+        try:
+            preset = load_preset(section["name"], section["preset"])
+            estimators.create(section["name"], **preset)
+        except (ValueError, TypeError, OverflowError) as exc:
+            raise ConfigError(f"estimator.preset: {exc}") from None
+        # what runs is the preset with the table's own values over it (service, reload, live)
+        section["params"] = {**preset, **section["params"]}
     try:
         estimators.create(section["name"], **section["params"])
     except (ValueError, TypeError, OverflowError) as exc:

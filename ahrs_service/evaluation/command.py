@@ -51,6 +51,14 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         metavar="NAME.KEY=VALUE",
         help="tuning parameter for one column, e.g. madgwick.beta=0.05 (repeatable)",
     )
+    p.add_argument(
+        "--preset",
+        action="append",
+        default=[],
+        metavar="paper|FILE",
+        help="paper: every selected paper filter at its source paper's values instead of the tuned defaults; "
+        "FILE: a preset file (ahrs-service tune) for its estimator (repeatable; --param overrides)",
+    )
     add_offline_options(p, "also score the offline (forward-backward, non-causal) mode of every column, as '<name>+offline'")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     execution.add_arguments(p)
@@ -59,19 +67,23 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
 
     t = subparsers.add_parser(
         "tune",
-        help="search an estimator's parameters with Optuna on BROAD and write a preset file",
+        help="search an estimator's parameters with Optuna on BROAD and/or DIDO and write a preset file",
         description=(
             "Optuna (TPE) over the search space declared on the estimator's Params fields (or --space); "
             "every (trial x recording) is one task of the execution layer; objective: mean RMSE over the "
-            "recordings (total, or inclination without heading); leave-one-recording-out validation and "
+            "recordings (BROAD total, or inclination without heading; DIDO inclination); with --dataset both "
+            "the worse data set relative to its target; leave-one-recording-out validation and "
             "parameter importances reported; the best parameters written as a preset file that "
             "estimators.create(name, preset=PATH) accepts."
         ),
     )
     t.add_argument("estimator", metavar="ESTIMATOR")
-    t.add_argument("--dataset", choices=["broad"], default="broad",
-                   help="recordings to tune on (broad; DIDO flights are not wired in yet)")
-    t.add_argument("--data", metavar="DIR", default=None, help=f"BROAD folder (default: ${ENV_VAR}, else ../shared/data/broad)")
+    t.add_argument("--dataset", choices=["broad", "dido", "both"], default="broad",
+                   help="recordings to tune on: broad (default), dido, or both (objective: the worse data set's "
+                   "mean RMSE over its target, BROAD 6 deg / 3 deg inclination, DIDO 5 deg)")
+    t.add_argument("--data", metavar="DIR", default=None,
+                   help=f"folder of the one data set (default: ${ENV_VAR} / ${DIDO_ENV_VAR}, else ../shared/data/...); "
+                   "not with --dataset both")
     t.add_argument("--trials", default=None, metavar="PATTERN", help="only recordings whose name matches")
     t.add_argument("--budget", type=int, default=50, metavar="N", help="Optuna trials (default 50)")
     t.add_argument("--space", action="append", default=[], metavar="NAME=LOW:HIGH[:log]",
