@@ -226,6 +226,10 @@ class ImuSource(abc.ABC):
     #: whether several samples can be due at once (a FIFO, a replayed log): the service then
     #: reads until ``read`` returns None, a bounded number per tick, so a late tick loses nothing
     may_have_backlog: bool = False
+    #: whether ``t_ns`` is already each sample's instant on the sensor's clock (a FIFO timed
+    #: by its position in the burst, a flight log's recorded times); otherwise it is the
+    #: host's read time and the service recovers the sample times (ahrs_service.sample_clock)
+    times_on_sensor_clock: bool = False
 
     def __init__(self) -> None:
         self.diagnostics = SourceDiagnostics()
