@@ -26,25 +26,105 @@ its reduced (gyro + accelerometer) form, and :attr:`EstimationPipeline.reduced` 
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from ahrs_service.calibration.gyro import GyroBiasResult, gyro_bias_at_rest
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample, SampleBlock
 from ahrs_service.drivers.calibration import SensorCalibration, apply_calibration, apply_calibration_block
 from ahrs_service.estimators import SAMPLE_ROW, STATE_HEADER
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.layout import Layout, Slot
 from ahrs_service.quaternion import quat_from_euler, quat_mul, quat_to_euler
 from ahrs_service.sample_clock import SampleClock
 
 _R = SAMPLE_ROW.slices
+_R0 = SAMPLE_ROW.index  # first column of each part of a row (compile-time constants)
 _H = STATE_HEADER.slices
 _DT = SAMPLE_ROW.index.dt
 
 G = 9.80665
-_NO_FIELD = np.full(3, np.nan)
+
+#: what the row filling carries from one block to the next (one int64 array; times in ns)
+FILL_STATE = Layout("row filling state", [
+    Slot("started", 1, "1 once the first row was estimated (the start is no longer held back)"),
+    Slot("first_t", 1, "time of the first sample seen, ns (valid when have_first)"),
+    Slot("have_first", 1, "a sample was seen"),
+    Slot("last_t", 1, "time of the last row estimated, ns (valid when have_last)"),
+    Slot("have_last", 1, "a row was estimated: the next dt is from last_t"),
+    Slot("mag_t", 1, "time of the field reading held, ns (valid when have_mag)"),
+    Slot("have_mag", 1, "a field reading is held"),
+    Slot("reduced", 1, "1 while no fresh field reading: the reduced form"),
+    Slot("switches", 1, "switches between full and reduced form"),
+    Slot("recent_head", 1, "next slot of the rest window ring"),
+    Slot("recent_count", 1, "rows in the rest window ring"),
+])
+_S = FILL_STATE.index
+
+
+@njit(cache=True)
+def _fill_rows(gyr, acc, mag, flags, t_ns, use_mag, mag_timeout_ns, nominal_dt, st, held_mag, recent, rows):
+    """Fills ``rows[start:]`` from calibrated body-frame readings; returns ``start``.
+
+    Per row, as the module docstring says: invalid gyro/accelerometer readings → NaN; the
+    field held from the last valid reading (a new one on MAG_NEW, or the first ever) while it
+    is at most ``mag_timeout_ns`` old, NaN after (reduced form, counted in ``switches``);
+    dt from the previous row's time (the nominal period for the first row). Before the first
+    row (``started`` 0) with ``use_mag``, rows are held back until one has a field reading
+    or ``mag_timeout_ns`` has passed since the first sample: ``start`` is the first row
+    estimated (``len`` when none). Rows with gyro and accelerometer valid enter the rest
+    window ring ``recent`` (rows [gyr, acc]).
+    """
+    n = t_ns.shape[0]
+    start = 0
+    if st[_S.started] == 0 and use_mag:
+        if st[_S.have_first] == 0:
+            st[_S.first_t] = t_ns[0]
+            st[_S.have_first] = 1
+        start = n
+        for k in range(n):
+            has = (flags[k] & MAG_VALID) != 0 and not (np.isnan(mag[k, 0]) and np.isnan(mag[k, 1]) and np.isnan(mag[k, 2]))
+            if has or t_ns[k] - st[_S.first_t] >= mag_timeout_ns:
+                start = k
+                break
+        if start == n:
+            return n
+    st[_S.started] = 1
+    size = recent.shape[0]
+    for k in range(start, n):
+        f = flags[k]
+        g_ok = (f & GYR_VALID) != 0
+        a_ok = (f & ACC_VALID) != 0
+        for i in range(3):
+            rows[k, _R0.gyr + i] = gyr[k, i] if g_ok else np.nan
+            rows[k, _R0.acc + i] = acc[k, i] if a_ok else np.nan
+        fresh = False
+        if use_mag:
+            has = (f & MAG_VALID) != 0 and not (np.isnan(mag[k, 0]) and np.isnan(mag[k, 1]) and np.isnan(mag[k, 2]))
+            if has and ((f & MAG_NEW) != 0 or st[_S.have_mag] == 0):
+                for i in range(3):
+                    held_mag[i] = mag[k, i]
+                st[_S.mag_t] = t_ns[k]
+                st[_S.have_mag] = 1
+            fresh = st[_S.have_mag] != 0 and t_ns[k] - st[_S.mag_t] <= mag_timeout_ns
+            if fresh == (st[_S.reduced] != 0):
+                st[_S.reduced] = 0 if fresh else 1
+                st[_S.switches] += 1
+        for i in range(3):
+            rows[k, _R0.mag + i] = held_mag[i] if fresh else np.nan
+        rows[k, _R0.dt] = (t_ns[k] - st[_S.last_t]) * 1e-9 if st[_S.have_last] != 0 else nominal_dt
+        st[_S.last_t] = t_ns[k]
+        st[_S.have_last] = 1
+        if g_ok and a_ok:
+            h = st[_S.recent_head]
+            for i in range(3):
+                recent[h, i] = gyr[k, i]
+                recent[h, 3 + i] = acc[k, i]
+            st[_S.recent_head] = (h + 1) % size
+            st[_S.recent_count] = min(st[_S.recent_count] + 1, size)
+    return start
 
 
 @dataclass(slots=True)
@@ -107,18 +187,42 @@ class EstimationPipeline:
         self.set_declination(declination_deg)
         self.row = np.full(10, np.nan)  # the last row fed to the estimator
         self.samples = 0
-        self.last_sample: ImuSample | None = None  # the last row's calibrated sample
-        self.reduced = False
-        self.reduced_switches = 0
+        self._last_block: SampleBlock | None = None  # the last block estimated, calibrated
+        self._last_t_ns = 0  # its last row's time, ns
+        self._last_sample: ImuSample | None = None  # built from them when asked for
         #: recovers host read times onto the sensor's clock (use_sample_clock), else None
         self.clock: SampleClock | None = None
-        self._last_t_ns: int | None = None
-        self._first_t_ns: int | None = None
-        self._mag = np.full(3, np.nan)
-        self._mag_t_ns: int | None = None
+        self._fill = np.zeros(FILL_STATE.end, dtype=np.int64)  # FILL_STATE slots
+        self._held_mag = np.full(3, np.nan)  # the field reading held, µT body FRD
         self.rest_window = max(20, int(round(self.REST_WINDOW_S / nominal_dt)))  # samples
-        self._recent_gyr: deque[np.ndarray] = deque(maxlen=self.rest_window)
-        self._recent_acc: deque[np.ndarray] = deque(maxlen=self.rest_window)
+        self._recent = np.zeros((self.rest_window, 6))  # ring of [gyr rad/s, acc m/s²] rows
+
+    @property
+    def last_sample(self) -> ImuSample | None:
+        """The last row estimated as a calibrated body-frame sample (its time the one fed to
+        the estimator); None before the first. Built when asked for (the publishers, at their
+        rates), not per block."""
+        if self._last_sample is None and self._last_block is not None:
+            block = self._last_block
+            mag = block.mag[-1]
+            temp = float(block.temperature_c[-1])
+            self._last_sample = ImuSample(
+                self._last_t_ns, block.gyr[-1], block.acc[-1], None if np.isnan(mag).all() else mag,
+                int(block.flags[-1]), None if block.raw is None else {k: v[-1].tolist() for k, v in block.raw.items()},
+                None if block.truth_q is None else block.truth_q[-1],
+                None if math.isnan(temp) else temp,
+            )
+        return self._last_sample
+
+    @property
+    def reduced(self) -> bool:
+        """Estimating without a field reading (the reduced form)."""
+        return bool(self._fill[_S.reduced])
+
+    @property
+    def reduced_switches(self) -> int:
+        """Switches between full and reduced form since the start."""
+        return int(self._fill[_S.switches])
 
     def warm_up(self) -> None:
         """Compiles, or loads from numba's cache, every kernel of the block path.
@@ -159,8 +263,8 @@ class EstimationPipeline:
         return None if done is None else self.last_sample
 
     def process_block(self, raw: SampleBlock) -> EstimatedBlock | None:
-        """Calibrates a block, gives its rows their times, fills the estimator rows and runs
-        the estimator over them (its batch kernel).
+        """Calibrates a block, gives its rows their times, fills the estimator rows
+        (:func:`_fill_rows`) and runs the estimator's batch kernel over them.
 
         Returns the rows estimated, or None when none was: an empty block, or a start held
         back — an estimator that uses the magnetometer starts only with a field reading (so
@@ -170,87 +274,34 @@ class EstimationPipeline:
         n = len(raw)
         if n == 0:
             return None
-        t_source = np.asarray(raw.t_ns, dtype=np.int64)
+        t_source = raw.t_ns
         t_ns = t_source if self.clock is None else self._recovered(t_source)
         block = apply_calibration_block(raw, self.calibration)
-        flags = np.asarray(block.flags, dtype=np.int64)
-        mag_ok = ((flags & MAG_VALID) != 0) & ~np.isnan(block.mag).all(axis=1)
-        start = 0
-        if self.samples == 0 and self.use_mag:
-            start = self._first_estimated_row(t_ns, mag_ok)
-            if start == n:
-                return None
+        rows = np.empty((n, 10))
+        start = _fill_rows(block.gyr, block.acc, block.mag, block.flags, t_ns, self.use_mag, self.mag_timeout_ns,
+                           self.nominal_dt, self._fill, self._held_mag, self._recent, rows)
+        if start == n:
+            return None
         if start:
-            t_ns, t_source, flags, mag_ok = t_ns[start:], t_source[start:], flags[start:], mag_ok[start:]
-        m = n - start
-        rows = np.empty((m, 10))
-        rows[:, _R.gyr] = block.gyr[start:]
-        rows[:, _R.acc] = block.acc[start:]
-        rows[(flags & GYR_VALID) == 0, _R.gyr] = np.nan
-        rows[(flags & ACC_VALID) == 0, _R.acc] = np.nan
-        rows[:, _R.mag] = self._fields(block.mag[start:], flags, mag_ok, t_ns)
-        # dt from consecutive times; the first row after the start: the nominal period
-        dt = rows[:, _DT]
-        dt[1:] = np.diff(t_ns) * 1e-9
-        dt[0] = self.nominal_dt if self._last_t_ns is None else (int(t_ns[0]) - self._last_t_ns) * 1e-9
-        self._last_t_ns = int(t_ns[-1])
-        q = self.estimator.run_rows(rows)  # eq. numbers: the estimator's step, row by row
+            rows, t_ns, t_source = rows[start:], t_ns[start:], t_source[start:]
+        q = self.estimator.run_rows(rows)  # the estimator's step (its paper's equations), row by row
         first = self.samples
-        self.samples += m
+        self.samples += n - start
         self.row = rows[-1]
-        self.last_sample = ImuSample(
-            int(t_ns[-1]), block.gyr[-1].copy(), block.acc[-1].copy(), None if np.isnan(block.mag[-1]).all() else block.mag[-1].copy(),
-            int(flags[-1]), None if block.raw is None else {k: v[-1].tolist() for k, v in block.raw.items()},
-            None if block.truth_q is None else block.truth_q[-1].copy(),
-            None if math.isnan(float(block.temperature_c[-1])) else float(block.temperature_c[-1]),
-        )
-        both = ((flags & GYR_VALID) != 0) & ((flags & ACC_VALID) != 0)
-        if both.any():  # the rest window: rows whose gyro and accelerometer are both valid
-            kept = rows[both][-self.rest_window:]
-            self._recent_gyr.extend(kept[:, _R.gyr])
-            self._recent_acc.extend(kept[:, _R.acc])
-        return EstimatedBlock(
-            t_ns=t_ns, t_source_ns=t_source, rows=rows, q=q, flags=flags,
-            temperature_c=np.asarray(block.temperature_c[start:], dtype=float),
-            raw=None if block.raw is None else {k: v[start:] for k, v in block.raw.items()},
-            truth_q=None if block.truth_q is None else block.truth_q[start:],
-            first_index=first, state=self.estimator.state.copy(),
-        )
+        self._last_block, self._last_t_ns, self._last_sample = block, int(t_ns[-1]), None
+        if start:
+            cut = slice(start, None)
+            return EstimatedBlock(
+                t_ns, t_source, rows, q, block.flags[cut], block.temperature_c[cut],
+                None if block.raw is None else {k: v[cut] for k, v in block.raw.items()},
+                None if block.truth_q is None else block.truth_q[cut], first, self.estimator.state.copy())
+        return EstimatedBlock(t_ns, t_source, rows, q, block.flags, block.temperature_c, block.raw, block.truth_q,
+                              first, self.estimator.state.copy())
 
     def _recovered(self, t_source: np.ndarray) -> np.ndarray:
-        """Each stamp through the sample clock, one sample per stamp (host read times)."""
+        """Each stamp through the sample clock, one sample per stamp (host arrival times)."""
         clock = self.clock
         return np.array([clock.stamp(t, 1)[0] for t in t_source.tolist()], dtype=np.int64)
-
-    def _first_estimated_row(self, t_ns: np.ndarray, mag_ok: np.ndarray) -> int:
-        """The first row the start may begin at: one with a field reading, or the first at
-        ``mag_timeout_s`` after the first sample seen; ``len`` when none of this block."""
-        if self._first_t_ns is None:
-            self._first_t_ns = int(t_ns[0])
-        ready = mag_ok | (t_ns - self._first_t_ns >= self.mag_timeout_ns)
-        return int(np.argmax(ready)) if ready.any() else len(t_ns)
-
-    def _fields(self, mag: np.ndarray, flags: np.ndarray, mag_ok: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
-        """The field column of each row: the last valid reading held for ``mag_timeout_s``
-        (a new one where ``MAG_NEW``, or the first valid one ever), NaN once it is older."""
-        m = len(t_ns)
-        if not self.use_mag:
-            return np.broadcast_to(_NO_FIELD, (m, 3))
-        take = mag_ok & ((flags & MAG_NEW) != 0)
-        if self._mag_t_ns is None and mag_ok.any():
-            take[int(np.argmax(mag_ok))] = True  # the first valid reading starts the hold
-        held = np.maximum.accumulate(np.where(take, np.arange(m), -1))  # row of the reading held
-        out = np.where((held >= 0)[:, None], mag[np.maximum(held, 0)], self._mag)
-        held_t = np.where(held >= 0, t_ns[np.maximum(held, 0)], -1 if self._mag_t_ns is None else self._mag_t_ns)
-        fresh = ((held >= 0) | (self._mag_t_ns is not None)) & (t_ns - held_t <= self.mag_timeout_ns)
-        if take.any():
-            last = int(np.flatnonzero(take)[-1])
-            self._mag, self._mag_t_ns = mag[last].astype(float), int(t_ns[last])
-        reduced = ~fresh
-        self.reduced_switches += int(reduced[0] != self.reduced) + int(np.count_nonzero(reduced[1:] != reduced[:-1]))
-        self.reduced = bool(reduced[-1])
-        out[reduced] = np.nan
-        return out
 
     # ------------------------------------------------------------------ outputs
     def published_quaternion(self) -> tuple[float, float, float, float]:
@@ -273,17 +324,25 @@ class EstimationPipeline:
         return [gx - bx, gy - by, gz - bz]
 
     # ------------------------------------------------------------------ gyro calibration
+    def _recent_rows(self) -> np.ndarray:
+        """The rest window's [gyr, acc] rows, oldest first."""
+        count, head = int(self._fill[_S.recent_count]), int(self._fill[_S.recent_head])
+        if count < self.rest_window:
+            return self._recent[:count].copy()
+        return np.roll(self._recent, -head, axis=0)
+
     def recent_gyro_mean(self) -> np.ndarray:
         """Mean calibrated body rate over the rest window, rad/s (NaN when empty)."""
-        if not self._recent_gyr:
+        recent = self._recent_rows()
+        if not len(recent):
             return np.full(3, np.nan)
-        return np.array(self._recent_gyr).mean(axis=0)
+        return recent[:, :3].mean(axis=0)
 
     def calibrate_gyro_bias(self) -> GyroBiasResult:
         """Adds the mean residual rate of the recent window (``REST_WINDOW_S``) to the
         calibration's gyro bias — only when that window shows the IMU at rest."""
-        gyr = np.array(self._recent_gyr) if self._recent_gyr else np.empty((0, 3))
-        acc = np.array(self._recent_acc) if self._recent_acc else np.empty((0, 3))
+        recent = self._recent_rows()
+        gyr, acc = recent[:, :3], recent[:, 3:]
         # per-sample accelerometer noise of low-cost parts at high output rates reaches
         # 0.35 m/s² (the simulated ADXL345 at 800 Hz), so over this one-second window even the
         # block means wander by ~0.7° rms: the norm and direction tests allow that, while
@@ -293,6 +352,5 @@ class EstimationPipeline:
         )
         if result.at_rest:
             self.calibration = self.calibration.with_gyro_bias_shift(result.bias)
-            self._recent_gyr.clear()
-            self._recent_acc.clear()
+            self._fill[_S.recent_count] = self._fill[_S.recent_head] = 0
         return result

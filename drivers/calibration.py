@@ -223,14 +223,14 @@ def apply_calibration_block(block: SampleBlock, cal: SensorCalibration) -> Sampl
     modified; an identity calibration returns it as it is."""
     if cal.is_identity or not len(block):  # type: ignore[attr-defined]
         return block
-    n = len(block)
-    gyr, acc, mag = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+    out = np.empty((3, len(block), 3))  # one allocation for the three readings
+    gyr, acc, mag = out[0], out[1], out[2]
     _calibrate_rows(
         cal._matrices,  # type: ignore[attr-defined]
         cal._offsets,  # type: ignore[attr-defined]
-        np.ascontiguousarray(block.gyr, dtype=np.float64),
-        np.ascontiguousarray(block.acc, dtype=np.float64),
-        np.ascontiguousarray(block.mag, dtype=np.float64),
+        _f64(block.gyr), _f64(block.acc), _f64(block.mag),
         gyr, acc, mag,
     )
-    return dataclasses.replace(block, gyr=gyr, acc=acc, mag=mag)
+    # the constructor, not dataclasses.replace: a tenth of the cost, once per block
+    return SampleBlock(block.t_ns, gyr, acc, mag, block.flags, block.temperature_c, block.raw, block.truth_q,
+                       block.lost)
