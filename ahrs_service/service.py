@@ -122,7 +122,6 @@ class Service:
     def start(self) -> None:
         cfg = self.cfg
         self._build_estimation(cfg)
-        self.scheduler = FixedRateScheduler(cfg.rates["estimation_hz"])
         t0 = time.monotonic()
         self.pipeline.warm_up()
         if time.monotonic() - t0 > 1.0:
@@ -137,10 +136,17 @@ class Service:
         if line is not None:
             # the FIFO watermark wakes the loop; the timer stays the fallback (DataReadyScheduler)
             self.scheduler = DataReadyScheduler(line, self.source.wakeup_rate_hz)
+        else:
+            self.scheduler = FixedRateScheduler(self.loop_rate_hz(cfg))
         self._use_source_calibration()
         self._open_log(cfg)
         self._open_mavlink(cfg)
         self._open_live(cfg)
+
+    def loop_rate_hz(self, cfg: config_mod.Config) -> float:
+        """How often the loop wakes, Hz: a source read in bursts (a FIFO) at its drain rate
+        (``wakeup_rate_hz``, each wake-up a block), any other once per sample."""
+        return self.source.wakeup_rate_hz or cfg.rates["estimation_hz"]
 
     def _clock_recovery(self) -> None:
         """Sample times from stamps that are host arrival times: recovered onto the sensor's
@@ -234,7 +240,7 @@ class Service:
             set_param=self.set_estimator_param,
             get_declination=lambda: self.pipeline.declination_deg,
             set_declination=lambda deg: self.pipeline.set_declination(deg),
-            loop_rate_hz=lambda: self.scheduler.rate_hz,
+            loop_rate_hz=lambda: float(self.cfg.rates["estimation_hz"]),
             calibrate_gyro=self.calibrate_gyro,
             start_calibration=self.start_live_calibration,
         )
@@ -605,10 +611,9 @@ class Service:
             self._clock_recovery()
             if self.log_writer is not None and new.log == old_cfg.log:
                 self.log_writer.new_file()  # a fresh estimator: its own file replays exactly
-        # a data-ready scheduler runs at the part's watermark rate, not estimation_hz
-        if new.rates["estimation_hz"] != old_cfg.rates["estimation_hz"] \
-                and not isinstance(self.scheduler, DataReadyScheduler):
-            self.scheduler.set_rate(new.rates["estimation_hz"])
+        # a FIFO source's loop runs at its drain (watermark) rate, not estimation_hz
+        if self.loop_rate_hz(new) != self.scheduler.rate_hz and not isinstance(self.scheduler, DataReadyScheduler):
+            self.scheduler.set_rate(self.loop_rate_hz(new))
         if new.log != old_cfg.log:
             if self.log_writer is not None:
                 self.log_writer.close()

@@ -248,6 +248,9 @@ class ImuSource(abc.ABC):
     #: by its position in the burst, a flight log's recorded times); otherwise it is the
     #: host's read time and the service recovers the sample times (ahrs_service.sample_clock)
     times_on_sensor_clock: bool = False
+    #: bursts per second a source that reads blocks (a FIFO) is drained at: the service's
+    #: loop wakes at this rate (Hz); None: one sample per tick at the estimation rate
+    wakeup_rate_hz: float | None = None
 
     def __init__(self) -> None:
         self.diagnostics = SourceDiagnostics()

@@ -300,6 +300,7 @@ class MPU9250Board(I2CBoard):
         #: defaults 10 samples a drain. The MPU-9250 has no watermark interrupt, so this is the
         #: host's schedule; it must stay above rate / 42 Hz (the FIFO's depth) to lose nothing.
         self.fifo_read_period_ns = int(round(1e9 / fifo_read_hz))
+        self.wakeup_rate_hz = float(fifo_read_hz) if self.fifo else None
         self.period_ns = int(round(1e9 / self.mpu.rate_hz))
         self._next_drain_ns: int | None = None
         self._last_drain_ns: int | None = None  # host time of the last FIFO status read
