@@ -152,6 +152,36 @@ def bare_loop(seconds: float, rate_hz: float) -> dict[str, float]:
     return json.loads(out.strip().splitlines()[-1])
 
 
+def source_only(cfg: Path, seconds: float) -> dict[str, float]:
+    """The reference for the service's own work: the configured source alone in its own
+    process, woken as the service wakes (its scheduler at the same loop rate) and read the
+    same way (one block a wake-up), nothing else — for a simulated board that is the register
+    twin and its physics, which the service process pays too but a real part does not."""
+    code = (
+        "import time, json\n"
+        "from ahrs_service import config as config_mod\n"
+        "from ahrs_service.scheduler import FixedRateScheduler\n"
+        "from ahrs_service.sources import make_source\n"
+        f"cfg = config_mod.load({str(cfg)!r})\n"
+        "src = make_source(cfg.source, cfg.rates['estimation_hz']); src.open()\n"
+        "s = FixedRateScheduler(src.wakeup_rate_hz or cfg.rates['estimation_hz'])\n"
+        "n = 0\n"
+        f"end = time.monotonic() + 5.0 + {seconds}\n"
+        "c0 = w0 = None\n"
+        "while time.monotonic() < end:\n"
+        "    s.wait()\n"
+        "    b = src.read_block(64 if src.may_have_backlog else 1)\n"
+        "    if c0 is None and time.monotonic() >= end - " + f"{seconds}" + ":\n"
+        "        c0, w0, n = time.process_time(), time.monotonic(), 0\n"
+        "    n += len(b)\n"
+        "    s.done()\n"
+        "print(json.dumps({'cpu': 100 * (time.process_time() - c0) / (time.monotonic() - w0),\n"
+        "                  'samples_per_s': n / (time.monotonic() - w0)}))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def start_service(cfg: Path, tmp: Path) -> tuple[subprocess.Popen, float]:
     """``ahrs-service run --config cfg`` under a fake systemd; returns it at READY=1 and the
     seconds that took."""
@@ -266,7 +296,8 @@ def fifo_pairs(args: argparse.Namespace) -> int:
     """FIFO against polling on the simulated MPU-9250, and the FIFO loop's wake-up jitter
     against the empty loop at the same rate: N alternating pairs; then the stall case."""
     fifo_read_hz = 100.0
-    results: dict[str, list[dict]] = {"fifo": [], "polling": [], "empty": []}
+    results: dict[str, list[dict]] = {"fifo": [], "polling": [], "empty": [], "fifo source": [],
+                                      "polling source": []}
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0")
@@ -286,10 +317,12 @@ def fifo_pairs(args: argparse.Namespace) -> int:
             return cfg, logs
 
         for i in range(args.fifo_pairs):
-            for kind in ("fifo", "polling", "empty"):
+            for kind in ("fifo", "polling", "empty", "fifo source", "polling source"):
                 if kind == "empty":
                     floor = bare_loop(args.seconds, fifo_read_hz)
                     r = {"cpu": floor["cpu"], "jitter_p99_us": floor["period_jitter_p99_median_us"]}
+                elif kind.endswith("source"):
+                    r = source_only(config(f"{kind.replace(' ', '-')}-{i}", kind.startswith("fifo"))[0], args.seconds)
                 else:
                     cfg, logs = config(f"{kind}-{i}", kind == "fifo")
                     r = measured_run(cfg, tmp, logs, gcs, args.seconds)
@@ -315,6 +348,15 @@ def fifo_pairs(args: argparse.Namespace) -> int:
         ("CPU, FIFO (median)", f"{med('fifo', 'cpu'):.1f} %"),
         ("CPU, polling one sample per tick (median)", f"{med('polling', 'cpu'):.1f} %"),
         ("CPU ratio FIFO / polling (target ≤ 0.5)", f"{med('fifo', 'cpu') / med('polling', 'cpu'):.2f}"),
+        ("samples logged per second, FIFO / polling (median)",
+         f"{med('fifo', 'logged') / (args.seconds + 5):.0f} / {med('polling', 'logged') / (args.seconds + 5):.0f} "
+         "(approximate: the log spans start-up to stop)"),
+        ("the source alone (simulated twin + driver), FIFO / polling: CPU (median)",
+         f"{med('fifo source', 'cpu'):.1f} % / {med('polling source', 'cpu'):.1f} %"),
+        ("service minus its source, FIFO / polling (median of each; ratio)",
+         f"{med('fifo', 'cpu') - med('fifo source', 'cpu'):.1f} % / "
+         f"{med('polling', 'cpu') - med('polling source', 'cpu'):.1f} % "
+         f"({(med('fifo', 'cpu') - med('fifo source', 'cpu')) / (med('polling', 'cpu') - med('polling source', 'cpu')):.2f})"),
         (f"wake-up jitter p99 (median second), FIFO loop at {fifo_read_hz:.0f} Hz (median)",
          f"{med('fifo', 'jitter_p99_us'):.0f} µs"),
         (f"wake-up jitter p99 (median second), empty loop at {fifo_read_hz:.0f} Hz (median)",
