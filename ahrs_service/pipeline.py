@@ -64,6 +64,12 @@ FILL_STATE = Layout("row filling state", [
 _S = FILL_STATE.index
 
 
+def _c(a: np.ndarray) -> np.ndarray:
+    # contiguous float64 (a no-op for the usual block): the kernel has one compiled form,
+    # the one warm_up loads, so no sample of a flight waits for a compilation
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
 @njit(cache=True)
 def _fill_rows(gyr, acc, mag, flags, t_ns, use_mag, mag_timeout_ns, nominal_dt, st, held_mag, recent, rows):
     """Fills ``rows[start:]`` from calibrated body-frame readings; returns ``start``.
@@ -242,6 +248,9 @@ class EstimationPipeline:
         # the identity calibration skips the compiled path: a live calibration must not be
         # the first call of it, nor the first publish the first quaternion product
         apply_calibration_block(block, SensorCalibration().with_gyro_bias_shift(np.full(3, 1e-3)))
+        # the row filling on scratch state (the pipeline's own is untouched)
+        _fill_rows(_c(block.gyr), _c(block.acc), _c(block.mag), block.flags, block.t_ns, True, 1, 0.001,
+                   np.zeros(FILL_STATE.end, dtype=np.int64), np.full(3, np.nan), np.zeros((2, 6)), np.empty((1, 10)))
         apply_calibration(sample, SensorCalibration().with_gyro_bias_shift(np.full(3, 1e-3)))
         probe.run_rows(np.array([[0.0, 0.0, 0.0, 0.0, 0.0, -G, 20.0, 0.0, 45.0, self.nominal_dt]]))
         quat_to_euler(quat_mul(self._q_decl, (1.0, 0.0, 0.0, 0.0)))
@@ -278,8 +287,9 @@ class EstimationPipeline:
         t_ns = t_source if self.clock is None else self._recovered(t_source)
         block = apply_calibration_block(raw, self.calibration)
         rows = np.empty((n, 10))
-        start = _fill_rows(block.gyr, block.acc, block.mag, block.flags, t_ns, self.use_mag, self.mag_timeout_ns,
-                           self.nominal_dt, self._fill, self._held_mag, self._recent, rows)
+        start = _fill_rows(_c(block.gyr), _c(block.acc), _c(block.mag), np.ascontiguousarray(block.flags, np.int64),
+                           np.ascontiguousarray(t_ns, np.int64), bool(self.use_mag), int(self.mag_timeout_ns),
+                           float(self.nominal_dt), self._fill, self._held_mag, self._recent, rows)
         if start == n:
             return None
         if start:
