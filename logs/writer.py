@@ -722,8 +722,10 @@ class FlightLogWriter:
                 t_ns, item.rows[i], item.flags[i], None if raw is None else {k: v[i] for k, v in raw.items()},
                 None if temps is None else temps[i], item.first_index + i,
                 t_source_ns=None if sources is None else sources[i]))
-            self._write_attitude(t_ns, item.q[i], item.estimator, item.bias if i == last else None,
-                                 item.diagnostics if i == last else None)
+            if i == last:
+                self._write_attitude(t_ns, item.q[i], item.estimator, item.bias, item.diagnostics)
+            else:  # no bias of its own: the key is left out (not zeros a plot would show)
+                self._write_attitude(t_ns, item.q[i], item.estimator, None, None, with_bias=False)
             if truth is not None:
                 if self._file is None:
                     self._dropped_io += 1
@@ -765,11 +767,15 @@ class FlightLogWriter:
         _Log: _on_log,
     }
 
-    def _write_attitude(self, t_ns: int, q: list[float], estimator: str, bias: Any, diagnostics: Any) -> None:
+    def _write_attitude(self, t_ns: int, q: list[float], estimator: str, bias: Any, diagnostics: Any,
+                        with_bias: bool = True) -> None:
         if self._file is None:  # the write before this one failed: _fail counted it, retry later
             self._dropped_io += 1
             return
-        self._write("/attitude", t_ns, attitude_message(t_ns, q, estimator, bias, diagnostics))
+        message = attitude_message(t_ns, q, estimator, bias, diagnostics)
+        if not with_bias:
+            del message["gyro_bias"]
+        self._write("/attitude", t_ns, message)
         if (
             self._file is not None
             and (self._last_tf_ns is None or t_ns - self._last_tf_ns >= self.tf_period_ns)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import itertools
+import json
 import time
 from pathlib import Path
 
@@ -201,6 +202,24 @@ def test_write_block_writes_the_messages_of_write_sample(tmp_path):
     for key in ("t_ns", "rows", "flags", "index", "attitudes", "truth", "t_source_ns"):
         assert np.array_equal(getattr(a, key), getattr(b, key), equal_nan=True), key
     assert a.counts == b.counts
+
+
+def test_a_block_s_gyro_bias_is_written_with_its_last_row_only(tmp_path):
+    from mcap.reader import make_reader
+
+    from ahrs_service.logs import schemas
+
+    t_ns, rows, _ = make_fixtures.analytic_trajectory(200.0, 0.1)
+    flags = np.full(len(t_ns), GYR_VALID | ACC_VALID, dtype=np.int64)
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (len(t_ns), 1))
+    writer = FlightLogWriter(tmp_path, fsync=False)
+    writer.write_block(t_ns[:5], rows[:5], flags[:5], q=q[:5], estimator="madgwick", bias=np.array([0.1, 0.2, 0.3]))
+    writer.close()
+    with open(writer.files[0], "rb") as f:
+        found = [(json.loads(m.data), json.loads(s.data)) for s, c, m in make_reader(f).iter_messages(topics=["/attitude"])]
+    assert [("gyro_bias" in m) for m, _ in found] == [False] * 4 + [True]
+    assert found[-1][0]["gyro_bias"] == [0.1, 0.2, 0.3]
+    assert all(schemas.validate(m, schema) == [] for m, schema in found)
 
 
 def _service_on(path: Path, directory: Path) -> Path:
