@@ -5,7 +5,8 @@ Parameters the ground station sees (PARAM_REQUEST_LIST):
 * ``EST_<NAME>`` — every tuning parameter of the running estimator (e.g. ``EST_BETA``),
   applied live between two samples and recorded in the flight log;
 * ``MAG_DECL_DEG`` — magnetic declination added to the published heading (true north);
-* ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ`` — publishing rates;
+* ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ``, ``RATE_VIBE_HZ`` —
+  publishing rates;
 * ``LOOP_RATE_HZ`` — the estimation rate (read-only: change it in the configuration).
 
 The bridge sees the service only through :class:`ServiceLink`: the newest estimate
@@ -16,12 +17,16 @@ reference to the service, its pipeline, scheduler, source or estimator.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from ahrs_service import estimators
 from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, ParameterTable, SensorStatus, Telemetry
 from ahrs_service.protocols.mavlink.dialect import mavlink
+from ahrs_service.protocols.mavlink.odometry import RULES as ODOMETRY_RULES
+from ahrs_service.protocols.mavlink.odometry import AttitudeEstimate, OdometrySender
+from ahrs_service.protocols.mavlink.timesync import TimeSync
 
 if TYPE_CHECKING:
     from ahrs_service.config import Config
@@ -38,6 +43,8 @@ class LatestEstimate:
     reading. temperature_c: °C or None. initialised: the estimator's output is trustworthy.
     mag_used: the field is in use (a magnetometer estimator, not in reduced form). reduced:
     the heading is not observed (reduced form, or an estimator without magnetometer).
+    estimator_id: identifies the estimator object (a new one after a reload: ODOMETRY's
+    reset counter follows it). declination_deg: the declination in ``q``, degrees east.
     """
 
     samples: int
@@ -52,6 +59,8 @@ class LatestEstimate:
     initialised: bool
     mag_used: bool
     reduced: bool
+    estimator_id: int
+    declination_deg: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,7 +93,8 @@ class ServiceLink:
     set_param: an estimator parameter (set applies it live, logged; returns the value in
     force). get_declination / set_declination: degrees east. loop_rate_hz: the estimation
     rate. calibrate_gyro: () → (accepted, text). start_calibration: kind ("mag" | "accel")
-    → (started, text).
+    → (started, text). vibration: the VIBRATION levels now (``vibration.VibrationLevels``).
+    attitude_variance: the estimator's roll/pitch/yaw variances now, rad² (ODOMETRY).
     """
 
     boot_ns: int
@@ -99,6 +109,8 @@ class ServiceLink:
     loop_rate_hz: Callable[[], float]
     calibrate_gyro: Callable[[], tuple[bool, str]]
     start_calibration: Callable[[str], tuple[bool, str]]
+    vibration: Callable[[], Any]
+    attitude_variance: Callable[[], Any]
 
 # incoming commands and parameter writes are handled at 50 Hz: a ground station does not
 # notice 20 ms, and an idle non-blocking read costs as much as a published message
@@ -109,6 +121,7 @@ RATE_PARAMS = {
     "RATE_ATTQ_HZ": "ATTITUDE_QUATERNION",
     "RATE_HRIMU_HZ": "HIGHRES_IMU",
     "RATE_SYSST_HZ": "SYS_STATUS",
+    "RATE_VIBE_HZ": "VIBRATION",
 }
 RATE_CONFIG_KEYS = {
     "HEARTBEAT": "heartbeat_hz",
@@ -116,6 +129,7 @@ RATE_CONFIG_KEYS = {
     "ATTITUDE_QUATERNION": "attitude_quaternion_hz",
     "HIGHRES_IMU": "highres_imu_hz",
     "SYS_STATUS": "sys_status_hz",
+    "VIBRATION": "vibration_hz",
 }
 
 
@@ -186,6 +200,53 @@ class MavlinkBridge:
             mag_calibration=lambda action: self._start_collection("mag"),
             accel_calibration=lambda action: self._start_collection("accel"),
             max_rate_hz=1e9 / io_period_ns,
+        )
+        # beside an autopilot the service hands over the link's TIMESYNC estimate and the lock
+        # its reader thread updates it under (docs/autopilot.md, "TIMESYNC")
+        self.timesync: TimeSync | None = None
+        self.timesync_lock: Any = contextlib.nullcontext()
+        #: the autopilot link's send (AutopilotLink.send), set by the service beside an autopilot:
+        #: ODOMETRY goes there as well as on the endpoints
+        self.autopilot_send: Any = None
+        self.odometry = self._odometry_sender(mcfg["odometry"])
+
+    # ------------------------------------------------------------------ ODOMETRY (issue 17)
+    def _odometry_sender(self, ocfg: dict[str, Any]) -> OdometrySender | None:
+        if ocfg["rate_hz"] <= 0.0:
+            return None
+        self._odometry_epoch = 0
+        self._odometry_ref: tuple[Any, float, bool] | None = None
+        return OdometrySender(self._send_odometry, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]])
+
+    def _send_odometry(self, msg: Any) -> None:
+        self.component.send(msg)
+        if self.autopilot_send is not None:
+            self.autopilot_send(msg)
+
+    def odometry_estimate(self, now_ns: int) -> AttitudeEstimate | None:
+        """The published attitude and its variances for ODOMETRY; None before the first sample.
+        The epoch goes up when the estimator object, its initialisation or the declination
+        changes (the heading reference moved: ODOMETRY's reset_counter follows)."""
+        est = self.link.latest()
+        if est is None:
+            return None
+        if est.samples != self._samples_seen:
+            self._samples_seen, self._fresh_at_ns = est.samples, now_ns
+        fresh = now_ns - self._fresh_at_ns <= STALE_NS
+        ref = (est.estimator_id, est.declination_deg, est.initialised)
+        if self._odometry_ref is not None and ref != self._odometry_ref:
+            self._odometry_epoch += 1
+        self._odometry_ref = ref
+        var = self.link.attitude_variance()
+        return AttitudeEstimate(
+            t_ns=int(est.t_ns),
+            q=est.q,
+            body_rate=est.body_rate,
+            roll_var=var.roll,
+            pitch_var=var.pitch,
+            yaw_var=var.yaw if est.mag_used else float("nan"),
+            healthy=est.initialised and fresh,
+            epoch=self._odometry_epoch,
         )
 
     # ------------------------------------------------------------------ parameters
@@ -259,13 +320,16 @@ class MavlinkBridge:
             accel=SensorStatus(True, True, h.accel_healthy),
             mag_status=SensorStatus(h.mag_present, est.mag_used, h.mag_healthy),
             estimator=link.estimator,
-            ahrs_healthy=est.initialised,
+            # a stale estimate is an unhealthy AHRS, as ArduPilot's GCS::update_sensor_status_flags
+            # clears MAV_SYS_STATUS_AHRS when ahrs.healthy() fails (docs/mavlink.md, "Health per sensor")
+            ahrs_healthy=est.initialised and fresh,
             reduced_mode=est.reduced,
             overruns=h.overruns,
             load_percent=h.load_percent,
             comm_errors=h.comm_errors,
             sensor_faults=h.sensor_faults,
             lost_samples=h.lost_samples,
+            vibration=link.vibration(),
         )
 
     def tick(self, now_ns: int) -> None:
@@ -277,12 +341,18 @@ class MavlinkBridge:
         component = self.component
         if component.due(now_ns):
             component.publish(now_ns, self.telemetry(now_ns))
+        odometry = self.odometry
+        if odometry is not None and odometry.due(now_ns):
+            odometry.timesync = self.timesync
+            estimate = self.odometry_estimate(now_ns)
+            with self.timesync_lock:
+                odometry.tick(now_ns, estimate)
         if now_ns >= self._next_poll_ns:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)
 
-    def statustext(self, severity: int, text: str) -> None:
-        self.component.statustext(severity, text)
+    def statustext(self, severity: int, text: str, kind: str | None = None) -> None:
+        self.component.statustext(severity, text, kind)
 
     def stats(self) -> dict[str, Any]:
         return self.component.stats.as_dict()

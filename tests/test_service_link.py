@@ -20,6 +20,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 from ahrs_service import config as config_mod  # noqa: E402
 from ahrs_service.mavlink_bridge import LatestEstimate, LinkHealth, MavlinkBridge, ServiceLink  # noqa: E402
 from ahrs_service.service import LoopSchedule, PeriodicJob  # noqa: E402
+from ahrs_service.vibration import VibrationMonitor  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -39,7 +40,7 @@ class FakeService:
         if self.samples == 0:
             return None
         return LatestEstimate(self.samples, 1_000_000 * self.samples, Q, (0.01, 0.02, 0.03), (0.0, 0.0, 0.0),
-                              (0.0, 0.0, -9.8), (20.0, 0.0, 45.0), True, 25.0, True, True, False)
+                              (0.0, 0.0, -9.8), (20.0, 0.0, 45.0), True, 25.0, True, True, False, 1, 0.0)
 
     def health(self) -> LinkHealth:
         return LinkHealth(True, True, True, True, overruns=3, load_percent=12.5, comm_errors=4, sensor_faults=0,
@@ -58,6 +59,7 @@ class FakeService:
             loop_rate_hz=lambda: 200.0,
             calibrate_gyro=lambda: (self.calls.append(("gyro",)), (False, "gyro calibration refused: moving"))[1],
             start_calibration=lambda kind: (self.calls.append(("cal", kind)), (True, f"{kind} cal started"))[1],
+            vibration=VibrationMonitor().levels, attitude_variance=lambda: None,
         )
 
 

@@ -67,9 +67,10 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators import robust_blocks as B
-from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.base import Estimator, sample_age
 from ahrs_service.estimators.robust_layout import DEG, N_PARAMS, P, ST, STATE, STATE_SIZE, RobustParams
 from ahrs_service.estimators.robust_mag import hard_iron_and_consistency, heading
+from ahrs_service.estimators.uncertainty import AttitudeVariance, ErrorModel
 from ahrs_service.quaternion import quat_integrate, quat_mul, quat_normalize, quat_rotate
 
 _jit = njit(cache=True, inline="always")
@@ -305,6 +306,9 @@ def robust_step(s, params, row):
     robust_batch(s, params, row[np.newaxis, :], None)
 
 
+BIAS_P_UNIT = 0.01 * DEG
+
+
 class RobustEstimator(Estimator):
     """GIMLET, the project's robust estimator: VQF-structured inclination and bias, heading
     with norm/dip, gyro-consistency and hard-iron-learning magnetic rejection."""
@@ -340,3 +344,22 @@ class RobustEstimator(Estimator):
             # residual / tolerance of the gyro-consistency test (< 1: consistent), no unit
             "consistency_ratio": float(np.sqrt(max(s[ST.cons], 0.0))),
         }
+
+    #: floors of the error model (``uncertainty``); the drift comes from the bias covariance,
+    #: whose unit (robust_layout: bias_p) is (0.01 °/s)²: σ_b = √p · BIAS_P_UNIT rad/s
+    error_model = ErrorModel(tilt_sigma=1.5 * DEG, heading_sigma=4.0 * DEG)
+
+    def attitude_variance(self) -> AttitudeVariance:
+        """Error model (``uncertainty``): tilt floor plus the bias σ of the body x/y axes times
+        the age of the newest accelerometer sample; heading floor plus the body-z bias σ times
+        the time the heading has run on the gyro alone (no usable field, or a rejected one:
+        the rejection clock)."""
+        s = self.state
+        if not s[K.INITIALISED]:
+            return AttitudeVariance.unknown()
+        sigma_b = np.sqrt(np.maximum(np.diag(s[STATE.slices.bias_p].reshape(3, 3)), 0.0)) * BIAS_P_UNIT
+        m = self.error_model
+        tilt = m.tilt_sigma**2 + (float(max(sigma_b[0], sigma_b[1])) * sample_age(s[K.ACC_AGE])) ** 2
+        unused = sample_age(s[K.MAG_AGE]) + (float(s[ST.mag_reject_t]) if s[ST.mag_dist] else 0.0)
+        yaw = m.heading_sigma**2 + (float(sigma_b[2]) * unused) ** 2 if np.isfinite(unused) else float("nan")
+        return AttitudeVariance(tilt, tilt, yaw)
