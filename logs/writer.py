@@ -224,6 +224,7 @@ class _Close:
 _CARRIES: dict[type, Callable[[Any], tuple[int, int]]] = {
     _Raw: lambda item: (1, 1),
     _Sample: lambda item: (1, 2 + (item.truth_q is not None)),
+    _Block: lambda item: (len(item.t_ns), len(item.t_ns) * (2 + (item.truth_q is not None))),
 }
 
 
@@ -901,13 +902,14 @@ class FlightLogWriter:
         self._rotate_if_due()  # at the block's start: a rotation's snapshot is a block's end state
         n = len(item.t_ns)
         truth = item.truth_q
-        if not self._ensure_file(n * (2 + (truth is not None))):
+        per_row = 2 + (truth is not None)
+        if not self._ensure_file(n * per_row, samples=n):
             return
         raw, temps, sources = item.raw, item.temperature, item.t_source_ns
         last = n - 1
         for i, t_ns in enumerate(item.t_ns):
             if self._file is None:  # a write before failed: _fail counted what the file held
-                self._dropped_io += (n - i) * (2 + (truth is not None))
+                self._lose((n - i) * per_row, n - i)
                 return
             self._write("/imu/raw", t_ns, raw_message(
                 t_ns, item.rows[i], item.flags[i], None if raw is None else {k: v[i] for k, v in raw.items()},
@@ -919,7 +921,7 @@ class FlightLogWriter:
                 self._write_attitude(t_ns, item.q[i], item.estimator, None, None, with_bias=False)
             if truth is not None:
                 if self._file is None:
-                    self._dropped_io += 1
+                    self._lose(1)
                 else:
                     self._write("/attitude/truth", t_ns, truth_message(t_ns, truth[i]))
 
