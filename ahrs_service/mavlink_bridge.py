@@ -17,7 +17,6 @@ reference to the service, its pipeline, scheduler, source or estimator.
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
@@ -201,13 +200,9 @@ class MavlinkBridge:
             accel_calibration=lambda action: self._start_collection("accel"),
             max_rate_hz=1e9 / io_period_ns,
         )
-        # beside an autopilot the service hands over the link's TIMESYNC estimate and the lock
-        # its reader thread updates it under (docs/autopilot.md, "TIMESYNC")
-        self.timesync: TimeSync | None = None
-        self.timesync_lock: Any = contextlib.nullcontext()
-        #: the autopilot link's send (AutopilotLink.send), set by the service beside an autopilot:
-        #: ODOMETRY goes there as well as on the endpoints
-        self.autopilot_send: Any = None
+        # beside an autopilot the service hands over the link's clock (AutopilotLink.clock: TIMESYNC
+        # under the link's lock) and sends ODOMETRY on the link (docs/autopilot.md, "ODOMETRY")
+        self.timesync: TimeSync | Any | None = None
         self.odometry = self._odometry_sender(mcfg["odometry"])
 
     # ------------------------------------------------------------------ ODOMETRY (issue 17)
@@ -216,12 +211,7 @@ class MavlinkBridge:
             return None
         self._odometry_epoch = 0
         self._odometry_ref: tuple[Any, float, bool] | None = None
-        return OdometrySender(self._send_odometry, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]])
-
-    def _send_odometry(self, msg: Any) -> None:
-        self.component.send(msg)
-        if self.autopilot_send is not None:
-            self.autopilot_send(msg)
+        return OdometrySender(self.component.send, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]])
 
     def odometry_estimate(self, now_ns: int) -> AttitudeEstimate | None:
         """The published attitude and its variances for ODOMETRY; None before the first sample.
@@ -344,9 +334,7 @@ class MavlinkBridge:
         odometry = self.odometry
         if odometry is not None and odometry.due(now_ns):
             odometry.timesync = self.timesync
-            estimate = self.odometry_estimate(now_ns)
-            with self.timesync_lock:
-                odometry.tick(now_ns, estimate)
+            odometry.tick(now_ns, self.odometry_estimate(now_ns))
         if now_ns >= self._next_poll_ns:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)

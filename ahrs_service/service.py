@@ -150,18 +150,13 @@ class Service:
         self._open_timesync()
 
     def _open_timesync(self) -> None:
-        """Beside an autopilot (source.type = "mavlink"): ODOMETRY goes on the autopilot link
-        too, stamped through the link's TIMESYNC estimate, which is logged on /timesync after
-        each accepted sample."""
+        """Beside an autopilot (source.type = "mavlink"): the link's TIMESYNC estimate is logged
+        on /timesync after each accepted sample (ODOMETRY's link and clock: _open_mavlink)."""
         self._autopilot_link = getattr(self.source, "autopilot_link", None)
         self._timesync_logged_ns = None
 
     def _timesync_tick(self) -> None:
-        # the link replaces its estimator when the autopilot (re)appears: look it up each time
         link = self._autopilot_link
-        bridge = self.mavlink
-        bridge.timesync, bridge.timesync_lock = link.timesync, link.timesync_lock
-        bridge.autopilot_send = link.send  # ODOMETRY to the autopilot too
         with link.timesync_lock:
             status = link.timesync.last_status
         if status is not None and status.local_ns != self._timesync_logged_ns and self.log_writer is not None:

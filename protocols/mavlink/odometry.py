@@ -158,8 +158,9 @@ class OdometrySender:
 
     send: callable taking a pymavlink message (the bridge's endpoints, or the autopilot
         link); its exceptions are counted, never raised.
-    timesync: when given and synced, time_usec is in the autopilot's clock
-        (``TimeSync.presented_ns``); otherwise our monotonic µs.
+    timesync: a ``TimeSync`` or anything with its ``synced`` and ``presented_ns`` (beside an
+        autopilot: ``AutopilotLink.clock``, which locks for itself); when synced, time_usec is
+        in the autopilot's clock, otherwise our monotonic µs.
     Drive with :meth:`tick` from one thread; the schedule is absolute (anchor + k / rate).
     """
 
@@ -169,10 +170,11 @@ class OdometrySender:
     timesync: TimeSync | None = None
     stats: OdometryStats = field(default_factory=OdometryStats)
     reset_counter: int = 0
-    _anchor_ns: int | None = None
-    _k: int = 0
-    _last: AttitudeEstimate | None = None
-    _last_frame: int | None = None
+    # the schedule (anchor + k / rate) and the previous message, for the heading-jump test
+    _anchor_ns: int | None = field(default=None, init=False, repr=False)
+    _k: int = field(default=0, init=False, repr=False)
+    _last: AttitudeEstimate | None = field(default=None, init=False, repr=False)
+    _last_frame: int | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not (MIN_RATE_HZ <= float(self.rate_hz) <= MAX_RATE_HZ):
