@@ -189,7 +189,7 @@ class MavlinkImuSource(ImuSource):
         self._index = 0
         self._warmup: list[_Reading] = []
         self._last_remote_ns: int | None = None  # the newest message's time
-        self._stamped_ns = 0  # the newest stamped sample's autopilot time
+        self._stamped_ns = 0  # the newest sample's recovered time (autopilot clock, ns)
         self._requested_session = -1
         self._requested_at_ns = 0
         self._last_imu_rx_ns = 0  # arrival of the newest IMU message (reader thread)
@@ -272,13 +272,15 @@ class MavlinkImuSource(ImuSource):
         remote_ns = r.remote_us * 1000
         lost = 0
         if not first:
-            # the autopilot's time in tracked periods: m periods on = m − 1 samples lost
+            # the autopilot's time in tracked periods since the previous sample's place on the
+            # steady line (not its stamp: a send-time stamp is late by up to its scheduler's
+            # delay, and two such delays would add up): m periods on = m − 1 samples lost
             period_ns = 1e9 / self._clock.rate_hz  # type: ignore[union-attr]
             dk = max(1, int(round((remote_ns - self._stamped_ns) / period_ns)))
             lost = dk - 1
             self._index += dk
-        self._stamped_ns = remote_ns
         steady_ns = int(self._clock.stamp_indexed(remote_ns, self._index))  # type: ignore[union-attr]
+        self._stamped_ns = steady_ns
         t_ns = self.link.timeline.to_local_ns(steady_ns // 1000) + steady_ns % 1000  # type: ignore[operator]
         flags = GYR_VALID | ACC_VALID
         mag = r.mag

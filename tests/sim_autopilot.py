@@ -19,6 +19,7 @@ Every loop is bounded: the recording's length plus ``time_limit_s``.
 from __future__ import annotations
 
 import os
+import select
 import socket
 import termios
 import threading
@@ -138,12 +139,18 @@ class PtyTransport:
         return f"{self.path},921600"
 
     def write(self, data: bytes) -> None:
-        if self.master is None:
-            return
-        try:
-            os.write(self.master, data)
-        except (BlockingIOError, OSError):
-            pass  # the reader is slow or gone: a UART drops bytes too
+        """Writes all of ``data``, waiting (at most 2 s) while the reader is slow: a pty's buffer
+        is a few kB, and a router lagging on a busy host must not lose the stream here (a real
+        UART at 921 600 baud paces the autopilot instead). A reader gone: dropped."""
+        view = memoryview(data)
+        end = time.monotonic() + 2.0
+        while view and self.master is not None and time.monotonic() < end:
+            try:
+                view = view[os.write(self.master, view):]
+            except BlockingIOError:
+                select.select([], [self.master], [], 0.05)
+            except OSError:
+                return
 
     def read(self) -> bytes:
         if self.master is None:
@@ -166,6 +173,7 @@ class SimStats:
     interval_requests: list[tuple[int, float]] = field(default_factory=list)  # (msg id, interval µs)
     timesync_replies: int = 0
     odometry_times_us: list[int] = field(default_factory=list)  # ODOMETRY.time_usec received
+    imu_stamps_us: list[int] = field(default_factory=list)  # the time each IMU message carried
     received: dict[str, int] = field(default_factory=dict)
 
 
@@ -182,7 +190,8 @@ class SimAutopilot:
     def __init__(self, transport, recording: Recording, *, kind: str = "px4", system_id: int = 1,
                  component_id: int = 1, drop: frozenset[int] = frozenset(), attitude_hz: float = 50.0,
                  attitude_offset_deg: float = 0.0, pause: tuple[int, float] | None = None,
-                 refuse_streams: bool = False, time_limit_s: float = 30.0) -> None:
+                 refuse_streams: bool = False, send_jitter_us: int = 0, seed: int = 0,
+                 time_limit_s: float = 30.0) -> None:
         self.t = transport
         self.rec = recording
         self.kind = kind
@@ -195,6 +204,10 @@ class SimAutopilot:
                                   np.sin(np.radians(attitude_offset_deg) / 2)])
         self.pause = pause
         self.refuse_streams = refuse_streams  # answer SET_MESSAGE_INTERVAL with DENIED, stream nothing
+        # ArduPilot stamps a message when it sends it (AP_HAL::micros64 / millis), not when the
+        # sample was taken: a random 0..send_jitter_us after the sample (its scheduler's delay)
+        self.send_jitter_us = int(send_jitter_us)
+        self._rng = np.random.default_rng(seed)
         self.time_limit_s = time_limit_s
         self.stats = SimStats()
         self.intervals: dict[int, float] = {}  # msg id -> µs (0 = off)
@@ -224,6 +237,8 @@ class SimAutopilot:
 
     def _send_imu(self, i: int) -> None:
         t_us = self.sample_time_us(i)
+        if self.send_jitter_us:
+            t_us += int(self._rng.integers(0, self.send_jitter_us + 1))
         g, a, m = self.rec.gyr[i], self.rec.acc[i], self.rec.mag_gauss[i]
         hm = self.highres_mag[i]
         for name, msg_id in (("HIGHRES_IMU", mavlink.MAVLINK_MSG_ID_HIGHRES_IMU),
@@ -244,6 +259,7 @@ class SimAutopilot:
                     *(int(round(x * 1000)) for x in m), 2500)
             self.send(msg)
             self.stats.imu_sent[name] = self.stats.imu_sent.get(name, 0) + 1
+            self.stats.imu_stamps_us.append(t_us if name == "HIGHRES_IMU" else t_us // 1000 * 1000)
 
     def _send_attitude(self, i: int) -> None:
         w1, x1, y1, z1 = self.q_offset

@@ -773,3 +773,42 @@ def test_live_view_shows_the_autopilot_body_and_the_disagreement(tmp_path, broad
     assert {m["child_frame_id"] for _, m in got["/tf"]} == {"body", "autopilot"}
     assert all(8.0 < m["total_deg"] < 12.0 for _, m in got["/monitor"])
     assert {m["estimator"] for _, m in got["/autopilot/attitude"]} == {"autopilot"}
+
+
+def test_send_time_stamps_are_smoothed_and_their_gaps_counted_exactly():
+    """ArduPilot-like SCALED_IMU: each message stamped in whole ms when sent, 0–3 ms after its
+    sample. The sample clock puts the samples back on a steady 5 ms line and counts the
+    dropped ones exactly, though consecutive stamps step anywhere from 1 to 9 ms (a step
+    counted from the previous stamp would call some of them a lost sample)."""
+    n, period_us = 1200, 5000
+    rec = Recording.uniform(np.zeros((n, 3)), np.tile([0.0, 0.0, -9.81], (n, 1)), np.tile([20.0, 0.0, 45.0], (n, 1)),
+                            np.tile([1.0, 0, 0, 0], (n, 1)), period_us)
+    drop = frozenset({300, 301, 700, 1000})
+    port = free_udp_port()
+    link = AutopilotLink(f"udpin:127.0.0.1:{port}")
+    src = MavlinkImuSource(link, message="scaled", rate_hz=200.0)
+    src.open()
+    sim = SimAutopilot(UdpTransport(port), rec, kind="ardupilot", drop=drop, send_jitter_us=3000, seed=5).start()
+    got = []
+    try:
+        end = time.monotonic() + 20.0
+        while time.monotonic() < end and len(got) < n - len(drop):
+            block = src.read_block()
+            got.extend(block.samples()) if len(block) else time.sleep(0.005)
+    finally:
+        sim.stop()
+        src.close()
+    assert len(got) == n - len(drop)
+    assert src.diagnostics.lost.gap == len(drop)
+    def steady_steps(times_ms):
+        steps = np.diff(times_ms)
+        return steps[(steps > 0.5) & (steps < 9.5)]  # not the gaps (10 ms and more, on the line)
+
+    recovered = steady_steps(np.array([s.t_ns for s in got]) / 1e6)
+    stamped = steady_steps(np.array(sim.stats.imu_stamps_us) / 1e3)
+    assert len(recovered) == len(got) - 1 - 3  # three gaps (one of two samples)
+    # the stamps as sent step 1..9 ms; the recovered times stay on the 5 ms line
+    assert np.ptp(stamped) >= 6.0 and np.std(stamped) > 0.8
+    assert np.ptp(recovered) < np.ptp(stamped) / 5 and np.std(recovered) < np.std(stamped) / 20
+    steady = recovered
+    assert abs(np.mean(steady) - 5.0) < 0.01
