@@ -110,6 +110,11 @@ class LossCounts:
         return f"{self.total} ({', '.join(causes)})" if causes else str(self.total)
 
 
+def _floats(x: Any) -> list[float]:
+    """A reading as a list of Python floats (an array's ``tolist``, the cheap common case)."""
+    return x.tolist() if type(x) is np.ndarray else [float(v) for v in x]
+
+
 @dataclass(slots=True)
 class SampleBlock:
     """Consecutive samples of one source as arrays, one row per sample, oldest first.
@@ -157,23 +162,36 @@ class SampleBlock:
         n = len(samples)
         if n == 0:
             return cls.empty(lost)
-        nan3 = (np.nan, np.nan, np.nan)
+        # one list of plain floats per field, then one array each: the polling path builds a
+        # block per sample, and per-element NumPy work there costs tens of microseconds
+        nan3 = [math.nan, math.nan, math.nan]
+        if n == 1:  # the polling path: one sample a tick, one array for its three readings
+            s = samples[0]
+            vec = np.array([_floats(s.gyr), _floats(s.acc), nan3 if s.mag is None else _floats(s.mag)], dtype=float)
+            return cls(
+                np.array([s.t_ns], dtype=np.int64), vec[0:1], vec[1:2], vec[2:3], np.array([s.flags], dtype=np.int64),
+                np.array([math.nan if s.temperature_c is None else s.temperature_c]),
+                None if s.raw is None else {k: np.array([s.raw[k]], dtype=np.int64) for k in sorted(s.raw)},
+                None if s.truth_q is None else np.array([_floats(s.truth_q)]), lost or LossCounts())
         raw = None
         if all(s.raw is not None for s in samples):
-            keys = set.intersection(*(set(s.raw) for s in samples))  # type: ignore[arg-type]
+            first = samples[0].raw
+            keys = set(first)  # type: ignore[arg-type]
+            if any(set(s.raw) != keys for s in samples):  # type: ignore[arg-type]
+                keys = set.intersection(*(set(s.raw) for s in samples))  # type: ignore[arg-type]
             # (n, 3) per vector reading, (n,) per scalar one (a temperature count)
             same_shape = [k for k in keys if len({np.ndim(s.raw[k]) for s in samples}) == 1]  # type: ignore[index]
             raw = {k: np.array([s.raw[k] for s in samples], dtype=np.int64)  # type: ignore[index]
                    for k in sorted(same_shape)}
-        truth = (np.array([s.truth_q for s in samples], dtype=float)
+        truth = (np.array([_floats(s.truth_q) for s in samples], dtype=float)
                  if all(s.truth_q is not None for s in samples) else None)
         return cls(
             np.array([s.t_ns for s in samples], dtype=np.int64),
-            np.array([s.gyr for s in samples], dtype=float).reshape(n, 3),
-            np.array([s.acc for s in samples], dtype=float).reshape(n, 3),
-            np.array([nan3 if s.mag is None else s.mag for s in samples], dtype=float).reshape(n, 3),
+            np.array([_floats(s.gyr) for s in samples], dtype=float).reshape(n, 3),
+            np.array([_floats(s.acc) for s in samples], dtype=float).reshape(n, 3),
+            np.array([nan3 if s.mag is None else _floats(s.mag) for s in samples], dtype=float).reshape(n, 3),
             np.array([s.flags for s in samples], dtype=np.int64),
-            np.array([np.nan if s.temperature_c is None else s.temperature_c for s in samples], dtype=float),
+            np.array([math.nan if s.temperature_c is None else s.temperature_c for s in samples], dtype=float),
             raw, truth, lost or LossCounts())
 
     def sample(self, i: int) -> ImuSample:
@@ -231,6 +249,13 @@ class ImuSource(abc.ABC):
     #: whether several samples can be due at once (a FIFO, a replayed log): the service then
     #: reads until ``read`` returns None, a bounded number per tick, so a late tick loses nothing
     may_have_backlog: bool = False
+    #: whether ``t_ns`` is already each sample's instant on the sensor's clock (a FIFO timed
+    #: by its position in the burst, a flight log's recorded times); otherwise it is the
+    #: host's read time and the service recovers the sample times (ahrs_service.sample_clock)
+    times_on_sensor_clock: bool = False
+    #: bursts per second a source that reads blocks (a FIFO) is drained at: the service's
+    #: loop wakes at this rate (Hz); None: one sample per tick at the estimation rate
+    wakeup_rate_hz: float | None = None
 
     def __init__(self) -> None:
         self.diagnostics = SourceDiagnostics()

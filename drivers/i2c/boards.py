@@ -295,10 +295,12 @@ class MPU9250Board(I2CBoard):
                       "mag": AK8963(bus, mag_address, rate_hz=mag_rate_hz, **self._kw())}
         self.fifo = bool(fifo)
         self.may_have_backlog = self.fifo
+        self.times_on_sensor_clock = self.fifo  # FIFO rows timed on the output period
         #: the FIFO is drained every 1 / fifo_read_hz s (bus clock): the wake-up rate; with the
         #: defaults 10 samples a drain. The MPU-9250 has no watermark interrupt, so this is the
         #: host's schedule; it must stay above rate / 42 Hz (the FIFO's depth) to lose nothing.
         self.fifo_read_period_ns = int(round(1e9 / fifo_read_hz))
+        self.wakeup_rate_hz = float(fifo_read_hz) if self.fifo else None
         self.period_ns = int(round(1e9 / self.mpu.rate_hz))
         self._next_drain_ns: int | None = None
         self._last_drain_ns: int | None = None  # host time of the last FIFO status read

@@ -45,6 +45,7 @@ class FifoBoard(ImuSource):
     NAME = ""
     has_mag = False
     may_have_backlog = True
+    times_on_sensor_clock = True  # each row timed by its position in the burst
     #: the FIFO watermark line, when wired (``source.drdy_gpio``); the service then waits on it
     data_ready_line = None
     #: bursts per second the watermark is set for (the data-ready line's edge rate), Hz
