@@ -40,9 +40,10 @@ CHILD_NICE = 10
 
 
 def loaded(name: str) -> bool:
-    """True when this process has compiled, or loaded from the cache, the per-sample kernel
-    of estimator ``name`` (numba's ``Dispatcher.signatures``): using it costs no compile."""
-    return bool(estimators.get(name).step.signatures)
+    """True when this process has compiled, or loaded from the cache, the kernel the service
+    runs estimator ``name`` with (its ``batch`` over a block of rows; numba's
+    ``Dispatcher.signatures``): using it costs no compile."""
+    return bool(estimators.get(name).batch.signatures)
 
 
 def warm_up(name: str) -> float:
