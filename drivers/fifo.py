@@ -3,6 +3,8 @@
 * :class:`SensorClock` — each sample's time from its index on the part's own output clock,
   with the part's real rate tracked against the host's monotonic clock: timestamps neither
   jitter with the host's read times nor drift from the host clock.
+* :class:`FifoTimeline` — one FIFO part's sample indices, times and losses: every FIFO
+  board stamps its bursts and counts its overflows and outages through it (one place).
 * :class:`SimulatedFifo` and :class:`SimulatedFifoDevice` — the twins' side: a byte FIFO of
   the part's depth (stop-on-full or stream), filled with every sample due on a clock that
   runs ``clock_error`` off nominal (real parts are 0.5–2 % off).
@@ -18,6 +20,7 @@ from collections import deque
 
 import numpy as np
 
+from ahrs_service.drivers.base import LossCounts, SourceDiagnostics
 from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice, _ZERO_PHYSICS
 
 
@@ -89,6 +92,18 @@ class SensorClock:
         self._last_t = int(t[-1])
         return t
 
+    @property
+    def anchored(self) -> bool:
+        """True once a read has tied the part's sample indices to the host clock."""
+        return bool(self._idx)
+
+    def forget_offset(self) -> None:
+        """Drops the index ↔ host-time anchors, keeps the tracked period: after a FIFO
+        reset the next reads anchor the offset afresh, so an index estimated across the
+        reset one sample off shifts the count, never the times."""
+        self._idx.clear()
+        self._host.clear()
+
     def index_at(self, host_ns: int) -> int:
         """The index of the newest sample the part has produced by ``host_ns``."""
         if not self._idx:
@@ -96,6 +111,85 @@ class SensorClock:
         p = self.period_ns
         offset = min(h - i * p for i, h in zip(self._idx, self._host))
         return int(math.floor((host_ns - offset) / p))
+
+
+class FifoTimeline:
+    """One FIFO part's samples on its own clock: indices, times and the losses between them.
+
+    Every sample the part produces has an index (0, 1, … from the FIFO's start); a burst of
+    ``n`` samples read from the FIFO is the next ``n`` indices, stamped by the part's
+    :class:`SensorClock`. Samples the part produced but the host never read (an overflowed
+    FIFO that was reset, a part unreachable on the bus) advance the index without rows and
+    are counted by cause: in ``diagnostics.lost`` when found, and in the ``lost`` of the next
+    block (:meth:`take_loss`), so the gap shows as one long dt before that block's first row.
+
+    The loss of an overflow is ``produced − read``: the index the sensor clock gives the
+    host time of the FIFO reset, minus the samples read — it does not depend on when the
+    overflow flag was noticed or how long since the last read (a flag seen one read late, or
+    a stop between the status and the data reads, cost no accuracy).
+    """
+
+    def __init__(self, rate_hz: float, diagnostics: SourceDiagnostics,
+                 events_key: str = "fifo_overflows") -> None:
+        self.clock = SensorClock(rate_hz)
+        self.diagnostics = diagnostics
+        self.events_key = events_key
+        diagnostics.extra.setdefault(events_key, 0)
+        self.next_index = 0
+        self._pending = LossCounts()
+
+    @property
+    def anchored(self) -> bool:
+        return self.clock.anchored
+
+    def stamp(self, host_ns: int, n: int, full: bool = False) -> np.ndarray:
+        """Times (int64 ns, oldest first) of the next ``n`` samples, the newest of which was
+        in the FIFO when its level was read at ``host_ns``. full: the FIFO had filled (its
+        newest sample may be much older than the read): timed from the clock's fit."""
+        t = self.clock.stamp(host_ns, self.next_index, n, anchor=not full)
+        self.next_index += n
+        return t
+
+    def overflowed(self, reset_host_ns: int, flagged: bool = True) -> int:
+        """The FIFO was reset at ``reset_host_ns`` after an overflow: the samples produced
+        since the last one read are lost (at least one when the part flagged the overflow).
+        Returns the count; the offset is anchored afresh by the next reads."""
+        self.diagnostics.extra[self.events_key] += 1
+        produced = self.clock.index_at(reset_host_ns) + 1
+        n = max(1 if flagged else 0, produced - self.next_index)
+        self._lose(n, "fifo_overflow")
+        self.clock.forget_offset()
+        return n
+
+    def missed(self, host_ns: int) -> int:
+        """The part was unreachable and has been configured again (its FIFO reset) at
+        ``host_ns``: what it produced since the last sample read is lost to bus errors."""
+        if not self.clock.anchored:
+            return 0
+        n = max(0, self.clock.index_at(host_ns) + 1 - self.next_index)
+        self._lose(n, "bus_error")
+        self.clock.forget_offset()
+        return n
+
+    def carry_loss(self, earlier: "FifoTimeline") -> None:
+        """Takes over the losses ``earlier`` (the timeline before a re-configuration) has
+        not handed out yet, so the first block of this one carries them."""
+        self._pending.add(earlier.take_loss())
+
+    def _lose(self, n: int, cause: str) -> None:
+        self.next_index += n
+        setattr(self._pending, cause, getattr(self._pending, cause) + n)
+        lost = self.diagnostics.lost
+        setattr(lost, cause, getattr(lost, cause) + n)
+
+    def take_loss(self) -> LossCounts:
+        """The losses since the last call: the ``lost`` of the next block handed out."""
+        lost, self._pending = self._pending, LossCounts()
+        return lost
+
+    @property
+    def loss_pending(self) -> bool:
+        return self._pending.total > 0
 
 
 class SimulatedFifo:

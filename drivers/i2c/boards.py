@@ -47,7 +47,8 @@ from ahrs_service.drivers.base import (
 from ahrs_service.drivers.i2c.adxl345 import ADXL345, SimulatedADXL345
 from ahrs_service.drivers.i2c.ak8963 import AK8963, SimulatedAK8963
 from ahrs_service.drivers.i2c.bus import I2CBus, SimulatedI2CBus, SMBusI2C
-from ahrs_service.drivers.i2c.device import DeviceIdentityError, I2CDevice, I2CDeviceError, overflow_loss
+from ahrs_service.drivers.fifo import FifoTimeline
+from ahrs_service.drivers.i2c.device import DeviceIdentityError, I2CDevice, I2CDeviceError
 from ahrs_service.drivers.i2c.hmc5883l import HMC5883L, SimulatedHMC5883L
 from ahrs_service.drivers.i2c.l3g4200d import L3G4200D, SimulatedL3G4200D
 from ahrs_service.drivers.i2c.l3gd20 import L3GD20, SimulatedL3GD20
@@ -57,7 +58,7 @@ from ahrs_service.drivers.i2c.lsm303dlhc import (
     SimulatedLSM303DLHCAcc,
     SimulatedLSM303DLHCMag,
 )
-from ahrs_service.drivers.i2c.mpu9250 import MPU9250, SimulatedMPU9250
+from ahrs_service.drivers.i2c.mpu9250 import FIFO_LAYOUT as MPU9250_FIFO, MPU9250, SimulatedMPU9250
 
 #: what :meth:`I2CBoard._read_inertial` gives: (t_ns, gyr, acc, flags, raw, temperature_c)
 _Inertial = tuple[int, np.ndarray, np.ndarray, int, dict[str, Any], float | None]
@@ -299,25 +300,21 @@ class MPU9250Board(I2CBoard):
         #: defaults 10 samples a drain. The MPU-9250 has no watermark interrupt, so this is the
         #: host's schedule; it must stay above rate / 42 Hz (the FIFO's depth) to lose nothing.
         self.fifo_read_period_ns = int(round(1e9 / fifo_read_hz))
-        self.period_ns = int(round(1e9 / self.mpu.rate_hz))
         self._next_drain_ns: int | None = None
-        self._last_drain_ns: int | None = None  # host time of the last FIFO status read
-        self._last_t_ns: int | None = None  # sensor time of the last sample handed out
-        self._pending_loss = LossCounts()  # lost before the next block's first row
+        self.timeline: FifoTimeline | None = None  # the FIFO's samples on the part's clock
         self._queue: deque[ImuSample] = deque()  # rows of drained blocks for read()
-        self._started = False
 
     # ------------------------------------------------------------------ FIFO path
     def open(self) -> None:
         super().open()
-        self._started = False  # nothing handed out yet since open()
         self._restart_fifo_schedule()
+        self._sim_dropped_base = self._sim_dropped()
 
     def _restart_fifo_schedule(self) -> None:
-        now = self.bus.now_ns()
-        self._next_drain_ns = now + self.fifo_read_period_ns
-        self._last_drain_ns = now  # configure() has just reset the FIFO
-        self._last_t_ns = None
+        """configure() has just reset the FIFO: a new timeline (the part restarted its
+        sample grid with H_RESET), the first drain one read period on."""
+        self._next_drain_ns = self.bus.now_ns() + self.fifo_read_period_ns
+        self.timeline = FifoTimeline(self.mpu.rate_hz, self.diagnostics)
         self._queue.clear()
 
     @property
@@ -340,14 +337,18 @@ class MPU9250Board(I2CBoard):
         per ``1 / fifo_read_hz`` (an empty block in between, no bus transfer); at most the
         FIFO's depth (42), whatever ``max_samples`` says.
 
-        Times: sample i of n is ``t_read − (n − 1 − i) · T`` (T the output period, t_read the
-        host time of the FIFO level read, which the newest sample precedes by less than T).
-        Overflow: the FIFO kept its oldest samples (FIFO_MODE 1), contiguous with the last
-        ones handed out, so they are timed on from there; the rest are counted in
-        ``lost.fifo_overflow`` (from the sensor clock) and the FIFO is reset. A failed read
-        marks the part lost; the samples it produced until it is back are counted in
-        ``lost.bus_error``. A FIFO that overflowed before the first read after ``open`` is
-        emptied without counting: those samples predate the consumer.
+        A drain reads INT_STATUS, FIFO_COUNT, the samples, and resets the FIFO when it
+        overflowed — flagged, or full (a stop between the status and the count read fills
+        it before the flag is read) — or when it could have filled while the samples were
+        read (the host stopped mid-drain: more periods went by than the FIFO had room for).
+        Times come from the sensor clock (:class:`~ahrs_service.drivers.fifo.FifoTimeline`):
+        the samples' indices on the part's own clock, tracked against the host time of the
+        count read. The samples a full FIFO kept (FIFO_MODE 1: the oldest, contiguous with
+        the last ones read) are timed on from the clock's fit; the rest are counted in
+        ``lost.fifo_overflow`` as what the clock says the part produced by the reset minus
+        what was read. A failed read marks the part lost; the samples it produced until it
+        is back are counted in ``lost.bus_error``. A FIFO that overflowed before the first
+        read after ``open`` is emptied without counting: those samples predate the consumer.
         """
         if not self.fifo:
             return super().read_block(max_samples)
@@ -359,55 +360,57 @@ class MPU9250Board(I2CBoard):
             if "gyro" in self.lost:
                 return SampleBlock.empty()
             if was_lost:  # back: configure() reset the FIFO; count what it produced meanwhile
-                now = self.bus.now_ns()
-                missed = max(0, int(round((now - self._last_drain_ns) / self.period_ns)))
-                self._pending_loss.bus_error += missed
-                self.diagnostics.lost.bus_error += missed
+                old = self.timeline
+                old.missed(self.bus.now_ns())
                 self._restart_fifo_schedule()
+                self.timeline.carry_loss(old)
                 return SampleBlock.empty()
         now = self.bus.now_ns()
         if now < self._next_drain_ns:
             return SampleBlock.empty()
         self._next_drain_ns = max(self._next_drain_ns + self.fifo_read_period_ns, now)
         mpu = self.mpu
+        depth = MPU9250_FIFO.depth_frames
         try:
+            t_start = self.bus.now_ns()
             status = mpu.fifo_status()
             t_read = self.bus.now_ns()
             n = status.level
             acc_c, gyr_c = mpu.read_fifo(n) if n else (np.empty((0, 3), np.int64),) * 2
+            t_done = self.bus.now_ns()
+            truth = self._fifo_truth(n) if self.bus.simulated else None  # before any reset
             temp = mpu.read_temperature_counts()
-            if status.overflow:
+            # the FIFO had room for depth − n more samples from the count read to the end of
+            # the burst: a host that stopped longer than that anywhere in the drain (even
+            # before it took t_read) left it full, and a FIFO that refills as it is read
+            # after a gap is no longer contiguous: reset it and count by the clock
+            filled = (t_done - t_start) * 1e-9 * mpu.rate_hz >= depth - n
+            overflow = status.overflow or n >= depth or filled
+            if overflow:
                 mpu.fifo_reset()
+                t_reset = self.bus.now_ns()
         except I2CDeviceError as exc:
             self._mark_lost("gyro", exc)
             return SampleBlock.empty()
-        elapsed = t_read - self._last_drain_ns
-        self._last_drain_ns = t_read
-        if status.overflow and not self._started:
+        timeline = self.timeline
+        if overflow and not timeline.anchored:
             # the FIFO filled between open() and the first read (the service sets up its log
             # and links in between): stale samples nobody asked for yet, not a loss
-            self._started = True
             self._restart_fifo_schedule()
+            self._sim_dropped_base = self._sim_dropped()
             return SampleBlock.empty()
-        self._started = True
-        T = self.period_ns
-        if status.overflow and self._last_t_ns is not None:
-            t_ns = self._last_t_ns + T * np.arange(1, n + 1, dtype=np.int64)
-        else:
-            t_ns = t_read - T * np.arange(n - 1, -1, -1, dtype=np.int64)
-        lost, self._pending_loss = self._pending_loss, LossCounts()
-        if status.overflow:
-            # counted before the next block: the kept samples come first, then the gap
-            self._pending_loss.fifo_overflow += overflow_loss(elapsed, 1e9 / T, n)
-            self._last_t_ns = None  # after the reset the FIFO starts afresh: timed from the read
-        elif n:
-            self._last_t_ns = int(t_ns[-1])
-        if status.overflow:  # counted once, when found; the next block carries it
-            self.diagnostics.lost.add(self._pending_loss)
-        return self._fifo_block(t_ns, acc_c, gyr_c, temp, lost)
+        if self.bus.simulated:
+            # the twin's own count of the samples it dropped or had emptied unread since the
+            # first read, beside the driver's estimate (what the stall tests compare)
+            self.diagnostics.extra["sim_fifo_dropped"] = self._sim_dropped() - self._sim_dropped_base
+        lost = timeline.take_loss()
+        t_ns = timeline.stamp(t_read, n, full=overflow) if n else np.empty(0, np.int64)
+        if overflow:  # counted when found; the next block carries it before its first row
+            timeline.overflowed(t_reset, flagged=status.overflow)
+        return self._fifo_block(t_ns, acc_c, gyr_c, temp, truth, lost)
 
     def _fifo_block(self, t_ns: np.ndarray, acc_c: np.ndarray, gyr_c: np.ndarray, temp: int,
-                    lost: LossCounts) -> SampleBlock:
+                    truth: np.ndarray | None, lost: LossCounts) -> SampleBlock:
         mpu = self.mpu
         n = len(t_ns)
         gyr = gyr_c * mpu.gyro_scale
@@ -430,10 +433,15 @@ class MPU9250Board(I2CBoard):
                 mag_raw = np.zeros((n, 3), np.int64)
                 mag_raw[-1] = m
                 raw["mag"] = mag_raw
-        truth = self._fifo_truth(n) if self.bus.simulated else None
         temp_c = np.full(n, mpu.temperature_c(temp))
         return SampleBlock(t_ns.astype(np.int64), gyr, acc, mag, flags.astype(np.int64), temp_c,
                            raw, truth, lost)
+
+    def _sim_dropped(self) -> int:
+        if not self.bus.simulated:
+            return 0
+        twin = self.bus.device(self.mpu.address)
+        return twin.fifo_overflowed + twin.fifo_discarded  # type: ignore[attr-defined]
 
     def _fifo_truth(self, n: int) -> np.ndarray | None:
         """True attitudes of the ``n`` samples just read (simulated bus only: the twin keeps

@@ -236,15 +236,6 @@ class FifoStatus:
     overflow: bool
 
 
-def overflow_loss(elapsed_ns: int, rate_hz: float, kept: int) -> int:
-    """Samples lost in an overflow, estimated from the sensor clock: the part produced about
-    ``elapsed_ns × rate_hz`` samples since the FIFO was last emptied and ``kept`` of them are
-    in it (parts that only flag an overrun do not count what they dropped). Never negative,
-    and at least 1: the part did report an overflow."""
-    produced = int(round(elapsed_ns * 1e-9 * rate_hz))
-    return max(1, produced - kept)
-
-
 def watermark_frames(rate_hz: float, wakeup_hz: float, depth_frames: int) -> int:
     """FIFO watermark (frames) for draining at ``wakeup_hz``: rate/wake-up rounded, clipped to
     1 … depth − 1 (a watermark at the full depth would leave no room for a late read)."""
@@ -332,6 +323,12 @@ class SimulatedRegisterDevice:
 
     def stop_measurement(self) -> None:
         self._t0 = None
+
+    @property
+    def samples_due(self) -> int:
+        """Samples the part has produced since its measurement last (re)started: latched,
+        overrun or dropped by a full FIFO alike (the twin's own count, for tests)."""
+        return self._k
 
     @property
     def measuring(self) -> bool:

@@ -147,8 +147,11 @@ class MPU9250(I2CDevice):
 
     # ---------------------------------------------------------------- FIFO
     def fifo_reset(self) -> None:
-        """Empties the FIFO and (re)starts filling it (USER_CTRL FIFO_RST + FIFO_EN)."""
+        """Empties the FIFO and (re)starts filling it (USER_CTRL FIFO_RST + FIFO_EN), then
+        reads INT_STATUS: an overflow flagged before the reset must not show at the next
+        drain as a new one."""
         self.write_u8(USER_CTRL, USER_FIFO_EN | USER_FIFO_RST)
+        self.read_u8(INT_STATUS)
 
     def fifo_status(self) -> FifoStatus:
         """Whole samples waiting and the overflow flag (INT_STATUS, then FIFO_COUNT: reading
@@ -227,6 +230,7 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
         self.regs[WHO_AM_I] = self.who_am_i
         self.fifo = bytearray()
         self.fifo_overflowed = 0  # samples that did not fit, since power-on (for tests)
+        self.fifo_discarded = 0  # samples a FIFO_RST emptied unread, since power-on (for tests)
         # (sample time s, physics "truth") of each sample in the FIFO, oldest first: what a
         # test or the simulated board compares the driver's rows with (not a register)
         self.fifo_samples: deque[tuple[float, Any]] = deque()
@@ -308,6 +312,7 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
 
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
         if reg == USER_CTRL and value & USER_FIFO_RST:
+            self.fifo_discarded += len(self.fifo) // max(1, self.frame_bytes())
             self.fifo.clear()
             self.fifo_samples.clear()
             self.regs[USER_CTRL] = value & ~USER_FIFO_RST  # self-clearing
