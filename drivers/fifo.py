@@ -130,9 +130,12 @@ class FifoTimeline:
     """
 
     def __init__(self, rate_hz: float, diagnostics: SourceDiagnostics,
-                 events_key: str = "fifo_overflows") -> None:
+                 events_key: str = "fifo_overflows", rows: bool = True) -> None:
         self.clock = SensorClock(rate_hz)
         self.diagnostics = diagnostics
+        #: whether this part's samples are the rows: then its losses are lost rows
+        #: (``diagnostics.lost``); a part held by the pairing rule only counts its events
+        self.rows = rows
         self.events_key = events_key
         diagnostics.extra.setdefault(events_key, 0)
         self.next_index = 0
@@ -161,6 +164,17 @@ class FifoTimeline:
         self.clock.forget_offset()
         return n
 
+    def overran(self, host_ns: int, n: int) -> int:
+        """A stream FIFO found filled at ``host_ns`` holds the newest ``n`` samples, its
+        oldest overwritten: the samples between the last one read and those are lost (the
+        part flags only "filled": 0 when it had just filled). Call before stamping the ``n``;
+        the offset is anchored afresh by them."""
+        self.diagnostics.extra[self.events_key] += 1
+        lost = max(0, self.clock.index_at(host_ns) + 1 - n - self.next_index)
+        self._lose(lost, "fifo_overflow")
+        self.clock.forget_offset()
+        return lost
+
     def missed(self, host_ns: int) -> int:
         """The part was unreachable and has been configured again (its FIFO reset) at
         ``host_ns``: what it produced since the last sample read is lost to bus errors."""
@@ -178,6 +192,8 @@ class FifoTimeline:
 
     def _lose(self, n: int, cause: str) -> None:
         self.next_index += n
+        if not self.rows:
+            return
         setattr(self._pending, cause, getattr(self._pending, cause) + n)
         lost = self.diagnostics.lost
         setattr(lost, cause, getattr(lost, cause) + n)
@@ -190,6 +206,17 @@ class FifoTimeline:
     @property
     def loss_pending(self) -> bool:
         return self._pending.total > 0
+
+
+def hold_pairing(row_t_ns: np.ndarray, other_t_ns: np.ndarray) -> np.ndarray:
+    """**The pairing rule for parts on separate clocks** (GY-80: ADXL345 beside L3G4200D;
+    MinIMU-9 v2: LSM303DLHC beside L3GD20; BMI088: its accelerometer die beside its gyroscope
+    die): the gyroscope's samples are the rows, on the gyroscope's clock; each row takes the
+    other part's newest sample whose own sensor-clock time is at or before the row's time
+    (zero-order hold: never a value from the row's future, never an interpolation between
+    two readings). Returns, per row, the index into ``other_t_ns`` (ascending), or −1 where
+    the other part has no sample yet (such rows are not handed out)."""
+    return np.searchsorted(other_t_ns, row_t_ns, side="right") - 1
 
 
 class SimulatedFifo:

@@ -47,8 +47,9 @@ from ahrs_service.drivers.base import (
 from ahrs_service.drivers.i2c.adxl345 import ADXL345, SimulatedADXL345
 from ahrs_service.drivers.i2c.ak8963 import AK8963, SimulatedAK8963
 from ahrs_service.drivers.i2c.bus import I2CBus, SimulatedI2CBus, SMBusI2C
-from ahrs_service.drivers.fifo import FifoTimeline
-from ahrs_service.drivers.i2c.device import DeviceIdentityError, I2CDevice, I2CDeviceError
+from ahrs_service.drivers.fifo import FifoTimeline, hold_pairing
+from ahrs_service.drivers.i2c.device import DeviceIdentityError, I2CDevice, I2CDeviceError, watermark_frames
+from ahrs_service.drivers.i2c.st_fifo import FIFO_FRAMES as ST_FIFO_FRAMES
 from ahrs_service.drivers.i2c.hmc5883l import HMC5883L, SimulatedHMC5883L
 from ahrs_service.drivers.i2c.l3g4200d import L3G4200D, SimulatedL3G4200D
 from ahrs_service.drivers.i2c.l3gd20 import L3GD20, SimulatedL3GD20
@@ -215,107 +216,52 @@ class I2CBoard(ImuSource):
         raise NotImplementedError
 
 
-class GY80(I2CBoard):
-    """GY-80: L3G4200D gyro (0x69), ADXL345 accelerometer (0x53), HMC5883L compass (0x1E).
+class I2CFifoBoard(I2CBoard):
+    """Base of the boards read through their parts' FIFOs (on by default; ``fifo = false``
+    polls one sample per tick through :meth:`I2CBoard.read`).
 
-    (Its BMP085 barometer at 0x77 is not used.) Ranges/rates: see each driver.
+    The FIFOs are drained every ``1 / fifo_read_hz`` s of the bus clock — the wake-up rate:
+    these boards wire no watermark line, so it is the host's schedule, and it must stay
+    above the part's rate / FIFO depth to lose nothing. Between drains ``read_block`` makes
+    no bus transfer. ``read`` hands out the rows of the last drained block one by one.
+    Subclasses implement :meth:`_drain` (one drain → a block), :meth:`_new_timelines` (the
+    parts' FIFOs were just reset by ``configure``) and name their FIFO parts in ``FIFO_ROLES``.
     """
 
-    NAME = "gy80"
+    #: the roles whose FIFO gives the rows (a loss of one of them is a loss of rows)
+    FIFO_ROLES: frozenset[str] = frozenset({"gyro"})
 
-    def __init__(self, bus: I2CBus, *, gyro_address: int = 0x69, acc_address: int = 0x53,
-                 mag_address: int = 0x1E, gyro_range_dps: int = 2000, gyro_rate_hz: float = 800,
-                 acc_range_g: int = 8, acc_rate_hz: float = 800, mag_range_ga: float = 1.3,
-                 mag_rate_hz: float = 75, mag_averaging: int = 8, **kw: Any) -> None:
-        super().__init__(bus, **kw)
-        self.parts = {
-            "gyro": L3G4200D(bus, gyro_address, range_dps=gyro_range_dps, rate_hz=gyro_rate_hz,
-                             **self._kw()),
-            "acc": ADXL345(bus, acc_address, range_g=acc_range_g, rate_hz=acc_rate_hz, **self._kw()),
-            "mag": HMC5883L(bus, mag_address, range_ga=mag_range_ga, rate_hz=mag_rate_hz,
-                            averaging=mag_averaging, **self._kw()),
-        }
-
-    @classmethod
-    def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, *, gyro_address: int = 0x69,
-                         acc_address: int = 0x53, mag_address: int = 0x1E, **_: Any) -> None:
-        bus.attach(SimulatedL3G4200D(source, gyro_address))
-        bus.attach(SimulatedADXL345(source, acc_address))
-        bus.attach(SimulatedHMC5883L(source, mag_address))
-
-
-class MinIMU9v2(I2CBoard):
-    """Pololu MinIMU-9 v2: L3GD20 gyro (0x6B), LSM303DLHC accelerometer (0x19) and
-    magnetometer (0x1E)."""
-
-    NAME = "minimu9v2"
-
-    def __init__(self, bus: I2CBus, *, gyro_address: int = 0x6B, acc_address: int = 0x19,
-                 mag_address: int = 0x1E, gyro_range_dps: int = 2000, gyro_rate_hz: float = 760,
-                 acc_range_g: int = 8, acc_rate_hz: float = 1344, mag_range_ga: float = 1.3,
-                 mag_rate_hz: float = 220, **kw: Any) -> None:
-        super().__init__(bus, **kw)
-        self.parts = {
-            "gyro": L3GD20(bus, gyro_address, range_dps=gyro_range_dps, rate_hz=gyro_rate_hz,
-                           **self._kw()),
-            "acc": LSM303DLHCAcc(bus, acc_address, range_g=acc_range_g, rate_hz=acc_rate_hz,
-                                 **self._kw()),
-            "mag": LSM303DLHCMag(bus, mag_address, range_ga=mag_range_ga, rate_hz=mag_rate_hz,
-                                 **self._kw()),
-        }
-
-    @classmethod
-    def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, *, gyro_address: int = 0x6B,
-                         acc_address: int = 0x19, mag_address: int = 0x1E, **_: Any) -> None:
-        bus.attach(SimulatedL3GD20(source, gyro_address))
-        bus.attach(SimulatedLSM303DLHCAcc(source, acc_address))
-        bus.attach(SimulatedLSM303DLHCMag(source, mag_address))
-
-
-class MPU9250Board(I2CBoard):
-    """MPU-9250 (0x68) with its AK8963 magnetometer (0x0C, reached in I2C bypass mode).
-
-    The magnetometer is reported in the MPU-9250's accelerometer/gyro axes. ``temperature_c``
-    is the MPU-9250 die temperature. The AK8963 depends on the MPU-9250: it is lost with it
-    and reconfigured after it (the MPU's reset turns bypass off).
-    """
-
-    NAME = "mpu9250"
-    DEPENDS = {"mag": "gyro"}
-
-    def __init__(self, bus: I2CBus, *, address: int = 0x68, mag_address: int = 0x0C,
-                 gyro_range_dps: int = 2000, acc_range_g: int = 8, rate_hz: float = 1000,
-                 mag_rate_hz: float = 100, fifo: bool = True, fifo_read_hz: float = 100.0,
+    def __init__(self, bus: I2CBus, *, fifo: bool = True, fifo_read_hz: float = 100.0,
                  **kw: Any) -> None:
         super().__init__(bus, **kw)
-        if not fifo_read_hz > 0:
-            raise ValueError(f"mpu9250 fifo_read_hz must be > 0 Hz, got {fifo_read_hz}")
-        self.mpu = MPU9250(bus, address, gyro_range_dps=gyro_range_dps, acc_range_g=acc_range_g,
-                           rate_hz=rate_hz, fifo=fifo, **self._kw())
-        self.parts = {"gyro": self.mpu,
-                      "mag": AK8963(bus, mag_address, rate_hz=mag_rate_hz, **self._kw())}
+        if not (isinstance(fifo_read_hz, (int, float)) and fifo_read_hz > 0):
+            raise ValueError(f"{self.NAME} fifo_read_hz must be > 0 Hz, got {fifo_read_hz!r}")
         self.fifo = bool(fifo)
         self.may_have_backlog = self.fifo
-        #: the FIFO is drained every 1 / fifo_read_hz s (bus clock): the wake-up rate; with the
-        #: defaults 10 samples a drain. The MPU-9250 has no watermark interrupt, so this is the
-        #: host's schedule; it must stay above rate / 42 Hz (the FIFO's depth) to lose nothing.
+        self.fifo_read_hz = float(fifo_read_hz)
         self.fifo_read_period_ns = int(round(1e9 / fifo_read_hz))
-        self._next_drain_ns: int | None = None
-        self.timeline: FifoTimeline | None = None  # the FIFO's samples on the part's clock
+        self._next_drain_ns = 0
         self._queue: deque[ImuSample] = deque()  # rows of drained blocks for read()
+        self._sim_dropped_base = 0
 
-    # ------------------------------------------------------------------ FIFO path
     def open(self) -> None:
         super().open()
-        self._restart_fifo_schedule()
-        self._sim_dropped_base = self._sim_dropped()
+        if self.fifo:
+            self._restart_fifo_schedule()
+            self._sim_dropped_base = self._sim_dropped()
 
     def _restart_fifo_schedule(self) -> None:
-        """configure() has just reset the FIFO: a new timeline (the part restarted its
-        sample grid with H_RESET), the first drain one read period on."""
+        """configure() has just reset the FIFOs: new timelines (the parts restarted their
+        sample grids), the first drain one read period on."""
         self._next_drain_ns = self.bus.now_ns() + self.fifo_read_period_ns
-        self.timeline = FifoTimeline(self.mpu.rate_hz, self.diagnostics)
+        self._new_timelines()
         self._queue.clear()
+
+    def _new_timelines(self) -> None:
+        raise NotImplementedError
+
+    def _timelines(self) -> list[FifoTimeline]:
+        raise NotImplementedError
 
     @property
     def pending(self) -> int:
@@ -328,47 +274,314 @@ class MPU9250Board(I2CBoard):
         if not self.fifo:
             return super().read()
         if not self._queue:
-            block = self.read_block()
-            self._queue.extend(block.samples())
+            self._queue.extend(self.read_block().samples())
         return self._queue.popleft() if self._queue else None
 
     def read_block(self, max_samples: int = 64) -> SampleBlock:
-        """Polling: the base's block of ``read``. FIFO: every whole sample in the FIFO, once
-        per ``1 / fifo_read_hz`` (an empty block in between, no bus transfer); at most the
-        FIFO's depth (42), whatever ``max_samples`` says.
-
-        A drain reads INT_STATUS, FIFO_COUNT, the samples, and resets the FIFO when it
-        overflowed — flagged, or full (a stop between the status and the count read fills
-        it before the flag is read) — or when it could have filled while the samples were
-        read (the host stopped mid-drain: more periods went by than the FIFO had room for).
-        Times come from the sensor clock (:class:`~ahrs_service.drivers.fifo.FifoTimeline`):
-        the samples' indices on the part's own clock, tracked against the host time of the
-        count read. The samples a full FIFO kept (FIFO_MODE 1: the oldest, contiguous with
-        the last ones read) are timed on from the clock's fit; the rest are counted in
-        ``lost.fifo_overflow`` as what the clock says the part produced by the reset minus
-        what was read. A failed read marks the part lost; the samples it produced until it
-        is back are counted in ``lost.bus_error``. A FIFO that overflowed before the first
-        read after ``open`` is emptied without counting: those samples predate the consumer.
-        """
+        """Polling: the base's block of ``read``. FIFO: every whole sample in the FIFOs, once
+        per ``1 / fifo_read_hz`` (an empty block in between); at most a FIFO's depth,
+        whatever ``max_samples`` says. A part lost on the bus stops the rows; when it is
+        back, what the row part produced meanwhile is counted in ``lost.bus_error``."""
         if not self.fifo:
             return super().read_block(max_samples)
         if not self._opened:
             raise RuntimeError(f"{self.NAME} on {self.bus.name}: read_block() before open()")
         if self.lost:
-            was_lost = "gyro" in self.lost
+            was_lost = bool(self.lost & self.FIFO_ROLES)
             self._recover()
-            if "gyro" in self.lost:
+            if self.lost & self.FIFO_ROLES:
                 return SampleBlock.empty()
-            if was_lost:  # back: configure() reset the FIFO; count what it produced meanwhile
-                old = self.timeline
-                old.missed(self.bus.now_ns())
-                self._restart_fifo_schedule()
-                self.timeline.carry_loss(old)
+            if was_lost:  # back: its FIFO was reset; count what the row part produced meanwhile
+                self._back()
                 return SampleBlock.empty()
         now = self.bus.now_ns()
         if now < self._next_drain_ns:
             return SampleBlock.empty()
         self._next_drain_ns = max(self._next_drain_ns + self.fifo_read_period_ns, now)
+        block = self._drain()
+        if self.bus.simulated:
+            # the twin's own count of the samples it dropped or had emptied unread since the
+            # first read, beside the driver's estimate (what the stall tests compare)
+            self.diagnostics.extra["sim_fifo_dropped"] = self._sim_dropped() - self._sim_dropped_base
+        return block
+
+    def _back(self) -> None:
+        """A FIFO part is configured again: the rows' part counts its outage, then every
+        FIFO starts afresh (a part that was not lost is reset too)."""
+        old = self._timelines()[0]
+        for role in self.FIFO_ROLES:
+            self.parts[role].fifo_reset()  # type: ignore[attr-defined]
+        old.missed(self.bus.now_ns())
+        self._restart_fifo_schedule()
+        self._timelines()[0].carry_loss(old)
+
+    def _drain(self) -> SampleBlock:
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ helpers
+    def _sim_dropped(self) -> int:
+        """The twins' count of the row part's dropped samples (0 on hardware)."""
+        if not self.bus.simulated:
+            return 0
+        twin = self.bus.device(self.parts["gyro"].address)
+        return twin.fifo_overflowed + twin.fifo_discarded  # type: ignore[attr-defined]
+
+    @staticmethod
+    def _truth_rows(truths: list[Any], n: int) -> np.ndarray | None:
+        """(n, 4) true attitudes from the twin's per-sample truths, None when any is missing."""
+        qs = []
+        for truth in truths:
+            q = None if truth is None else (truth["q"] if isinstance(truth, dict) else getattr(truth, "q", None))
+            if q is None:
+                return None
+            qs.append(q)
+        return np.array(qs, dtype=float) if len(qs) == n and n else None
+
+    def _attach_mag(self, t_ns: np.ndarray, mag: np.ndarray, flags: np.ndarray,
+                    raw: dict[str, np.ndarray]) -> None:
+        """One magnetometer read per drain (magnetometers have no FIFO): its reading goes
+        with the newest row."""
+        n = len(t_ns)
+        if not n:
+            return
+        m, m_si, mflags = self._read_mag(int(t_ns[-1]))
+        if m is not None:
+            mag[-1] = m_si
+            flags[-1] |= mflags
+            mag_raw = np.zeros((n, 3), np.int64)
+            mag_raw[-1] = m
+            raw["mag"] = mag_raw
+
+
+class _PairedFifoBoard(I2CFifoBoard):
+    """A gyroscope and an accelerometer on separate clocks, each with a 32-level stream FIFO
+    (GY-80, MinIMU-9 v2), and a magnetometer without.
+
+    A drain reads the accelerometer's FIFO, then the gyroscope's (the rows, on its clock);
+    each part's samples are timed on its own sensor clock
+    (:class:`~ahrs_service.drivers.fifo.FifoTimeline`), and each row takes the accelerometer
+    sample the pairing rule picks (:func:`~ahrs_service.drivers.fifo.hold_pairing`: the newest
+    at or before the row's time). Loss: a FIFO found filled (OVRN / Overrun) holds the newest
+    32 samples; what the part produced before them since the last read is counted in
+    ``lost.fifo_overflow`` (gyroscope) from the sensor clock, the gap shows as one long dt.
+    A drain that took longer than the FIFO had room for (the host stopped inside it) cannot
+    tell which samples it read: the FIFO is reset and everything since the last read is
+    counted. The accelerometer's overflows cost no rows (the held value bridges them) and are
+    counted in ``diagnostics.extra["acc_fifo_overflows"]``.
+
+    ``fifo_read_hz`` defaults to 200 Hz (4 samples a drain at 800 Hz): the magnetometer has
+    no FIFO and is read once a drain, so the drain rate bounds how many of its readings
+    arrive (75 Hz HMC5883L, 220 Hz LSM303DLHC).
+    """
+
+    FIFO_ROLES = frozenset({"gyro", "acc"})
+
+    def _fifo_kw(self, fifo: bool, rate_hz: float, fifo_read_hz: float) -> dict[str, Any]:
+        """A part's FIFO options: the watermark for draining at ``fifo_read_hz``."""
+        return {"fifo": fifo, "watermark": watermark_frames(rate_hz, fifo_read_hz, ST_FIFO_FRAMES)}
+
+    def _new_timelines(self) -> None:
+        gyro, acc = self.parts["gyro"], self.parts["acc"]
+        self.timeline = FifoTimeline(gyro.rate_hz, self.diagnostics)  # type: ignore[attr-defined]
+        self.acc_timeline = FifoTimeline(acc.rate_hz, self.diagnostics,  # type: ignore[attr-defined]
+                                         events_key="acc_fifo_overflows", rows=False)
+        self._acc_t = np.empty(0, np.int64)  # the accelerometer samples a row may still take
+        self._acc_c = np.empty((0, 3), np.int64)
+
+    def _timelines(self) -> list[FifoTimeline]:
+        return [self.timeline, self.acc_timeline]
+
+    def _drain_part(self, role: str, timeline: FifoTimeline
+                    ) -> tuple[np.ndarray, np.ndarray, list[Any]] | None:
+        """One part's FIFO: (counts (n, 3), times (n,), truths) or None when the part failed."""
+        part = self.parts[role]
+        depth = part.fifo_layout.depth_frames  # type: ignore[attr-defined]
+        rate = part.rate_hz  # type: ignore[attr-defined]
+        try:
+            t_start = self.bus.now_ns()
+            status = part.fifo_status()  # type: ignore[attr-defined]
+            t_read = self.bus.now_ns()
+            n = status.level
+            counts = part.read_fifo(n) if n else np.empty((0, 3), np.int64)  # type: ignore[attr-defined]
+            t_done = self.bus.now_ns()
+            truths = self._popped_truth(role)
+            # the FIFO had room for depth − n more samples from the status read on: a host
+            # stopped longer than that inside the drain read samples it cannot place
+            stopped = not status.overflow and (t_done - t_start) * 1e-9 * rate >= depth - n
+            if stopped:
+                part.fifo_reset()  # type: ignore[attr-defined]
+                t_reset = self.bus.now_ns()
+        except I2CDeviceError as exc:
+            self._mark_lost(role, exc)
+            return None
+        if not timeline.anchored and (status.overflow or stopped):
+            # filled before the first read after open(): stale samples nobody asked for yet
+            if stopped:
+                return np.empty((0, 3), np.int64), np.empty(0, np.int64), []
+            return counts, timeline.stamp(t_read, n), truths
+        if stopped:
+            timeline.overflowed(t_reset, flagged=False)
+            return np.empty((0, 3), np.int64), np.empty(0, np.int64), []
+        if status.overflow:
+            # stream mode: the newest samples, the oldest overwritten: the gap comes first
+            timeline.overran(t_read, n)
+        return counts, (timeline.stamp(t_read, n) if n else np.empty(0, np.int64)), truths
+
+    def _popped_truth(self, role: str) -> list[Any]:
+        if not self.bus.simulated:
+            return []
+        return self.bus.device(self.parts[role].address).take_popped_truth()  # type: ignore[attr-defined]
+
+    def _drain(self) -> SampleBlock:
+        # the accelerometer first: should it fail, the gyroscope's FIFO is left as it is and
+        # what it holds is counted when the accelerometer is back (no row without its value)
+        got_acc = self._drain_part("acc", self.acc_timeline)
+        if got_acc is None:
+            return SampleBlock.empty()
+        a, ta, _ = got_acc
+        if len(ta):
+            # the newest accelerometer sample stays: the next drain's first rows may take it
+            self._acc_t = np.concatenate([self._acc_t[-1:], ta])
+            self._acc_c = np.concatenate([self._acc_c[-1:], a])
+        got = self._drain_part("gyro", self.timeline)
+        if got is None:
+            return SampleBlock.empty()
+        g, t, truths = got
+        idx = hold_pairing(t, self._acc_t)
+        ok = idx >= 0  # rows before the accelerometer's first sample after start: not handed out
+        g, t, idx = g[ok], t[ok], idx[ok]
+        truth = self._truth_rows([q for q, keep in zip(truths, ok) if keep], len(t))
+        lost = self.timeline.take_loss()
+        gyro, acc = self.parts["gyro"], self.parts["acc"]
+        a = self._acc_c[idx]
+        n = len(t)
+        gsat = (np.abs(g) >= gyro.full_scale).any(axis=1)
+        asat = (np.abs(a) >= acc.full_scale).any(axis=1)
+        flags = np.where(gsat, GYR_SATURATED, GYR_VALID) | np.where(asat, ACC_SATURATED, ACC_VALID)
+        d = self.diagnostics
+        d.saturated += int(gsat.sum() + asat.sum())
+        d.samples += n
+        mag = np.full((n, 3), np.nan)
+        raw = {"gyr": g, "acc": a}
+        self._attach_mag(t, mag, flags, raw)
+        return SampleBlock(t.astype(np.int64), g * gyro.scale, a * acc.scale, mag,
+                           flags.astype(np.int64), np.full(n, np.nan), raw, truth, lost)
+
+
+class GY80(_PairedFifoBoard):
+    """GY-80: L3G4200D gyro (0x69), ADXL345 accelerometer (0x53), HMC5883L compass (0x1E).
+
+    (Its BMP085 barometer at 0x77 is not used.) Ranges/rates: see each driver. FIFO: both
+    inertial parts' 32-level FIFOs in stream mode (40 ms at the default 800 Hz), drained at
+    ``fifo_read_hz``; rows on the gyroscope's clock (:class:`_PairedFifoBoard`).
+    """
+
+    NAME = "gy80"
+
+    def __init__(self, bus: I2CBus, *, gyro_address: int = 0x69, acc_address: int = 0x53,
+                 mag_address: int = 0x1E, gyro_range_dps: int = 2000, gyro_rate_hz: float = 800,
+                 acc_range_g: int = 8, acc_rate_hz: float = 800, mag_range_ga: float = 1.3,
+                 mag_rate_hz: float = 75, mag_averaging: int = 8, fifo: bool = True,
+                 fifo_read_hz: float = 200.0, **kw: Any) -> None:
+        super().__init__(bus, fifo=fifo, fifo_read_hz=fifo_read_hz, **kw)
+        self.parts = {
+            "gyro": L3G4200D(bus, gyro_address, range_dps=gyro_range_dps, rate_hz=gyro_rate_hz,
+                             **self._fifo_kw(fifo, gyro_rate_hz, fifo_read_hz), **self._kw()),
+            "acc": ADXL345(bus, acc_address, range_g=acc_range_g, rate_hz=acc_rate_hz,
+                           **self._fifo_kw(fifo, acc_rate_hz, fifo_read_hz), **self._kw()),
+            "mag": HMC5883L(bus, mag_address, range_ga=mag_range_ga, rate_hz=mag_rate_hz,
+                            averaging=mag_averaging, **self._kw()),
+        }
+
+    @classmethod
+    def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, *, gyro_address: int = 0x69,
+                         acc_address: int = 0x53, mag_address: int = 0x1E, **_: Any) -> None:
+        bus.attach(SimulatedL3G4200D(source, gyro_address))
+        bus.attach(SimulatedADXL345(source, acc_address))
+        bus.attach(SimulatedHMC5883L(source, mag_address))
+
+
+class MinIMU9v2(_PairedFifoBoard):
+    """Pololu MinIMU-9 v2: L3GD20 gyro (0x6B), LSM303DLHC accelerometer (0x19) and
+    magnetometer (0x1E). FIFO: the gyroscope's and the accelerometer's 32-level FIFOs in
+    stream mode (42 ms at 760 Hz), drained at ``fifo_read_hz``; rows on the gyroscope's clock
+    (:class:`_PairedFifoBoard`)."""
+
+    NAME = "minimu9v2"
+
+    def __init__(self, bus: I2CBus, *, gyro_address: int = 0x6B, acc_address: int = 0x19,
+                 mag_address: int = 0x1E, gyro_range_dps: int = 2000, gyro_rate_hz: float = 760,
+                 acc_range_g: int = 8, acc_rate_hz: float = 1344, mag_range_ga: float = 1.3,
+                 mag_rate_hz: float = 220, fifo: bool = True, fifo_read_hz: float = 200.0,
+                 **kw: Any) -> None:
+        super().__init__(bus, fifo=fifo, fifo_read_hz=fifo_read_hz, **kw)
+        self.parts = {
+            "gyro": L3GD20(bus, gyro_address, range_dps=gyro_range_dps, rate_hz=gyro_rate_hz,
+                           **self._fifo_kw(fifo, gyro_rate_hz, fifo_read_hz), **self._kw()),
+            "acc": LSM303DLHCAcc(bus, acc_address, range_g=acc_range_g, rate_hz=acc_rate_hz,
+                                 **self._fifo_kw(fifo, acc_rate_hz, fifo_read_hz), **self._kw()),
+            "mag": LSM303DLHCMag(bus, mag_address, range_ga=mag_range_ga, rate_hz=mag_rate_hz,
+                                 **self._kw()),
+        }
+
+    @classmethod
+    def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, *, gyro_address: int = 0x6B,
+                         acc_address: int = 0x19, mag_address: int = 0x1E, **_: Any) -> None:
+        bus.attach(SimulatedL3GD20(source, gyro_address))
+        bus.attach(SimulatedLSM303DLHCAcc(source, acc_address))
+        bus.attach(SimulatedLSM303DLHCMag(source, mag_address))
+
+
+class MPU9250Board(I2CFifoBoard):
+    """MPU-9250 (0x68) with its AK8963 magnetometer (0x0C, reached in I2C bypass mode).
+
+    The magnetometer is reported in the MPU-9250's accelerometer/gyro axes. ``temperature_c``
+    is the MPU-9250 die temperature. The AK8963 depends on the MPU-9250: it is lost with it
+    and reconfigured after it (the MPU's reset turns bypass off). FIFO: 512 bytes, 42
+    samples (42 ms at 1 kHz), drained at ``fifo_read_hz`` (default 100: 10 samples a drain).
+    """
+
+    NAME = "mpu9250"
+    DEPENDS = {"mag": "gyro"}
+
+    def __init__(self, bus: I2CBus, *, address: int = 0x68, mag_address: int = 0x0C,
+                 gyro_range_dps: int = 2000, acc_range_g: int = 8, rate_hz: float = 1000,
+                 mag_rate_hz: float = 100, fifo: bool = True, fifo_read_hz: float = 100.0,
+                 **kw: Any) -> None:
+        super().__init__(bus, fifo=fifo, fifo_read_hz=fifo_read_hz, **kw)
+        self.mpu = MPU9250(bus, address, gyro_range_dps=gyro_range_dps, acc_range_g=acc_range_g,
+                           rate_hz=rate_hz, fifo=fifo, **self._kw())
+        self.parts = {"gyro": self.mpu,
+                      "mag": AK8963(bus, mag_address, rate_hz=mag_rate_hz, **self._kw())}
+        self.timeline: FifoTimeline | None = None  # the FIFO's samples on the part's clock
+
+    def _new_timelines(self) -> None:
+        self.timeline = FifoTimeline(self.mpu.rate_hz, self.diagnostics)
+
+    def _timelines(self) -> list[FifoTimeline]:
+        return [self.timeline]
+
+    def _back(self) -> None:
+        # configure() (H_RESET) has reset the FIFO and restarted the part's sample grid
+        old = self.timeline
+        old.missed(self.bus.now_ns())
+        self._restart_fifo_schedule()
+        self.timeline.carry_loss(old)
+
+    def _drain(self) -> SampleBlock:
+        """INT_STATUS, FIFO_COUNT, the samples, TEMP_OUT, and a FIFO reset when it overflowed —
+        flagged, or full at the count read (a stop between the status and the count read
+        fills it before the flag is read), or when the drain took longer than the FIFO had
+        room for (the host stopped inside it).
+
+        Times come from the sensor clock (:class:`~ahrs_service.drivers.fifo.FifoTimeline`):
+        the samples' indices on the part's own clock, tracked against the host time of the
+        count read. The samples a full FIFO kept (FIFO_MODE 1: the oldest, contiguous with the
+        last ones read) are timed from the clock's fit; the rest are counted in
+        ``lost.fifo_overflow`` as what the clock says the part produced by the reset minus
+        what was read. A FIFO that overflowed before the first read after ``open`` is emptied
+        without counting: those samples predate the consumer.
+        """
         mpu = self.mpu
         depth = MPU9250_FIFO.depth_frames
         try:
@@ -399,10 +612,6 @@ class MPU9250Board(I2CBoard):
             self._restart_fifo_schedule()
             self._sim_dropped_base = self._sim_dropped()
             return SampleBlock.empty()
-        if self.bus.simulated:
-            # the twin's own count of the samples it dropped or had emptied unread since the
-            # first read, beside the driver's estimate (what the stall tests compare)
-            self.diagnostics.extra["sim_fifo_dropped"] = self._sim_dropped() - self._sim_dropped_base
         lost = timeline.take_loss()
         t_ns = timeline.stamp(t_read, n, full=overflow) if n else np.empty(0, np.int64)
         if overflow:  # counted when found; the next block carries it before its first row
@@ -423,37 +632,16 @@ class MPU9250Board(I2CBoard):
         d.samples += n
         mag = np.full((n, 3), np.nan)
         raw = {"gyr": gyr_c, "acc": acc_c, "temp": np.full(n, temp, np.int64)}
-        if n:
-            # one magnetometer read per drain: the AK8963 (100 Hz) has no FIFO; its reading
-            # goes with the newest row
-            m, m_si, mflags = self._read_mag(int(t_ns[-1]))
-            if m is not None:
-                mag[-1] = m_si
-                flags[-1] |= mflags
-                mag_raw = np.zeros((n, 3), np.int64)
-                mag_raw[-1] = m
-                raw["mag"] = mag_raw
+        self._attach_mag(t_ns, mag, flags, raw)
         temp_c = np.full(n, mpu.temperature_c(temp))
         return SampleBlock(t_ns.astype(np.int64), gyr, acc, mag, flags.astype(np.int64), temp_c,
                            raw, truth, lost)
-
-    def _sim_dropped(self) -> int:
-        if not self.bus.simulated:
-            return 0
-        twin = self.bus.device(self.mpu.address)
-        return twin.fifo_overflowed + twin.fifo_discarded  # type: ignore[attr-defined]
 
     def _fifo_truth(self, n: int) -> np.ndarray | None:
         """True attitudes of the ``n`` samples just read (simulated bus only: the twin keeps
         each FIFO sample's truth beside it)."""
         frames = self.bus.device(self.mpu.address).pop_truth(n)  # type: ignore[attr-defined]
-        qs = []
-        for _, truth in frames:
-            q = None if truth is None else (truth["q"] if isinstance(truth, dict) else getattr(truth, "q", None))
-            if q is None:
-                return None
-            qs.append(q)
-        return np.array(qs, dtype=float) if len(qs) == n else None
+        return self._truth_rows([truth for _, truth in frames], n)
 
 
     def _read_inertial(self) -> _Inertial | None:

@@ -256,6 +256,11 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
         en = self.regs[FIFO_EN_REG]
         return 2 * bin(en & 0x70).count("1") + (6 if en & 0x08 else 0) + (2 if en & 0x80 else 0)
 
+    @property
+    def fifo_frames(self) -> int:
+        """Whole samples in the FIFO now (for tests)."""
+        return len(self.fifo) // max(1, self.frame_bytes())
+
     def fifo_room(self) -> int | None:
         if not self.fifo_enabled():
             return None

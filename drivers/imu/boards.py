@@ -33,7 +33,7 @@ from ahrs_service.drivers.base import (
     LossCounts,
     SampleBlock,
 )
-from ahrs_service.drivers.fifo import SensorClock
+from ahrs_service.drivers.fifo import SensorClock, hold_pairing
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, watermark_frames
 from ahrs_service.drivers.imu import icm42688p
 from ahrs_service.drivers.transport import RegisterTransport, check_bus_rate
@@ -244,10 +244,11 @@ class BMI088Board(FifoBoard):
     """Bosch BMI088 on SPI: the gyroscope die (``transport``, drives the rows) and the
     accelerometer die (``acc_transport``, one dummy byte per read), each with its FIFO.
 
-    **Pairing rule** (two dies, two oscillators): every gyroscope sample is one row; its
-    accelerometer value is the newest accelerometer sample whose own sensor-clock time is at
-    or before the row's time (zero-order hold, never a sample from the row's future). Rows
-    before the first accelerometer sample after start are not emitted. The accelerometer's
+    **Pairing rule** (two dies, two oscillators; :func:`~ahrs_service.drivers.fifo.hold_pairing`,
+    shared with the I2C boards): every gyroscope sample is one row; its accelerometer value
+    is the newest accelerometer sample whose own sensor-clock time is at or before the row's
+    time (zero-order hold, never a sample from the row's future). Rows before the first
+    accelerometer sample after start are not emitted. The accelerometer's
     overflows are counted in ``diagnostics.extra["acc_fifo_overflows"]`` (they cost no rows:
     the held value bridges them) and do not count as lost samples.
 
@@ -335,8 +336,7 @@ class BMI088Board(FifoBoard):
             self.diagnostics.lost.fifo_overflow += n_lost
             self._next_index += n_lost
             self._lost_pending.fifo_overflow += n_lost
-        # pairing: the newest accelerometer sample at or before each gyro row
-        idx = np.searchsorted(self._acc_t, t, side="right") - 1
+        idx = hold_pairing(t, self._acc_t)  # the rule of drivers/fifo.py
         ok = idx >= 0
         truth = None
         if self.transport.simulated:
