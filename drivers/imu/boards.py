@@ -51,6 +51,8 @@ class FifoBoard(ImuSource):
     wakeup_rate_hz = 1000.0
     #: whether the part raises a FIFO watermark interrupt a data-ready line can wait for
     HAS_WATERMARK_LINE = True
+    #: samples the part's FIFO holds (a burst reads at most this many)
+    FIFO_FRAMES = 128
 
     def __init__(self, transport: RegisterTransport, *, retries: int = 2,
                  reinit_period_s: float = 0.05, own_bus: Any = None) -> None:
@@ -64,6 +66,7 @@ class FifoBoard(ImuSource):
         self._last_attempt_ns = 0
         self._opened = False
         self._rows: deque[ImuSample] = deque()
+        self._drained: deque[SampleBlock] = deque()  # rows drained, not handed out yet
         self.clock: SensorClock | None = None
         self._next_index = 0
         self._lost_pending = LossCounts()
@@ -119,18 +122,47 @@ class FifoBoard(ImuSource):
         return True
 
     # ------------------------------------------------------------------ samples
+    #: rows the host may hold drained but not handed out, in FIFO depths: beyond that (a
+    #: consumer slower than the part) the FIFO is left to fill and its overflow is counted
+    HOST_QUEUE_DEPTHS = 4
+
     def read_block(self, max_samples: int = 128) -> SampleBlock:
-        """The rows read from the FIFO now, at most ``max_samples`` (empty: nothing new, or
-        the part is lost); a FIFO holding more keeps the rest for the next call."""
+        """At most ``max_samples`` rows, oldest first (empty: nothing new, or the part is lost).
+
+        Every call empties the part's FIFO (all whole packets, in as few transfers as the
+        transport carries) and keeps the rows beyond ``max_samples`` on the host for the next
+        calls: a consumer that takes a few rows a tick after a stall must not leave the FIFO
+        near full while it catches up (at 1 kHz an 80 ms stop on a busy host left the 102-
+        sample FIFO 2–3 samples short of full, and taking 16 rows a tick filled it). A block
+        ends at a loss: the rows after a gap come in the next call."""
         if not self._opened:
             raise RuntimeError(f"{self.NAME} on {self.transport.where}: read before open()")
-        if self.lost and not self._recover():
-            return SampleBlock.empty()
-        try:
-            return self._burst(max_samples)
-        except OSError as exc:
-            self._mark_lost(exc)
-            return SampleBlock.empty()
+        if (not self.lost or self._recover()) and \
+                self.pending < self.HOST_QUEUE_DEPTHS * self.FIFO_FRAMES:
+            try:
+                block = self._burst(self.FIFO_FRAMES)
+            except OSError as exc:
+                self._mark_lost(exc)
+            else:
+                if len(block) or block.lost.total:
+                    self._drained.append(block)
+        # the queued rows, oldest first, up to max_samples and up to the next loss
+        taken: list[SampleBlock] = []
+        room = max_samples
+        while self._drained and room > 0 and (not taken or not self._drained[0].lost.total):
+            first = self._drained[0]
+            if len(first) <= room:
+                taken.append(self._drained.popleft())
+            else:
+                head, self._drained[0] = first.split(room)
+                taken.append(head)
+            room -= len(taken[-1])
+        return SampleBlock.concat(taken) if taken else SampleBlock.empty()
+
+    @property
+    def pending(self) -> int:
+        """Rows drained from the FIFO that have not been handed out yet."""
+        return sum(len(b) for b in self._drained) + len(self._rows)
 
     def read(self) -> ImuSample | None:
         """The oldest row not yet handed out (a burst is read when none is left)."""
@@ -165,6 +197,7 @@ class ICM42688PBoard(FifoBoard):
 
     NAME = "icm42688p"
     PART = icm42688p.ICM42688P
+    FIFO_FRAMES = icm42688p.FIFO_BYTES // icm42688p.PACKET
 
     def __init__(self, transport: RegisterTransport, *, odr_hz: float = 1000,
                  fifo_read_hz: float = 1000, watermark: int | None = None, **kw: Any) -> None:
@@ -257,6 +290,7 @@ class BMI088Board(FifoBoard):
     """
 
     NAME = "bmi088"
+    FIFO_FRAMES = 100  # the gyroscope die's FIFO (bmi088.GYRO_FIFO_FRAMES)
 
     def __init__(self, transport: RegisterTransport, *, acc_transport: RegisterTransport,
                  odr_hz: float = 2000, acc_odr_hz: float = 1600, gyro_range_dps: int = 2000,
@@ -365,6 +399,7 @@ class ICM20948Board(FifoBoard):
     """
 
     NAME = "icm20948"
+    FIFO_FRAMES = 512 // 21 + 4  # icm20948.FIFO_BYTES // PACKET, and the count's slack (FIFO_BYTES + 64)
     has_mag = True
     HAS_WATERMARK_LINE = False
 
