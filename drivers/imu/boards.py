@@ -33,7 +33,7 @@ from ahrs_service.drivers.base import (
     LossCounts,
     SampleBlock,
 )
-from ahrs_service.drivers.fifo import SensorClock, hold_pairing
+from ahrs_service.drivers.fifo import FifoTimeline, SensorClock, hold_pairing
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, watermark_frames
 from ahrs_service.drivers.imu import icm42688p
 from ahrs_service.drivers.transport import RegisterTransport, check_bus_rate
@@ -67,11 +67,15 @@ class FifoBoard(ImuSource):
         self._opened = False
         self._rows: deque[ImuSample] = deque()
         self._drained: deque[SampleBlock] = deque()  # rows drained, not handed out yet
-        self.clock: SensorClock | None = None
-        self._next_index = 0
-        self._lost_pending = LossCounts()
+        #: the part's samples on its own clock: indices, times, losses (drivers/fifo.py)
+        self.timeline: FifoTimeline | None = None
         self._overflow_pending = False
         self.diagnostics.extra["fifo_overflows"] = 0
+
+    @property
+    def clock(self) -> SensorClock | None:
+        """The row part's sensor clock (its tracked rate: ``clock.rate_hz``)."""
+        return None if self.timeline is None else self.timeline.clock
 
     def _kw(self) -> dict[str, Any]:
         return {"diagnostics": self.diagnostics, "retries": self.retries}
@@ -110,12 +114,7 @@ class FifoBoard(ImuSource):
             self.diagnostics.last_error = f"{self.NAME} still lost: {exc}"
             return False
         # the samples the part would have produced meanwhile are lost (bus error)
-        if self.clock is not None and self.clock._idx:
-            idx = self.clock.index_at(self.transport.now_ns())
-            lost = max(0, idx + 1 - self._next_index)
-            self.diagnostics.lost.bus_error += lost
-            self._next_index += lost
-            self._lost_pending.bus_error += lost
+        self.timeline.missed(self.transport.now_ns())
         self.lost = False
         self.diagnostics.device_lost = False
         self.diagnostics.reinitialisations += 1
@@ -177,8 +176,11 @@ class FifoBoard(ImuSource):
         raise NotImplementedError
 
     def _take_loss(self) -> LossCounts:
-        lost, self._lost_pending = self._lost_pending, LossCounts()
-        return lost
+        return self.timeline.take_loss()
+
+    def _empty(self) -> SampleBlock:
+        """No rows: an empty block, carrying a loss found meanwhile."""
+        return SampleBlock.empty(self._take_loss()) if self.timeline.loss_pending else SampleBlock.empty()
 
     def _flags(self, gyr_counts: np.ndarray, acc_counts: np.ndarray, gfs: int, afs: int) -> np.ndarray:
         gsat = (np.abs(gyr_counts) >= gfs).any(axis=1)
@@ -215,8 +217,8 @@ class ICM42688PBoard(FifoBoard):
 
     def _configure(self) -> None:
         self.part.configure()
-        if self.clock is None:
-            self.clock = SensorClock(self.odr_hz)
+        if self.timeline is None:
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics)
 
     def _burst(self, max_samples: int) -> SampleBlock:
         part = self.part
@@ -228,7 +230,7 @@ class ICM42688PBoard(FifoBoard):
         self._overflow_pending |= bool(status & icm42688p.FIFO_FULL_INT)
         packets = min(count // icm42688p.PACKET, max_samples)
         if packets == 0:
-            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+            return self._empty()
         pk = part.read_packets(packets * icm42688p.PACKET)
         host = self.transport.now_ns()
         drained = packets * icm42688p.PACKET > count - icm42688p.PACKET
@@ -237,20 +239,13 @@ class ICM42688PBoard(FifoBoard):
         ok = ((header & 0xFC) == icm42688p.HIRES_HEADER) & \
             (pk["acc20"] != icm42688p.INVALID_20BIT).all(axis=1) & \
             (pk["gyr20"] != icm42688p.INVALID_20BIT).all(axis=1)
-        first = self._next_index
-        self._next_index += len(header)
         lost = self._take_loss()
-        # a full FIFO's newest sample is older than the read: not a clock anchor
-        t = self.clock.stamp(host, first, len(header), anchor=not overflow)[ok]
+        # a full FIFO's newest sample is older than the read: timed from the clock's fit
+        t = self.timeline.stamp(host, len(header), full=overflow)[ok]
         if overflow and drained:
             part.flush()
             self._overflow_pending = False
-            self.diagnostics.extra["fifo_overflows"] += 1
-            produced = self.clock.index_at(self.transport.now_ns())
-            n_lost = max(1, produced + 1 - self._next_index)  # the part did report one
-            self.diagnostics.lost.fifo_overflow += n_lost
-            self._next_index += n_lost
-            self._lost_pending.fifo_overflow += n_lost
+            self.timeline.overflowed(self.transport.now_ns())  # stop-on-full: the rest after
         n = int(ok.sum())
         self.diagnostics.samples += n
         gyr_c, acc_c = pk["gyr"][ok].astype(np.int64), pk["acc"][ok].astype(np.int64)
@@ -325,10 +320,12 @@ class BMI088Board(FifoBoard):
     def _configure(self) -> None:
         self.acc.configure()
         self.gyro.configure()
-        if self.clock is None:
-            self.clock = SensorClock(self.odr_hz)
-            self.acc_clock = SensorClock(self.acc.odr_hz)
-            self._acc_next = 0
+        if self.timeline is None:
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics)
+            # the accelerometer's samples are held by the pairing rule: its overflows cost
+            # no rows, they are counted as events
+            self.acc_timeline = FifoTimeline(self.acc.odr_hz, self.diagnostics,
+                                             events_key="acc_fifo_overflows", rows=False)
             self._acc_t = np.empty(0, np.int64)
             self._acc_c = np.empty((0, 3), np.int64)
 
@@ -338,14 +335,12 @@ class BMI088Board(FifoBoard):
         counts, full = self.acc.read_frames(level // bmi.ACC_FRAME * bmi.ACC_FRAME)
         host = self.acc_transport.now_ns()
         if len(counts):
-            t = self.acc_clock.stamp(host, self._acc_next, len(counts), anchor=not full)
-            self._acc_next += len(counts)
+            t = self.acc_timeline.stamp(host, len(counts), full=full)
             self._acc_t = np.concatenate([self._acc_t[-1:], t])
             self._acc_c = np.concatenate([self._acc_c[-1:], counts])
         if full:
             self.acc.flush()
-            self.diagnostics.extra["acc_fifo_overflows"] += 1
-            self._acc_next = self.acc_clock.index_at(self.acc_transport.now_ns()) + 1
+            self.acc_timeline.overflowed(self.acc_transport.now_ns())
 
     def _burst(self, max_samples: int) -> SampleBlock:
         gyro = self.gyro
@@ -356,20 +351,14 @@ class BMI088Board(FifoBoard):
         host = self.transport.now_ns()
         self._read_acc()
         if take == 0:
-            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+            return self._empty()
         overflow = self._overflow_pending
-        first = self._next_index
-        self._next_index += take
         lost = self._take_loss()
-        t = self.clock.stamp(host, first, take, anchor=not overflow)
+        t = self.timeline.stamp(host, take, full=overflow)
         if overflow and take == frames:
             gyro.flush()
             self._overflow_pending = False
-            self.diagnostics.extra["fifo_overflows"] += 1
-            n_lost = max(1, self.clock.index_at(self.transport.now_ns()) + 1 - self._next_index)
-            self.diagnostics.lost.fifo_overflow += n_lost
-            self._next_index += n_lost
-            self._lost_pending.fifo_overflow += n_lost
+            self.timeline.overflowed(self.transport.now_ns())
         idx = hold_pairing(t, self._acc_t)  # the rule of drivers/fifo.py
         ok = idx >= 0
         truth = None
@@ -418,8 +407,8 @@ class ICM20948Board(FifoBoard):
 
     def _configure(self) -> None:
         self.part.configure()
-        if self.clock is None:
-            self.clock = SensorClock(self.odr_hz)
+        if self.timeline is None:
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics)
 
     def _burst(self, max_samples: int) -> SampleBlock:
         from ahrs_service.drivers.base import MAG_NEW, MAG_SATURATED, MAG_VALID
@@ -431,23 +420,17 @@ class ICM20948Board(FifoBoard):
         self._overflow_pending |= overflow
         packets = min(count // icm.PACKET, max_samples)
         if packets == 0:
-            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+            return self._empty()
         p = part.read_packets(packets)
         host = self.transport.now_ns()
         drained = packets * icm.PACKET > count - icm.PACKET
         overflow = self._overflow_pending
-        first = self._next_index
-        self._next_index += packets
         lost = self._take_loss()
-        t = self.clock.stamp(host, first, packets, anchor=not overflow)
+        t = self.timeline.stamp(host, packets, full=overflow)
         if overflow and drained:
             part.flush()
             self._overflow_pending = False
-            self.diagnostics.extra["fifo_overflows"] += 1
-            n_lost = max(1, self.clock.index_at(self.transport.now_ns()) + 1 - self._next_index)
-            self.diagnostics.lost.fifo_overflow += n_lost
-            self._next_index += n_lost
-            self._lost_pending.fifo_overflow += n_lost
+            self.timeline.overflowed(self.transport.now_ns())
         acc_c, gyr_c = p[:, 0:3], p[:, 3:6]
         st1, mag_c, st2 = p[:, 6], p[:, 7:10], p[:, 11]
         new = (st1 & 0x01) != 0
