@@ -20,7 +20,14 @@ from collections import deque
 
 import numpy as np
 
-from ahrs_service.drivers.base import LossCounts, SourceDiagnostics
+from ahrs_service.drivers.base import (
+    ACC_SATURATED,
+    ACC_VALID,
+    GYR_SATURATED,
+    GYR_VALID,
+    LossCounts,
+    SourceDiagnostics,
+)
 from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice, _ZERO_PHYSICS
 
 
@@ -208,6 +215,16 @@ class FifoTimeline:
         return self._pending.total > 0
 
 
+def burst_flags(gyr_counts: np.ndarray, acc_counts: np.ndarray, gyro_full_scale: int,
+                acc_full_scale: int, diagnostics: SourceDiagnostics) -> np.ndarray:
+    """(n,) int64 validity bits of a burst's rows: an axis at or beyond its full scale marks
+    the reading saturated instead of valid (counted in ``diagnostics.saturated``)."""
+    gsat = (np.abs(gyr_counts) >= gyro_full_scale).any(axis=1)
+    asat = (np.abs(acc_counts) >= acc_full_scale).any(axis=1)
+    diagnostics.saturated += int(gsat.sum() + asat.sum())
+    return (np.where(gsat, GYR_SATURATED, GYR_VALID) | np.where(asat, ACC_SATURATED, ACC_VALID)).astype(np.int64)
+
+
 def hold_pairing(row_t_ns: np.ndarray, other_t_ns: np.ndarray) -> np.ndarray:
     """**The pairing rule for parts on separate clocks** (GY-80: ADXL345 beside L3G4200D;
     MinIMU-9 v2: LSM303DLHC beside L3GD20; BMI088: its accelerometer die beside its gyroscope
@@ -217,6 +234,56 @@ def hold_pairing(row_t_ns: np.ndarray, other_t_ns: np.ndarray) -> np.ndarray:
     two readings). Returns, per row, the index into ``other_t_ns`` (ascending), or −1 where
     the other part has no sample yet (such rows are not handed out)."""
     return np.searchsorted(other_t_ns, row_t_ns, side="right") - 1
+
+
+class SimulatedFrameFifo:
+    """The twins' FIFO of whole samples (frames of the data registers), with each sample's
+    truth beside it (simulation only): the 32-level FIFOs of the ST parts and the ADXL345.
+
+    ``push`` follows the part's mode: a full FIFO turns the new sample away (FIFO mode,
+    ``keep_oldest``) or overwrites its oldest (stream mode). Counters for tests: ``overflowed``
+    (samples overwritten or turned away), ``discarded`` (samples emptied unread by a reset).
+    """
+
+    def __init__(self, depth: int) -> None:
+        self.depth = int(depth)
+        self.frames: deque[bytes] = deque()
+        self.truth: deque = deque()
+        self.popped_truth: list = []  # the truth of the samples read since take_popped_truth()
+        self.overflowed = 0
+        self.discarded = 0
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def push(self, frame: bytes, truth, keep_oldest: bool) -> None:
+        if len(self.frames) >= self.depth:
+            self.overflowed += 1
+            if keep_oldest:
+                return
+            self.frames.popleft()
+            self.truth.popleft()
+        self.frames.append(frame)
+        self.truth.append(truth)
+
+    def head(self) -> bytes | None:
+        """The oldest stored sample (what the data registers show), None when empty."""
+        return self.frames[0] if self.frames else None
+
+    def pop(self) -> None:
+        """The oldest sample has been read out."""
+        self.frames.popleft()
+        self.popped_truth.append(self.truth.popleft())
+
+    def reset(self) -> None:
+        """Emptied unread (bypass mode)."""
+        self.discarded += len(self.frames)
+        self.frames.clear()
+        self.truth.clear()
+
+    def take_popped_truth(self) -> list:
+        out, self.popped_truth = self.popped_truth, []
+        return out
 
 
 class SimulatedFifo:

@@ -31,13 +31,13 @@ FULL_RES, so the scale is 3.9 mg/LSB (256 LSB/g) in every range and the register
 
 from __future__ import annotations
 
-from collections import deque
 from typing import Any
 
 import struct
 
 import numpy as np
 
+from ahrs_service.drivers.fifo import SimulatedFrameFifo
 from ahrs_service.drivers.i2c.bus import I2CBus
 from ahrs_service.drivers.i2c.device import (
     STANDARD_GRAVITY,
@@ -154,20 +154,16 @@ class SimulatedADXL345(SimulatedRegisterDevice):
         return 3200.0 / 2 ** (15 - (self.regs[BW_RATE] & 0x0F))
 
     def reset_state(self, now: float) -> None:
-        self.fifo: deque[bytes] = deque()
-        self.fifo_truth: deque[Any] = deque()
-        self.popped_truth: list[Any] = []
-        self.fifo_overflowed = 0
-        self.fifo_discarded = 0
+        self.fifo = SimulatedFrameFifo(FIFO_ENTRIES)
+
+    # the twin's counters for tests (entries overwritten/turned away, emptied unread)
+    fifo_overflowed = property(lambda self: self.fifo.overflowed)
+    fifo_discarded = property(lambda self: self.fifo.discarded)
+    fifo_frames = property(lambda self: len(self.fifo))
 
     # ---------------------------------------------------------------- FIFO
     def fifo_mode(self) -> int:
         return self.regs[FIFO_CTL] >> 6
-
-    @property
-    def fifo_frames(self) -> int:
-        """Entries in the FIFO now (for tests)."""
-        return len(self.fifo)
 
     def fifo_room(self) -> int | None:
         if self.fifo_mode() not in (FIFO_FIFO, FIFO_STREAM):
@@ -178,22 +174,10 @@ class SimulatedADXL345(SimulatedRegisterDevice):
         return self.fifo_mode() == FIFO_FIFO
 
     def fifo_dropped(self, n: int) -> None:
-        self.fifo_overflowed += n
-
-    def _fifo_push(self, truth: Any) -> None:
-        if self.fifo_mode() not in (FIFO_FIFO, FIFO_STREAM):
-            return
-        if len(self.fifo) >= FIFO_ENTRIES:
-            self.fifo_overflowed += 1
-            if self.fifo_mode() == FIFO_FIFO:
-                return
-            self.fifo.popleft()
-            self.fifo_truth.popleft()
-        self.fifo.append(bytes(self.regs[DATAX0:DATAX0 + 6]))
-        self.fifo_truth.append(truth)
-        self._fifo_flags()
+        self.fifo.overflowed += n
 
     def _fifo_flags(self) -> None:
+        """INT_SOURCE Watermark / Overrun and FIFO_STATUS Entries from the FIFO's level."""
         level = len(self.fifo)
         status = self.regs[INT_SOURCE] & ~(WATERMARK | OVERRUN)
         wm = self.regs[FIFO_CTL] & 0x1F
@@ -206,12 +190,12 @@ class SimulatedADXL345(SimulatedRegisterDevice):
 
     def take_popped_truth(self) -> list[Any]:
         """The truth of the entries read since the last call, oldest first."""
-        out, self.popped_truth = self.popped_truth, []
-        return out
+        return self.fifo.take_popped_truth()
 
     def read_register(self, reg: int) -> int:
-        if self.fifo and DATAX0 <= reg <= DATAX0 + 5 and self.fifo_mode() != FIFO_BYPASS:
-            return self.fifo[0][reg - DATAX0]
+        head = self.fifo.head()
+        if head is not None and DATAX0 <= reg <= DATAX0 + 5 and self.fifo_mode() != FIFO_BYPASS:
+            return head[reg - DATAX0]
         return self.regs[reg]
 
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
@@ -223,9 +207,7 @@ class SimulatedADXL345(SimulatedRegisterDevice):
         elif reg == BW_RATE and self._t0 is not None:
             self.restart_measurement(now)
         elif reg == FIFO_CTL and self.fifo_mode() == FIFO_BYPASS:
-            self.fifo_discarded += len(self.fifo)
-            self.fifo.clear()
-            self.fifo_truth.clear()
+            self.fifo.reset()
             self._fifo_flags()
 
     def latch(self, phys: dict, t: float, skipped: int) -> None:
@@ -246,17 +228,18 @@ class SimulatedADXL345(SimulatedRegisterDevice):
             if fmt & 0x04:  # left-justified (MSB) mode
                 c <<= 16 - bits
             self.regs[DATAX0 + 2 * i: DATAX0 + 2 * i + 2] = bytes(i16_bytes(c, False))
-        self._fifo_push(phys.get("truth"))
+        if self.fifo_mode() in (FIFO_FIFO, FIFO_STREAM):
+            self.fifo.push(bytes(self.regs[DATAX0:DATAX0 + 6]), phys.get("truth"), self.fifo_keeps_oldest())
+            self._fifo_flags()
 
     def on_read(self, regs: list[int], now: float) -> None:
         if not any(DATAX0 <= r <= DATAX0 + 5 for r in regs):
             return
         if self.fifo_mode() != FIFO_BYPASS:
-            if self.fifo:  # the read of the data registers has ended: the entry is popped
-                self.fifo.popleft()
-                self.popped_truth.append(self.fifo_truth.popleft())
+            if len(self.fifo):  # the read of the data registers has ended: the entry is popped
+                self.fifo.pop()
             self._fifo_flags()
-            if not self.fifo:
+            if not len(self.fifo):
                 self.regs[INT_SOURCE] &= ~DATA_READY & 0xFF
             return
         self.regs[INT_SOURCE] &= ~(DATA_READY | OVERRUN) & 0xFF

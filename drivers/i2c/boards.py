@@ -47,7 +47,7 @@ from ahrs_service.drivers.base import (
 from ahrs_service.drivers.i2c.adxl345 import ADXL345, SimulatedADXL345
 from ahrs_service.drivers.i2c.ak8963 import AK8963, SimulatedAK8963
 from ahrs_service.drivers.i2c.bus import I2CBus, SimulatedI2CBus, SMBusI2C
-from ahrs_service.drivers.fifo import FifoTimeline, hold_pairing
+from ahrs_service.drivers.fifo import FifoTimeline, burst_flags, hold_pairing
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, I2CDevice, I2CDeviceError, watermark_frames
 from ahrs_service.drivers.i2c.st_fifo import FIFO_FRAMES as ST_FIFO_FRAMES
 from ahrs_service.drivers.i2c.hmc5883l import HMC5883L, SimulatedHMC5883L
@@ -455,17 +455,12 @@ class _PairedFifoBoard(I2CFifoBoard):
         gyro, acc = self.parts["gyro"], self.parts["acc"]
         a = self._acc_c[idx]
         n = len(t)
-        gsat = (np.abs(g) >= gyro.full_scale).any(axis=1)
-        asat = (np.abs(a) >= acc.full_scale).any(axis=1)
-        flags = np.where(gsat, GYR_SATURATED, GYR_VALID) | np.where(asat, ACC_SATURATED, ACC_VALID)
-        d = self.diagnostics
-        d.saturated += int(gsat.sum() + asat.sum())
-        d.samples += n
-        mag = np.full((n, 3), np.nan)
-        raw = {"gyr": g, "acc": a}
+        flags = burst_flags(g, a, gyro.full_scale, acc.full_scale, self.diagnostics)
+        self.diagnostics.samples += n
+        mag, raw = np.full((n, 3), np.nan), {"gyr": g, "acc": a}
         self._attach_mag(t, mag, flags, raw)
-        return SampleBlock(t.astype(np.int64), g * gyro.scale, a * acc.scale, mag,
-                           flags.astype(np.int64), np.full(n, np.nan), raw, truth, lost)
+        return SampleBlock(t.astype(np.int64), g * gyro.scale, a * acc.scale, mag, flags,
+                           np.full(n, np.nan), raw, truth, lost)
 
 
 class GY80(_PairedFifoBoard):
@@ -622,20 +617,13 @@ class MPU9250Board(I2CFifoBoard):
                     truth: np.ndarray | None, lost: LossCounts) -> SampleBlock:
         mpu = self.mpu
         n = len(t_ns)
-        gyr = gyr_c * mpu.gyro_scale
-        acc = acc_c * mpu.acc_scale
-        g_sat = (np.abs(gyr_c) >= mpu.gyro_full_scale).any(axis=1)
-        a_sat = (np.abs(acc_c) >= mpu.acc_full_scale).any(axis=1)
-        flags = np.where(g_sat, GYR_SATURATED, GYR_VALID) | np.where(a_sat, ACC_SATURATED, ACC_VALID)
-        d = self.diagnostics
-        d.saturated += int(g_sat.sum() + a_sat.sum())
-        d.samples += n
+        flags = burst_flags(gyr_c, acc_c, mpu.gyro_full_scale, mpu.acc_full_scale, self.diagnostics)
+        self.diagnostics.samples += n
         mag = np.full((n, 3), np.nan)
         raw = {"gyr": gyr_c, "acc": acc_c, "temp": np.full(n, temp, np.int64)}
         self._attach_mag(t_ns, mag, flags, raw)
-        temp_c = np.full(n, mpu.temperature_c(temp))
-        return SampleBlock(t_ns.astype(np.int64), gyr, acc, mag, flags.astype(np.int64), temp_c,
-                           raw, truth, lost)
+        return SampleBlock(t_ns.astype(np.int64), gyr_c * mpu.gyro_scale, acc_c * mpu.acc_scale, mag,
+                           flags, np.full(n, mpu.temperature_c(temp)), raw, truth, lost)
 
     def _fifo_truth(self, n: int) -> np.ndarray | None:
         """True attitudes of the ``n`` samples just read (simulated bus only: the twin keeps

@@ -35,7 +35,7 @@ from ahrs_service.drivers.i2c.device import (
     i16_bytes,
     to_counts,
 )
-from ahrs_service.drivers.i2c.st_fifo import FIFO_CTRL_REG, SimulatedSTFifo, STFifoDriver
+from ahrs_service.drivers.i2c.st_fifo import SimulatedSTFifo, STFifoDriver
 
 WHO_AM_I, CTRL_REG1, CTRL_REG2, CTRL_REG3, CTRL_REG4, CTRL_REG5 = 0x0F, 0x20, 0x21, 0x22, 0x23, 0x24
 OUT_TEMP, STATUS_REG, OUT_X_L = 0x26, 0x27, 0x28
@@ -128,24 +128,15 @@ class SimulatedL3G4200D(SimulatedSTFifo, SimulatedRegisterDevice):
                           0x25, 0x2E, 0x30, 0x32, 0x33, 0x34, 0x35, 0x36, 0x37, 0x38})
 
     def reset_state(self, now: float) -> None:
+        super().reset_state(now)
         self.regs[WHO_AM_I] = self.WHO_AM_I_VALUE
-        self._fifo_init()
-
-    def read_register(self, reg: int) -> int:
-        v = self.fifo_read_register(reg)
-        return self.regs[reg] if v is None else v
-
-    def next_pointer(self, reg: int) -> int:
-        nxt = self.fifo_next_pointer(reg)
-        return (reg + 1) & 0xFF if nxt is None else nxt
 
     def rate_hz(self) -> float:
         return self.RATES[self.regs[CTRL_REG1] >> 6]
 
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
-        if reg == FIFO_CTRL_REG:
-            self._fifo_on_ctrl()
-        elif reg == CTRL_REG1:
+        super().on_write(reg, value, old, now)  # the FIFO's registers
+        if reg == CTRL_REG1:
             if value & 0x08 and (not old & 0x08 or (value ^ old) & 0xC0):
                 self.restart_measurement(now)
             elif not value & 0x08:

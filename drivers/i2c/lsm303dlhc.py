@@ -47,7 +47,7 @@ from ahrs_service.drivers.i2c.device import (
     i16_bytes,
     to_counts,
 )
-from ahrs_service.drivers.i2c.st_fifo import FIFO_CTRL_REG, SimulatedSTFifo, STFifoDriver
+from ahrs_service.drivers.i2c.st_fifo import SimulatedSTFifo, STFifoDriver
 from ahrs_service.drivers.i2c.hmc5883l import (
     HoneywellStyleMagnetometer,
     SimulatedHoneywellStyleMagnetometer,
@@ -145,17 +145,6 @@ class SimulatedLSM303DLHCAcc(SimulatedSTFifo, SimulatedRegisterDevice):
 
     FM_SHIFT = 6
 
-    def reset_state(self, now: float) -> None:
-        self._fifo_init()
-
-    def read_register(self, reg: int) -> int:
-        v = self.fifo_read_register(reg)
-        return self.regs[reg] if v is None else v
-
-    def next_pointer(self, reg: int) -> int:
-        nxt = self.fifo_next_pointer(reg)
-        return (reg + 1) & 0xFF if nxt is None else nxt
-
     PART = "LSM303DLHC accelerometer"
     DEFAULT_ADDRESS = 0x19
     ST_SUBADDRESS = True
@@ -168,9 +157,8 @@ class SimulatedLSM303DLHCAcc(SimulatedSTFifo, SimulatedRegisterDevice):
         return ACC_RATES_BY_CODE[code] if code < len(ACC_RATES_BY_CODE) else None
 
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
-        if reg == FIFO_CTRL_REG:
-            self._fifo_on_ctrl()
-        elif reg == CTRL_REG1_A and (value ^ old) & 0xF0:
+        super().on_write(reg, value, old, now)  # the FIFO's registers
+        if reg == CTRL_REG1_A and (value ^ old) & 0xF0:
             if value >> 4:
                 self.restart_measurement(now)
             else:

@@ -29,11 +29,11 @@ The FIFO is emptied by switching to bypass mode and back (§5.2.1: bypass resets
 
 from __future__ import annotations
 
-from collections import deque
 from typing import Any
 
 import numpy as np
 
+from ahrs_service.drivers.fifo import SimulatedFrameFifo
 from ahrs_service.drivers.i2c.device import SMBUS_BLOCK_MAX, FifoLayout, FifoStatus
 
 CTRL_REG5, FIFO_CTRL_REG, FIFO_SRC_REG, OUT_X_L = 0x24, 0x2E, 0x2F, 0x28
@@ -85,20 +85,25 @@ class STFifoDriver:
 
 
 class SimulatedSTFifo:
-    """Twin side, mixed into the ST twins (before :class:`SimulatedRegisterDevice`): the
-    32-sample FIFO of the registers above, filled by every due sample (the base's FIFO
-    latching), the stream/FIFO mode rules, the watermark and OVRN, the OUT_X_L … OUT_Z_H
-    roll-over. Counters for tests: ``fifo_overflowed`` (samples overwritten or turned away),
-    ``fifo_discarded`` (samples emptied unread by bypass mode)."""
+    """Twin side, mixed into the ST twins (before :class:`SimulatedRegisterDevice`, whose
+    ``read_register``, ``next_pointer`` and ``on_write`` it extends): the 32-sample FIFO of
+    the registers above, filled by every due sample (the base's FIFO latching), the
+    stream/FIFO mode rules, the watermark and OVRN, the OUT_X_L … OUT_Z_H roll-over. The twin
+    calls :meth:`_fifo_push` at the end of its ``latch``."""
 
     regs: bytearray
+    #: where FM sits in FIFO_CTRL_REG: bits 7:5 on the gyroscopes, 7:6 (bit 5: TR) on the
+    #: LSM303DLHC — the same mode numbers either way
+    FM_SHIFT = 5
 
-    def _fifo_init(self) -> None:
-        self.fifo: deque[bytes] = deque()
-        self.fifo_truth: deque[Any] = deque()  # the truth of each stored sample (simulation)
-        self.popped_truth: list[Any] = []  # … of the samples read out since take_popped_truth()
-        self.fifo_overflowed = 0
-        self.fifo_discarded = 0
+    def reset_state(self, now: float) -> None:
+        super().reset_state(now)  # type: ignore[misc]
+        self.fifo = SimulatedFrameFifo(FIFO_FRAMES)
+
+    # the twin's counters for tests (samples overwritten/turned away, emptied unread)
+    fifo_overflowed = property(lambda self: self.fifo.overflowed)
+    fifo_discarded = property(lambda self: self.fifo.discarded)
+    fifo_frames = property(lambda self: len(self.fifo))
 
     def fifo_mode(self) -> int | None:
         """FM of FIFO_CTRL_REG, or None while CTRL_REG5.FIFO_EN is clear."""
@@ -106,18 +111,8 @@ class SimulatedSTFifo:
             return None
         return self.regs[FIFO_CTRL_REG] >> self.FM_SHIFT
 
-    #: where FM sits in FIFO_CTRL_REG: bits 7:5 on the gyroscopes, 7:6 (bit 5: TR) on the
-    #: LSM303DLHC — the same mode numbers either way
-    FM_SHIFT = 5
-
-    @property
-    def fifo_frames(self) -> int:
-        """Samples in the FIFO now (for tests)."""
-        return len(self.fifo)
-
     def fifo_room(self) -> int | None:
-        mode = self.fifo_mode()
-        if mode not in (FM_FIFO, FM_STREAM):
+        if self.fifo_mode() not in (FM_FIFO, FM_STREAM):
             return None
         return FIFO_FRAMES - len(self.fifo)
 
@@ -125,20 +120,12 @@ class SimulatedSTFifo:
         return self.fifo_mode() == FM_FIFO
 
     def fifo_dropped(self, n: int) -> None:
-        self.fifo_overflowed += n
+        self.fifo.overflowed += n
 
     def _fifo_push(self, truth: Any) -> None:
         """The sample just latched into OUT_X_L … OUT_Z_H, into the FIFO (§5.2)."""
-        if self.fifo_mode() not in (FM_FIFO, FM_STREAM):
-            return
-        if len(self.fifo) >= FIFO_FRAMES:
-            self.fifo_overflowed += 1
-            if self.fifo_mode() == FM_FIFO:
-                return
-            self.fifo.popleft()  # stream: the oldest makes room
-            self.fifo_truth.popleft()
-        self.fifo.append(bytes(self.regs[OUT_X_L:OUT_X_L + FRAME_BYTES]))
-        self.fifo_truth.append(truth)
+        if self.fifo_mode() in (FM_FIFO, FM_STREAM):
+            self.fifo.push(bytes(self.regs[OUT_X_L:OUT_X_L + FRAME_BYTES]), truth, self.fifo_keeps_oldest())
 
     def _fifo_src(self) -> int:
         level = len(self.fifo)
@@ -152,32 +139,27 @@ class SimulatedSTFifo:
             src |= SRC_WTM
         return src
 
-    def _fifo_on_ctrl(self) -> None:
-        """After a write of FIFO_CTRL_REG: bypass mode empties the FIFO."""
-        if self.regs[FIFO_CTRL_REG] >> self.FM_SHIFT == FM_BYPASS:
-            self.fifo_discarded += len(self.fifo)
-            self.fifo.clear()
-            self.fifo_truth.clear()
+    def on_write(self, reg: int, value: int, old: int, now: float) -> None:
+        """FIFO_CTRL_REG: bypass mode empties the FIFO (§5.2.1). The twins call this first."""
+        if reg == FIFO_CTRL_REG and value >> self.FM_SHIFT == FM_BYPASS:
+            self.fifo.reset()
 
-    def fifo_read_register(self, reg: int) -> int | None:
-        """The byte a read of ``reg`` returns with the FIFO on, None to read the register file."""
+    def read_register(self, reg: int) -> int:
         if reg == FIFO_SRC_REG:
             return self._fifo_src()
-        if self.fifo_mode() is None or not OUT_X_L <= reg <= OUT_Z_H or not self.fifo:
-            return None
-        value = self.fifo[0][reg - OUT_X_L]
+        head = self.fifo.head()
+        if self.fifo_mode() is None or not OUT_X_L <= reg <= OUT_Z_H or head is None:
+            return self.regs[reg]
         if reg == OUT_Z_H:  # the sample is read: the next one moves up (§5.2.6)
-            self.fifo.popleft()
-            self.popped_truth.append(self.fifo_truth.popleft())
-        return value
+            self.fifo.pop()
+        return head[reg - OUT_X_L]
 
-    def fifo_next_pointer(self, reg: int) -> int | None:
-        """With the FIFO on, an auto-increment read rolls OUT_Z_H over to OUT_X_L."""
+    def next_pointer(self, reg: int) -> int:
+        # with the FIFO on, an auto-increment read rolls OUT_Z_H over to OUT_X_L
         if self.fifo_mode() is not None and reg == OUT_Z_H:
             return OUT_X_L
-        return None
+        return super().next_pointer(reg)  # type: ignore[misc]
 
     def take_popped_truth(self) -> list[Any]:
         """The truth of the samples read from the FIFO since the last call, oldest first."""
-        out, self.popped_truth = self.popped_truth, []
-        return out
+        return self.fifo.take_popped_truth()

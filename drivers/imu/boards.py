@@ -24,16 +24,12 @@ from typing import Any
 import numpy as np
 
 from ahrs_service.drivers.base import (
-    ACC_SATURATED,
-    ACC_VALID,
-    GYR_SATURATED,
-    GYR_VALID,
     ImuSample,
     ImuSource,
     LossCounts,
     SampleBlock,
 )
-from ahrs_service.drivers.fifo import FifoTimeline, SensorClock, hold_pairing
+from ahrs_service.drivers.fifo import FifoTimeline, SensorClock, burst_flags, hold_pairing
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, watermark_frames
 from ahrs_service.drivers.imu import icm42688p
 from ahrs_service.drivers.transport import RegisterTransport, check_bus_rate
@@ -183,11 +179,7 @@ class FifoBoard(ImuSource):
         return SampleBlock.empty(self._take_loss()) if self.timeline.loss_pending else SampleBlock.empty()
 
     def _flags(self, gyr_counts: np.ndarray, acc_counts: np.ndarray, gfs: int, afs: int) -> np.ndarray:
-        gsat = (np.abs(gyr_counts) >= gfs).any(axis=1)
-        asat = (np.abs(acc_counts) >= afs).any(axis=1)
-        flags = np.where(gsat, GYR_SATURATED, GYR_VALID) | np.where(asat, ACC_SATURATED, ACC_VALID)
-        self.diagnostics.saturated += int(gsat.sum() + asat.sum())
-        return flags
+        return burst_flags(gyr_counts, acc_counts, gfs, afs, self.diagnostics)
 
 
 class ICM42688PBoard(FifoBoard):
