@@ -28,7 +28,7 @@ from ahrs_service.drivers.base import (
     LossCounts,
     SourceDiagnostics,
 )
-from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice, _ZERO_PHYSICS
+from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice
 
 
 class SensorClock:
@@ -287,15 +287,16 @@ class SimulatedFrameFifo:
 
 
 class SimulatedFifo:
-    """A byte FIFO of ``capacity`` bytes holding whole frames of ``frame`` bytes.
+    """A byte FIFO of ``capacity`` bytes holding whole samples of ``frame`` bytes.
 
     stop_on_full: a frame that does not fit is dropped (ICM-42688-P "stop-on-full",
     BMI088 "FIFO mode"); otherwise the oldest frames make room (stream mode).
     ``overflowed`` is set on the first lost frame; ``dropped`` counts them.
     """
 
-    def __init__(self, capacity: int, stop_on_full: bool = True) -> None:
+    def __init__(self, capacity: int, stop_on_full: bool = True, frame: int = 1) -> None:
         self.capacity = int(capacity)
+        self.frame = int(frame)  # bytes of one sample (packet)
         self.stop_on_full = stop_on_full
         self.data = bytearray()
         self.overflowed = False
@@ -326,7 +327,8 @@ class SimulatedFifo:
 
 
 class SimulatedFifoDevice(SimulatedRegisterDevice):
-    """Twin base whose every due sample is latched (and pushed to its FIFO), in order.
+    """Twin base of the SPI parts whose every due sample is latched (and pushed to its FIFO),
+    in order, by the base's FIFO latching (``fifo_room`` from the FIFO's free bytes).
 
     clock_error: the part's oscillator error (+0.004 = 0.4 % fast; the name the I2C twins use): ``rate_hz()`` returns the
     nominal rate from the registers, the samples come at ``nominal · (1 + clock_error)``.
@@ -350,31 +352,26 @@ class SimulatedFifoDevice(SimulatedRegisterDevice):
         r = self.nominal_rate_hz()
         return None if not r else r * (1.0 + self.clock_error)
 
+    def sampling_rate_hz(self) -> float | None:
+        return self.rate_hz()  # rate_hz() is already the real rate here
+
     def backlog_limit(self) -> int:
         return 1
 
-    def update(self, now: float) -> None:
-        if self._t0 is None:
-            return
-        rate = self.rate_hz()
-        if not rate:
-            return
-        k = math.floor((now - self._t0) * rate + 1e-7)
-        if k <= self._k:
-            return
-        first = max(self._k + 1, k - self.backlog_limit() + 1)
-        if first > self._k + 1:
-            # samples that could only have overflowed the FIFO: count them, skip the physics
-            self.samples_unseen += first - self._k - 1
-            self.skipped_unseen(first - self._k - 1)
-        physics = self._physics
-        for j in range(first, k + 1):
-            t = self._t0 + j / rate
-            phys = physics(t, 1.0 / rate) if physics is not None else _ZERO_PHYSICS
-            self.latched, self.latched_t = phys, t
-            self.samples_latched += 1
-            self.latch(phys, t, 0)
-        self._k = k
+    # the base's FIFO latching (SimulatedRegisterDevice._update_fifo) through these hooks
+    def fifo_room(self) -> int | None:
+        if self.backlog_limit() <= 1:  # FIFO off: the newest sample only, as in polling
+            return None
+        fifo = self.fifo  # type: ignore[attr-defined]
+        return max(0, (fifo.capacity - fifo.level) // fifo.frame)
+
+    def fifo_keeps_oldest(self) -> bool:
+        return self.fifo.stop_on_full  # type: ignore[attr-defined]
+
+    def fifo_dropped(self, n: int) -> None:
+        # samples that could only have overflowed the FIFO: counted, never computed
+        self.samples_unseen += n
+        self.skipped_unseen(n)
 
     def skipped_unseen(self, n: int) -> None:
         """``n`` samples produced while the FIFO was already full (hook: mark overflow)."""

@@ -339,6 +339,11 @@ class SimulatedRegisterDevice:
         """Output data rate from the current configuration, or None when not measuring."""
         return None
 
+    def sampling_rate_hz(self) -> float | None:
+        """The rate the part really samples at: the configured one off by ``clock_error``."""
+        rate = self.rate_hz()
+        return rate * (1.0 + self.clock_error) if rate else None
+
     def locked(self) -> bool:
         """True while the part holds its output registers (no new data placed)."""
         return False
@@ -347,10 +352,9 @@ class SimulatedRegisterDevice:
         """Latches the newest sample due by ``now`` (older due samples are overrun/skipped)."""
         if self._t0 is None:
             return
-        rate = self.rate_hz()
+        rate = self.sampling_rate_hz()
         if not rate:
             return
-        rate *= 1.0 + self.clock_error
         # the tiny epsilon keeps a clock stepped exactly on the sample grid on the right side
         k = math.floor((now - self._t0) * rate + 1e-7)
         if k <= self._k or self.locked():
@@ -370,7 +374,8 @@ class SimulatedRegisterDevice:
     def _update_fifo(self, k: int, rate: float, room: int) -> None:
         """A part with its FIFO on takes every due sample in order: the ones that fit (plus
         one, so the part sees its own overflow) are latched; the rest are overflowed, the
-        oldest or the newest ones as the part's FIFO mode keeps (:meth:`fifo_keeps_oldest`)."""
+        oldest or the newest ones as the part's FIFO mode keeps (:meth:`fifo_keeps_oldest`),
+        without computing them. The one FIFO latching of every twin (I2C and SPI parts)."""
         due = k - self._k
         push = min(due, room + 1)
         first = self._k + 1 if self.fifo_keeps_oldest() else k - push + 1

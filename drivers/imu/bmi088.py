@@ -272,7 +272,7 @@ class SimulatedBMI088Accel(_BMI088Die):
 
     def reset_state(self, now: float) -> None:
         super().reset_state(now)
-        self.fifo = SimulatedFifo(ACC_FIFO_BYTES, stop_on_full=True)
+        self.fifo = SimulatedFifo(ACC_FIFO_BYTES, stop_on_full=True, frame=ACC_FRAME)
         self.spi_mode = False
         self.restart_measurement(now)
 
@@ -341,7 +341,7 @@ class SimulatedBMI088Gyro(_BMI088Die):
 
     def reset_state(self, now: float) -> None:
         super().reset_state(now)
-        self.fifo = SimulatedFifo(GYRO_FIFO_FRAMES * GYRO_FRAME, stop_on_full=True)
+        self.fifo = SimulatedFifo(GYRO_FIFO_FRAMES * GYRO_FRAME, stop_on_full=True, frame=GYRO_FRAME)
         self.restart_measurement(now)
 
     def nominal_rate_hz(self) -> float | None:

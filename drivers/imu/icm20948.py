@@ -231,7 +231,7 @@ class SimulatedICM20948(SimulatedFifoDevice):
         self.banks[0][PWR_MGMT_1] = SLEEP | CLKSEL_AUTO
         self.banks[2][GYRO_CONFIG_1] = 0x01
         self.banks[2][ACCEL_CONFIG] = 0x01
-        self.fifo = SimulatedFifo(FIFO_BYTES, stop_on_full=True)
+        self.fifo = SimulatedFifo(FIFO_BYTES, stop_on_full=True, frame=PACKET)
         self.truth: deque = deque()
         self.popped_truth: list = []
         if self.aux is not None:

@@ -190,7 +190,7 @@ class SimulatedICM42688P(SimulatedFifoDevice):
         super().__init__(source, address, clock_error)
 
     def reset_state(self, now: float) -> None:
-        self.fifo = SimulatedFifo(FIFO_BYTES, stop_on_full=True)
+        self.fifo = SimulatedFifo(FIFO_BYTES, stop_on_full=True, frame=PACKET)
         self.truth: deque = deque()  # the true attitude of each packet in the FIFO (simulation only)
         self.popped_truth: list = []  # … of the packets read out since take_popped_truth()
         self._above_wm = False
