@@ -59,6 +59,26 @@ class DeviceIdentityError(RuntimeError):
         )
 
 
+def run_retried(call: Callable[[], Any], retries: int, diagnostics: SourceDiagnostics,
+                error: Callable[[OSError], OSError]) -> Any:
+    """The one retry policy of every register transfer (I2C parts and the I2C/SPI transports):
+    ``call()`` is repeated on a transient ``OSError`` up to ``retries`` times; every failure is
+    counted in ``diagnostics.bus_errors`` (and each repeat in ``retries``), ``last_error`` holds
+    ``error(exc)``'s message, which is raised (from the cause) when the retries are spent."""
+    attempt = 0
+    while True:
+        try:
+            return call()
+        except OSError as exc:
+            diagnostics.bus_errors += 1
+            err = error(exc)
+            diagnostics.last_error = str(err)
+            if attempt >= retries:
+                raise err from exc
+            attempt += 1
+            diagnostics.retries += 1
+
+
 def _hex(b: bytes) -> str:
     return " ".join(f"0x{x:02X}" for x in b)
 
@@ -109,21 +129,10 @@ class I2CDevice:
     # ---------------------------------------------------------------- transfers
     def _transfer(self, fn: Callable[..., Any], reg: int, action: str, *args: Any) -> Any:
         """Runs one bus call, retrying transient OSErrors; all failures are counted."""
-        diag = self.diagnostics
-        attempt = 0
-        while True:
-            try:
-                return fn(self.address, reg, *args)
-            except OSError as exc:
-                diag.bus_errors += 1
-                # messages name the register as in the datasheet, without ST's increment flag
-                err = I2CDeviceError(self.bus.name, self.address, self.PART,
-                                     reg & ~self.AUTO_INCREMENT_FLAG, action, exc)
-                diag.last_error = str(err)
-                if attempt >= self.retries:
-                    raise err from exc
-                attempt += 1
-                diag.retries += 1
+        # messages name the register as in the datasheet, without ST's increment flag
+        return run_retried(lambda: fn(self.address, reg, *args), self.retries, self.diagnostics,
+                           lambda exc: I2CDeviceError(self.bus.name, self.address, self.PART,
+                                                      reg & ~self.AUTO_INCREMENT_FLAG, action, exc))
 
     def read_u8(self, reg: int) -> int:
         """One register byte (retried)."""
