@@ -144,6 +144,7 @@ class SimulatedADXL345(SimulatedRegisterDevice):
     tests: ``fifo_overflowed`` (entries overwritten or turned away), ``fifo_discarded``
     (entries emptied unread by bypass mode)."""
 
+    CLOCK_ERROR = +0.0090  # this simulated unit runs 0.9 % fast
     PART = "ADXL345"
     DEFAULT_ADDRESS = 0x53
     POWER_ON = {DEVID: DEVID_VALUE, BW_RATE: 0x0A, INT_SOURCE: 0x02}

@@ -287,6 +287,9 @@ class SimulatedRegisterDevice:
 
     PART = "simulated device"
     DEFAULT_ADDRESS = 0x00
+    #: the simulated unit's oscillator error (+0.007 = 0.7 % fast); 0 for parts polled on
+    #: the host's clock, a documented 0.5–2 % on every part read through its FIFO
+    CLOCK_ERROR = 0.0
     POWER_ON: dict[int, int] = {}
     WRITABLE: frozenset[int] = frozenset()
     ST_SUBADDRESS = False
@@ -307,8 +310,9 @@ class SimulatedRegisterDevice:
         self._t0: float | None = None  # start of the measurement schedule
         self._k = 0  # index of the last latched (or skipped) sample
         #: the part's oscillator error: it samples at (1 + clock_error) × its nominal rate
-        #: (real parts run 0.5–2 % off; the sensor clock recovery must find the true rate)
-        self.clock_error = 0.0
+        #: (real parts run 0.5–2 % off; the sensor clock recovery must find the true rate).
+        #: Each FIFO twin's default is its class's CLOCK_ERROR (a documented unit's error)
+        self.clock_error = float(self.CLOCK_ERROR)
         self.power_on_reset(0.0)
 
     # ----------------------------------------------------------------- state

@@ -117,6 +117,7 @@ class SimulatedL3G4200D(SimulatedSTFifo, SimulatedRegisterDevice):
     """Simulated L3G4200D: latches physics "gyr" at the DR rate while CTRL_REG1.PD is set;
     with CTRL_REG5.FIFO_EN every sample also enters the 32-level FIFO (:mod:`.st_fifo`)."""
 
+    CLOCK_ERROR = -0.0060  # this simulated unit runs 0.6 % slow
     PART = "L3G4200D"
     DEFAULT_ADDRESS = 0x69
     ST_SUBADDRESS = True

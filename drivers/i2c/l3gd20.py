@@ -35,6 +35,7 @@ class L3GD20(L3G4200D):
 class SimulatedL3GD20(SimulatedL3G4200D):
     """Simulated L3GD20 (WHO_AM_I 0xD4, 95…760 Hz)."""
 
+    CLOCK_ERROR = +0.0050  # this simulated unit runs 0.5 % fast
     PART = "L3GD20"
     DEFAULT_ADDRESS = 0x6B
     WHO_AM_I_VALUE = 0xD4

@@ -145,6 +145,7 @@ class SimulatedLSM303DLHCAcc(SimulatedSTFifo, SimulatedRegisterDevice):
 
     FM_SHIFT = 6
 
+    CLOCK_ERROR = -0.0110  # this simulated unit runs 1.1 % slow
     PART = "LSM303DLHC accelerometer"
     DEFAULT_ADDRESS = 0x19
     ST_SUBADDRESS = True

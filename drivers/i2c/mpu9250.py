@@ -216,6 +216,7 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
     ``bypass_enabled()`` tells the bus whether the attached AK8963 is reachable.
     """
 
+    CLOCK_ERROR = +0.0070  # this simulated unit runs 0.7 % fast
     PART = "MPU-9250"
     DEFAULT_ADDRESS = 0x68
     POWER_ON = {PWR_MGMT_1: CLKSEL_PLL, WHO_AM_I: 0x71}
