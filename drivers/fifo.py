@@ -45,11 +45,12 @@ class SensorClock:
     estimate of none.
     """
 
-    def __init__(self, nominal_rate_hz: float, window: int = 64, min_span_s: float = 0.2) -> None:
+    def __init__(self, nominal_rate_hz: float, window: int = 128, min_span_s: float = 0.2) -> None:
         self.nominal_period_ns = 1e9 / nominal_rate_hz
         self.period_ns = self.nominal_period_ns
         self._min_span = min_span_s * 1e9
         self._first: tuple[int, int] | None = None  # (index, host_ns)
+        self._early: list[tuple[int, int]] = []  # the first 16 anchors (index, host_ns)
         self._idx = deque(maxlen=window)
         self._host = deque(maxlen=window)
         self._last_t: int | None = None
@@ -70,19 +71,20 @@ class SensorClock:
         last = first_index + n - 1
         if anchor:
             self._anchors += 1
-            nominal = self.nominal_period_ns
-            if self._first is None or (self._anchors <= 16 and host_ns - last * nominal
-                                       < self._first[1] - self._first[0] * nominal):
-                # the first anchor is the least late of the first 16 reads: one slow first
-                # read (a start-up stall) must not bias the period for good
-                self._first = (last, host_ns)
+            if self._anchors <= 16:
+                # the first reads: the period's far end is the least late of them, judged
+                # with the period tracked so far (re-judged as it improves): one slow first
+                # read (a start-up stall) must not bias the period for good, and judged with
+                # the nominal period a part 1 % off picks a read up to a period late
+                self._early.append((last, host_ns))
             self._idx.append(last)
             self._host.append(host_ns)
-            i0, h0 = self._first
+            p = self.period_ns
+            i0, h0 = min(self._early, key=lambda ih: ih[1] - ih[0] * p)
+            self._first = (i0, h0)
             if host_ns - h0 >= self._min_span:
                 # the slope to the least late recent read: a read delayed by a host stall
                 # (late by ms) must not tilt the period
-                p = self.period_ns
                 i1, h1 = min(zip(self._idx, self._host), key=lambda ih: ih[1] - ih[0] * p)
                 if h1 - h0 >= self._min_span and i1 > i0:
                     self.period_ns = (h1 - h0) / (i1 - i0)
@@ -147,16 +149,30 @@ class FifoTimeline:
         diagnostics.extra.setdefault(events_key, 0)
         self.next_index = 0
         self._pending = LossCounts()
+        self._shortest_read = 1 << 62  # ns: the quickest level read so far
 
     @property
     def anchored(self) -> bool:
         return self.clock.anchored
 
-    def stamp(self, host_ns: int, n: int, full: bool = False) -> np.ndarray:
+    def stamp(self, host_ns: int, n: int, full: bool = False, read_end_ns: int | None = None) -> np.ndarray:
         """Times (int64 ns, oldest first) of the next ``n`` samples, the newest of which was
-        in the FIFO when its level was read at ``host_ns``. full: the FIFO had filled (its
-        newest sample may be much older than the read): timed from the clock's fit."""
-        t = self.clock.stamp(host_ns, self.next_index, n, anchor=not full)
+        in the FIFO when its level was read in a transfer begun at ``host_ns`` (and ended at
+        ``read_end_ns``). full: the FIFO had filled (its newest sample may be much older than
+        the read): timed from the clock's fit.
+
+        The anchor is the transfer's start: the part latches its level while the transfer
+        runs, so the newest counted sample can be younger than the start by as much as the
+        transfer took. A level read that took much longer than the shortest seen (the host
+        was preempted inside it) is no anchor: a sample counted long after the start would
+        look earlier than it was and pull the clock's lower envelope early."""
+        anchor = not full
+        if read_end_ns is not None:
+            took = read_end_ns - host_ns
+            self._shortest_read = min(self._shortest_read, took)
+            if took > 2 * self._shortest_read + 20_000:
+                anchor = False
+        t = self.clock.stamp(host_ns, self.next_index, n, anchor=anchor)
         self.next_index += n
         return t
 

@@ -116,8 +116,9 @@ class ADXL345(I2CDevice):
     def fifo_status(self) -> FifoStatus:
         """Stored entries (FIFO_STATUS) and whether the FIFO had filled (INT_SOURCE.Overrun)."""
         overrun = bool(self.read_u8(INT_SOURCE) & OVERRUN)
+        t = self.bus.now_ns()
         entries = self.read_u8(FIFO_STATUS) & 0x3F
-        return FifoStatus(entries, overrun or entries >= FIFO_ENTRIES)
+        return FifoStatus(entries, overrun or entries >= FIFO_ENTRIES, t)
 
     def read_fifo(self, frames: int) -> np.ndarray:
         """``frames`` entries, oldest first: (frames, 3) int64 counts, one 6-byte read each."""

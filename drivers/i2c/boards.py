@@ -400,7 +400,7 @@ class _PairedFifoBoard(I2CFifoBoard):
         try:
             t_start = self.bus.now_ns()
             status = part.fifo_status()  # type: ignore[attr-defined]
-            t_read = self.bus.now_ns()
+            t_read, t_level_done = status.level_read_ns, self.bus.now_ns()
             n = status.level
             counts = part.read_fifo(n) if n else np.empty((0, 3), np.int64)  # type: ignore[attr-defined]
             t_done = self.bus.now_ns()
@@ -425,7 +425,7 @@ class _PairedFifoBoard(I2CFifoBoard):
         if status.overflow:
             # stream mode: the newest samples, the oldest overwritten: the gap comes first
             timeline.overran(t_read, n)
-        return counts, (timeline.stamp(t_read, n) if n else np.empty(0, np.int64)), truths
+        return counts, (timeline.stamp(t_read, n, read_end_ns=t_level_done) if n else np.empty(0, np.int64)), truths
 
     def _popped_truth(self, role: str) -> list[Any]:
         if not self.bus.simulated:
@@ -582,7 +582,7 @@ class MPU9250Board(I2CFifoBoard):
         try:
             t_start = self.bus.now_ns()
             status = mpu.fifo_status()
-            t_read = self.bus.now_ns()
+            t_read, t_level_done = status.level_read_ns, self.bus.now_ns()
             n = status.level
             acc_c, gyr_c = mpu.read_fifo(n) if n else (np.empty((0, 3), np.int64),) * 2
             t_done = self.bus.now_ns()
@@ -608,7 +608,7 @@ class MPU9250Board(I2CFifoBoard):
             self._sim_dropped_base = self._sim_dropped()
             return SampleBlock.empty()
         lost = timeline.take_loss()
-        t_ns = timeline.stamp(t_read, n, full=overflow) if n else np.empty(0, np.int64)
+        t_ns = timeline.stamp(t_read, n, full=overflow, read_end_ns=t_level_done) if n else np.empty(0, np.int64)
         if overflow:  # counted when found; the next block carries it before its first row
             timeline.overflowed(t_reset, flagged=status.overflow)
         return self._fifo_block(t_ns, acc_c, gyr_c, temp, truth, lost)

@@ -157,8 +157,9 @@ class MPU9250(I2CDevice):
         """Whole samples waiting and the overflow flag (INT_STATUS, then FIFO_COUNT: reading
         the status first means a sample arriving in between is counted, never lost)."""
         overflow = bool(self.read_u8(INT_STATUS) & FIFO_OFLOW)
+        t = self.bus.now_ns()
         hi, lo = self.read_block(FIFO_COUNTH, 2)
-        return FifoStatus(((hi & 0x1F) << 8 | lo) // FIFO_FRAME_BYTES, overflow)
+        return FifoStatus(((hi & 0x1F) << 8 | lo) // FIFO_FRAME_BYTES, overflow, t)
 
     def read_fifo(self, frames: int) -> tuple[np.ndarray, np.ndarray]:
         """``frames`` samples from the FIFO, oldest first: (accel counts, gyro counts), each

@@ -73,10 +73,11 @@ class STFifoDriver:
 
     def fifo_status(self) -> FifoStatus:
         """Stored samples and whether the FIFO had filled (FIFO_SRC_REG, one byte)."""
+        t = self.bus.now_ns()  # type: ignore[attr-defined]
         src = self.read_u8(FIFO_SRC_REG)  # type: ignore[attr-defined]
         if src & SRC_OVRN:
-            return FifoStatus(FIFO_FRAMES, True)
-        return FifoStatus(0 if src & SRC_EMPTY else src & 0x1F, False)
+            return FifoStatus(FIFO_FRAMES, True, t)
+        return FifoStatus(0 if src & SRC_EMPTY else src & 0x1F, False, t)
 
     def read_fifo(self, frames: int) -> np.ndarray:
         """``frames`` samples, oldest first: (frames, 3) int64 counts, little-endian (BLE 0)."""

@@ -214,7 +214,11 @@ class ICM42688PBoard(FifoBoard):
 
     def _burst(self, max_samples: int) -> SampleBlock:
         part = self.part
+        # the anchor: the part latches its level during this transfer, the newest sample
+        # counted is at most its command phase younger than the transfer's start
+        host = self.transport.now_ns()
         status, count = part.read_status()
+        host_done = self.transport.now_ns()
         if count > icm42688p.FIFO_BYTES:
             # a count the part cannot hold: a garbled transfer or no part (SPI reads 0xFF)
             raise OSError(5, f"FIFO count {count} > {icm42688p.FIFO_BYTES}: bad transfer or part gone")
@@ -224,7 +228,6 @@ class ICM42688PBoard(FifoBoard):
         if packets == 0:
             return self._empty()
         pk = part.read_packets(packets * icm42688p.PACKET)
-        host = self.transport.now_ns()
         drained = packets * icm42688p.PACKET > count - icm42688p.PACKET
         overflow = self._overflow_pending
         header = pk["header"]
@@ -233,7 +236,7 @@ class ICM42688PBoard(FifoBoard):
             (pk["gyr20"] != icm42688p.INVALID_20BIT).all(axis=1)
         lost = self._take_loss()
         # a full FIFO's newest sample is older than the read: timed from the clock's fit
-        t = self.timeline.stamp(host, len(header), full=overflow)[ok]
+        t = self.timeline.stamp(host, len(header), full=overflow, read_end_ns=host_done)[ok]
         if overflow and drained:
             part.flush()
             self._overflow_pending = False
@@ -323,11 +326,12 @@ class BMI088Board(FifoBoard):
 
     def _read_acc(self) -> None:
         bmi = self._bmi
+        host = self.acc_transport.now_ns()  # the level read's start: the anchor
         level = self.acc.read_level()
+        host_done = self.acc_transport.now_ns()
         counts, full = self.acc.read_frames(level // bmi.ACC_FRAME * bmi.ACC_FRAME)
-        host = self.acc_transport.now_ns()
         if len(counts):
-            t = self.acc_timeline.stamp(host, len(counts), full=full)
+            t = self.acc_timeline.stamp(host, len(counts), full=full, read_end_ns=host_done)
             self._acc_t = np.concatenate([self._acc_t[-1:], t])
             self._acc_c = np.concatenate([self._acc_c[-1:], counts])
         if full:
@@ -336,17 +340,20 @@ class BMI088Board(FifoBoard):
 
     def _burst(self, max_samples: int) -> SampleBlock:
         gyro = self.gyro
+        # the anchor: the part latches its level during this transfer, the newest sample
+        # counted is at most its command phase younger than the transfer's start
+        host = self.transport.now_ns()
         frames, overrun = gyro.read_status()
+        host_done = self.transport.now_ns()
         self._overflow_pending |= overrun
         take = min(frames, max_samples)
         g = gyro.read_frames(take) if take else np.empty((0, 3), np.int64)
-        host = self.transport.now_ns()
         self._read_acc()
         if take == 0:
             return self._empty()
         overflow = self._overflow_pending
         lost = self._take_loss()
-        t = self.timeline.stamp(host, take, full=overflow)
+        t = self.timeline.stamp(host, take, full=overflow, read_end_ns=host_done)
         if overflow and take == frames:
             gyro.flush()
             self._overflow_pending = False
@@ -406,7 +413,11 @@ class ICM20948Board(FifoBoard):
         from ahrs_service.drivers.base import MAG_NEW, MAG_SATURATED, MAG_VALID
 
         icm, part = self._icm, self.part
+        # the anchor: the part latches its level during this transfer, the newest sample
+        # counted is at most its command phase younger than the transfer's start
+        host = self.transport.now_ns()
         overflow, count = part.read_status()
+        host_done = self.transport.now_ns()
         if count > icm.FIFO_BYTES + 64:
             raise OSError(5, f"FIFO count {count} > {icm.FIFO_BYTES}: bad transfer or part gone")
         self._overflow_pending |= overflow
@@ -414,11 +425,10 @@ class ICM20948Board(FifoBoard):
         if packets == 0:
             return self._empty()
         p = part.read_packets(packets)
-        host = self.transport.now_ns()
         drained = packets * icm.PACKET > count - icm.PACKET
         overflow = self._overflow_pending
         lost = self._take_loss()
-        t = self.timeline.stamp(host, packets, full=overflow)
+        t = self.timeline.stamp(host, packets, full=overflow, read_end_ns=host_done)
         if overflow and drained:
             part.flush()
             self._overflow_pending = False
