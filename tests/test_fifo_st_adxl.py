@@ -268,3 +268,36 @@ def test_board_fifo_off_polls():
 def test_board_fifo_read_hz_is_checked():
     with pytest.raises(ValueError, match="fifo_read_hz"):
         make_simulated_board("gy80", RampImu(), fifo_read_hz=0)
+
+
+# ------------------------------------------------------------------ odr_hz and the bus
+
+
+def test_odr_hz_sets_the_rows_rate_and_the_accelerometer_follows():
+    board = make_simulated_board("gy80", RampImu(), odr_hz=400)
+    assert board.parts["gyro"].rate_hz == 400 and board.parts["acc"].rate_hz == 400
+    mini = make_simulated_board("minimu9v2", RampImu(), odr_hz=190)
+    # the LSM303DLHC's slowest rate at or above the rows' (the pairing rule holds it)
+    assert mini.parts["gyro"].rate_hz == 190 and mini.parts["acc"].rate_hz == 200
+    mpu = make_simulated_board("mpu9250", RampImu(), odr_hz=500)
+    assert mpu.mpu.rate_hz == 500
+
+
+def test_rates_the_part_or_the_bus_cannot_do_are_refused_naming_the_key():
+    from ahrs_service import config
+
+    def error(board, **options):
+        with pytest.raises(config.ConfigError) as exc:
+            config.validate({"source": {"type": "simulated_i2c", "board": board, "board_options": options}})
+        msg = str(exc.value)
+        assert "\n" not in msg
+        return msg
+
+    assert error("gy80", odr_hz=1000).startswith("source.board_options.odr_hz = 1000 Hz: the gyroscope runs at 100, 200, 400, 800")
+    assert error("mpu9250", odr_hz=8000).startswith("source.board_options.odr_hz = 8000 Hz: the MPU-9250 runs at")
+    # the ADXL345 at 3200 Hz: one 6-byte read per entry, more than the 400 kHz bus carries
+    msg = error("gy80", acc_rate_hz=3200)
+    assert msg.startswith("source.board_options.acc_rate_hz = 3200 Hz:") and "400 kHz" in msg
+    # … which a faster bus clock carries
+    config.validate({"source": {"type": "simulated_i2c", "board": "gy80", "i2c_speed_hz": 1_000_000,
+                                "board_options": {"acc_rate_hz": 3200}}})

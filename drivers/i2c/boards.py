@@ -44,7 +44,7 @@ from ahrs_service.drivers.base import (
     LossCounts,
     SampleBlock,
 )
-from ahrs_service.drivers.i2c.adxl345 import ADXL345, SimulatedADXL345
+from ahrs_service.drivers.i2c.adxl345 import RATES_HZ as ADXL345_RATES_HZ, ADXL345, SimulatedADXL345
 from ahrs_service.drivers.i2c.ak8963 import AK8963, SimulatedAK8963
 from ahrs_service.drivers.i2c.bus import I2CBus, SimulatedI2CBus, SMBusI2C
 from ahrs_service.drivers.fifo import FifoTimeline, burst_flags, hold_pairing
@@ -53,6 +53,7 @@ from ahrs_service.drivers.i2c.st_fifo import FIFO_FRAMES as ST_FIFO_FRAMES
 from ahrs_service.drivers.i2c.hmc5883l import HMC5883L, SimulatedHMC5883L
 from ahrs_service.drivers.i2c.l3g4200d import L3G4200D, SimulatedL3G4200D
 from ahrs_service.drivers.i2c.l3gd20 import L3GD20, SimulatedL3GD20
+from ahrs_service.drivers.i2c.lsm303dlhc import ACC_RATES_HZ as LSM303_ACC_RATES_HZ
 from ahrs_service.drivers.i2c.lsm303dlhc import (
     LSM303DLHCAcc,
     LSM303DLHCMag,
@@ -76,9 +77,11 @@ class I2CBoard(ImuSource):
     DEPENDS: dict[str, str] = {}
 
     def __init__(self, bus: I2CBus, *, retries: int = 2, reinit_period_s: float = 0.05,
-                 own_bus: bool = False) -> None:
+                 own_bus: bool = False, i2c_speed_hz: float = 400_000) -> None:
         super().__init__()
         self.bus = bus
+        #: the bus clock (``source.i2c_speed_hz``): what the FIFO traffic is checked against
+        self.i2c_speed_hz = float(i2c_speed_hz)
         self.own_bus = own_bus
         self.retries = retries
         self.reinit_period_ns = int(reinit_period_s * 1e9)
@@ -214,6 +217,23 @@ class I2CBoard(ImuSource):
     def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, **options: Any) -> None:
         """Attaches this board's simulated parts to ``bus`` at the addresses in ``options``."""
         raise NotImplementedError
+
+
+#: bus bits one I2C read of n data bytes costs: start, address + W, register, restart,
+#: address + R, the data, stop — 9 clocks a byte
+def _i2c_read_bits(n: int) -> int:
+    return 9 * (n + 3) + 2
+
+
+def check_i2c_fifo_load(key: str, rate_hz: float, load_bits_per_s: float, parts: str,
+                        speed_hz: float, bus_name: str, margin: float = 0.75) -> None:
+    """Refuses an output rate whose FIFO traffic needs more than ``margin`` of the I2C bus
+    (one line naming the key, the need and the bus)."""
+    if load_bits_per_s > margin * speed_hz:
+        raise ValueError(
+            f"source.board_options.{key} = {rate_hz:g} Hz: the {parts} FIFO traffic on "
+            f"{bus_name} needs {load_bits_per_s / 1000:.0f} kbit/s, more than {margin:.0%} of "
+            f"the I2C bus's {speed_hz / 1000:g} kHz clock; lower {key} (or raise source.i2c_speed_hz)")
 
 
 class I2CFifoBoard(I2CBoard):
@@ -376,6 +396,40 @@ class _PairedFifoBoard(I2CFifoBoard):
 
     FIFO_ROLES = frozenset({"gyro", "acc"})
 
+    @staticmethod
+    def _rates(odr_hz: float | None, gyro_rate_hz: float, acc_rate_hz: float | None,
+               gyro_rates, acc_rates) -> tuple[float, float]:
+        """(gyro, accelerometer) rates: ``odr_hz`` is the rows' (gyroscope's) output rate and
+        wins over ``gyro_rate_hz``; the accelerometer runs at ``acc_rate_hz`` or, not given,
+        at its slowest supported rate at or above the rows' (the pairing rule holds it)."""
+        gyro = float(gyro_rate_hz if odr_hz is None else odr_hz)
+        if gyro not in gyro_rates:
+            key = "gyro_rate_hz" if odr_hz is None else "odr_hz"
+            raise ValueError(f"source.board_options.{key} = {gyro:g} Hz: the gyroscope runs at "
+                             f"{', '.join(f'{r:g}' for r in sorted(gyro_rates))} Hz")
+        if acc_rate_hz is None:
+            acc_rate_hz = min((r for r in acc_rates if r >= gyro), default=max(acc_rates))
+        return gyro, float(acc_rate_hz)
+
+    def _check_load(self) -> None:
+        """The two FIFOs' traffic at the drain rate against the bus clock."""
+        if not self.fifo:
+            return
+        gyro, acc = self.parts["gyro"], self.parts["acc"]
+        bits = 0.0
+        for part in (gyro, acc):
+            lay = part.fifo_layout
+            per_drain = part.rate_hz / self.fifo_read_hz
+            per = lay.frames_per_transfer or max(1, 32 // lay.frame_bytes)
+            transfers = max(1.0, per_drain / per)
+            bits += part.rate_hz * 9 * lay.frame_bytes + self.fifo_read_hz * (
+                transfers * _i2c_read_bits(0) + 2 * _i2c_read_bits(1))  # data, status reads
+        bits += self.fifo_read_hz * _i2c_read_bits(6)  # the magnetometer, once a drain
+        key, rate = (("acc_rate_hz", acc.rate_hz) if acc.rate_hz * (1 + 3 / acc.fifo_layout.frames_per_transfer)
+                     > gyro.rate_hz * 1.6 else ("odr_hz", gyro.rate_hz))
+        check_i2c_fifo_load(key, rate, bits, f"{type(gyro).PART} and {type(acc).PART}",
+                            self.i2c_speed_hz, getattr(self.bus, "name", "the I2C bus"))
+
     def _fifo_kw(self, fifo: bool, rate_hz: float, fifo_read_hz: float) -> dict[str, Any]:
         """A part's FIFO options: the watermark for draining at ``fifo_read_hz``."""
         return {"fifo": fifo, "watermark": watermark_frames(rate_hz, fifo_read_hz, ST_FIFO_FRAMES)}
@@ -475,10 +529,12 @@ class GY80(_PairedFifoBoard):
 
     def __init__(self, bus: I2CBus, *, gyro_address: int = 0x69, acc_address: int = 0x53,
                  mag_address: int = 0x1E, gyro_range_dps: int = 2000, gyro_rate_hz: float = 800,
-                 acc_range_g: int = 8, acc_rate_hz: float = 800, mag_range_ga: float = 1.3,
+                 acc_range_g: int = 8, acc_rate_hz: float | None = None, mag_range_ga: float = 1.3,
                  mag_rate_hz: float = 75, mag_averaging: int = 8, fifo: bool = True,
-                 fifo_read_hz: float = 200.0, **kw: Any) -> None:
+                 fifo_read_hz: float = 200.0, odr_hz: float | None = None, **kw: Any) -> None:
         super().__init__(bus, fifo=fifo, fifo_read_hz=fifo_read_hz, **kw)
+        gyro_rate_hz, acc_rate_hz = self._rates(odr_hz, gyro_rate_hz, acc_rate_hz,
+                                                L3G4200D.RATES_HZ, ADXL345_RATES_HZ)
         self.parts = {
             "gyro": L3G4200D(bus, gyro_address, range_dps=gyro_range_dps, rate_hz=gyro_rate_hz,
                              **self._fifo_kw(fifo, gyro_rate_hz, fifo_read_hz), **self._kw()),
@@ -487,6 +543,7 @@ class GY80(_PairedFifoBoard):
             "mag": HMC5883L(bus, mag_address, range_ga=mag_range_ga, rate_hz=mag_rate_hz,
                             averaging=mag_averaging, **self._kw()),
         }
+        self._check_load()
 
     @classmethod
     def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, *, gyro_address: int = 0x69,
@@ -506,10 +563,12 @@ class MinIMU9v2(_PairedFifoBoard):
 
     def __init__(self, bus: I2CBus, *, gyro_address: int = 0x6B, acc_address: int = 0x19,
                  mag_address: int = 0x1E, gyro_range_dps: int = 2000, gyro_rate_hz: float = 760,
-                 acc_range_g: int = 8, acc_rate_hz: float = 1344, mag_range_ga: float = 1.3,
+                 acc_range_g: int = 8, acc_rate_hz: float | None = None, mag_range_ga: float = 1.3,
                  mag_rate_hz: float = 220, fifo: bool = True, fifo_read_hz: float = 200.0,
-                 **kw: Any) -> None:
+                 odr_hz: float | None = None, **kw: Any) -> None:
         super().__init__(bus, fifo=fifo, fifo_read_hz=fifo_read_hz, **kw)
+        gyro_rate_hz, acc_rate_hz = self._rates(odr_hz, gyro_rate_hz, acc_rate_hz,
+                                                L3GD20.RATES_HZ, LSM303_ACC_RATES_HZ)
         self.parts = {
             "gyro": L3GD20(bus, gyro_address, range_dps=gyro_range_dps, rate_hz=gyro_rate_hz,
                            **self._fifo_kw(fifo, gyro_rate_hz, fifo_read_hz), **self._kw()),
@@ -518,6 +577,7 @@ class MinIMU9v2(_PairedFifoBoard):
             "mag": LSM303DLHCMag(bus, mag_address, range_ga=mag_range_ga, rate_hz=mag_rate_hz,
                                  **self._kw()),
         }
+        self._check_load()
 
     @classmethod
     def attach_simulated(cls, bus: SimulatedI2CBus, source: Any, *, gyro_address: int = 0x6B,
@@ -542,10 +602,18 @@ class MPU9250Board(I2CFifoBoard):
     def __init__(self, bus: I2CBus, *, address: int = 0x68, mag_address: int = 0x0C,
                  gyro_range_dps: int = 2000, acc_range_g: int = 8, rate_hz: float = 1000,
                  mag_rate_hz: float = 100, fifo: bool = True, fifo_read_hz: float = 100.0,
-                 **kw: Any) -> None:
+                 odr_hz: float | None = None, **kw: Any) -> None:
         super().__init__(bus, fifo=fifo, fifo_read_hz=fifo_read_hz, **kw)
-        self.mpu = MPU9250(bus, address, gyro_range_dps=gyro_range_dps, acc_range_g=acc_range_g,
-                           rate_hz=rate_hz, fifo=fifo, **self._kw())
+        if odr_hz is not None:  # odr_hz, the key every board has; rate_hz its older name
+            rate_hz = odr_hz
+        try:
+            self.mpu = MPU9250(bus, address, gyro_range_dps=gyro_range_dps, acc_range_g=acc_range_g,
+                               rate_hz=rate_hz, fifo=fifo, **self._kw())
+        except ValueError as exc:
+            if odr_hz is None or "rate_hz" not in str(exc):
+                raise
+            raise ValueError(f"source.board_options.odr_hz = {odr_hz:g} Hz: {exc}".replace(
+                "MPU-9250 rate_hz must be", "the MPU-9250 runs at")) from None
         self.parts = {"gyro": self.mpu,
                       "mag": AK8963(bus, mag_address, rate_hz=mag_rate_hz, **self._kw())}
         self.timeline: FifoTimeline | None = None  # the FIFO's samples on the part's clock
@@ -671,7 +739,7 @@ def board_class(name: str, options: dict[str, Any]) -> type[I2CBoard]:
     except KeyError:
         raise ValueError(f"unknown I2C board {name!r}; available: {', '.join(BOARDS)}") from None
     allowed = {p for c in (cls, I2CBoard) for p in inspect.signature(c.__init__).parameters
-               if p not in ("self", "bus", "kw", "own_bus")}
+               if p not in ("self", "bus", "kw", "own_bus", "i2c_speed_hz")}
     unknown = sorted(set(options) - allowed)
     if unknown:
         raise ValueError(f"board {name!r}: unknown option(s) {', '.join(unknown)}; "
@@ -679,17 +747,18 @@ def board_class(name: str, options: dict[str, Any]) -> type[I2CBoard]:
     return cls
 
 
-def make_board(name: str, bus_number: int = 1, **options: Any) -> I2CBoard:
+def make_board(name: str, bus_number: int = 1, i2c_speed_hz: float = 400_000, **options: Any) -> I2CBoard:
     """A board on the hardware bus ``/dev/i2c-<bus_number>`` (not opened yet: call ``open()``).
 
     options: the board's addresses, ranges and rates (e.g. ``gyro_rate_hz=400``); an unknown
     option raises ValueError listing the valid ones.
     """
     cls = board_class(name, options)
-    return cls(SMBusI2C(bus_number), own_bus=True, **options)
+    return cls(SMBusI2C(bus_number), own_bus=True, i2c_speed_hz=i2c_speed_hz, **options)
 
 
-def make_simulated_board(name: str, simulated_imu: Any, **options: Any) -> I2CBoard:
+def make_simulated_board(name: str, simulated_imu: Any, i2c_speed_hz: float = 400_000,
+                         **options: Any) -> I2CBoard:
     """A board whose parts are simulated register devices fed by ``simulated_imu``.
 
     simulated_imu: an object with ``physics(t) -> dict`` and ``clock`` (``now()`` in s), such
@@ -699,4 +768,4 @@ def make_simulated_board(name: str, simulated_imu: Any, **options: Any) -> I2CBo
     cls = board_class(name, options)
     bus = SimulatedI2CBus(simulated_imu.clock, name=f"sim-i2c[{name}]")
     cls.attach_simulated(bus, simulated_imu, **options)
-    return cls(bus, **options)
+    return cls(bus, i2c_speed_hz=i2c_speed_hz, **options)
