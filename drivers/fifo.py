@@ -313,6 +313,7 @@ class SimulatedFifo:
     def __init__(self, capacity: int, stop_on_full: bool = True, frame: int = 1) -> None:
         self.capacity = int(capacity)
         self.frame = int(frame)  # bytes of one sample (packet)
+        self.discarded = 0  # samples emptied unread by clear() (a flush), for tests
         self.stop_on_full = stop_on_full
         self.data = bytearray()
         self.overflowed = False
@@ -338,6 +339,8 @@ class SimulatedFifo:
         return out
 
     def clear(self) -> None:
+        """Emptied (a FIFO flush/reset): the whole samples in it are ``discarded`` unread."""
+        self.discarded += len(self.data) // self.frame
         self.data.clear()
         self.overflowed = False
 

@@ -258,7 +258,10 @@ class I2CFifoBoard(I2CBoard):
             raise ValueError(f"{self.NAME} fifo_read_hz must be > 0 Hz, got {fifo_read_hz!r}")
         self.fifo = bool(fifo)
         self.may_have_backlog = self.fifo
+        self.times_on_sensor_clock = self.fifo  # FIFO rows timed on the part's own clock
         self.fifo_read_hz = float(fifo_read_hz)
+        #: bursts per second (the service's loop may wake at this rate), None when polled
+        self.wakeup_rate_hz = self.fifo_read_hz if self.fifo else None
         self.fifo_read_period_ns = int(round(1e9 / fifo_read_hz))
         self._next_drain_ns = 0
         self._queue: deque[ImuSample] = deque()  # rows of drained blocks for read()

@@ -194,6 +194,7 @@ class BMI088Gyro(TransportDevice):
 
     def flush(self) -> None:
         self.write_u8(GYRO_FIFO_CONFIG_1, 0x40)
+        self.read_status()  # an overrun flagged before the flush must not show as a new one
 
     def read_status(self) -> tuple[int, bool]:
         """(frames waiting, overrun) from FIFO_STATUS."""

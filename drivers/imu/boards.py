@@ -80,6 +80,7 @@ class FifoBoard(ImuSource):
     def open(self) -> None:
         self._configure()
         self._opened = True
+        self._sim_base = self._sim_fifo_dropped() if self.transport.simulated else 0
 
     def _configure(self) -> None:
         raise NotImplementedError
@@ -141,6 +142,10 @@ class FifoBoard(ImuSource):
             else:
                 if len(block) or block.lost.total:
                     self._drained.append(block)
+            if self.transport.simulated:
+                # the twin's own count of the samples its FIFO turned away or had flushed
+                # unread since the first read, beside the driver's estimate (the stall tests)
+                self.diagnostics.extra["sim_fifo_dropped"] = self._sim_fifo_dropped() - self._sim_base
         # the queued rows, oldest first, up to max_samples and up to the next loss
         taken: list[SampleBlock] = []
         room = max_samples
@@ -170,6 +175,24 @@ class FifoBoard(ImuSource):
 
     def _burst(self, max_samples: int) -> SampleBlock:
         raise NotImplementedError
+
+    def _stale_start(self, part: Any) -> bool:
+        """An overflow found before the first read was timed (the FIFO filled between
+        ``open`` and the consumer's first read: the service sets up its log and links in
+        between): those samples predate the consumer, not a loss — the FIFO is flushed and
+        nothing counted (as on the I2C boards). True when that was the case."""
+        if self.timeline.anchored:
+            return False
+        part.flush()
+        self._overflow_pending = False
+        if self.transport.simulated:
+            _twin(self.transport).take_popped_truth()
+            self._sim_base = self._sim_fifo_dropped()
+        return True
+
+    def _sim_fifo_dropped(self) -> int:
+        fifo = _twin(self.transport).fifo
+        return fifo.dropped + fifo.discarded
 
     def _take_loss(self) -> LossCounts:
         return self.timeline.take_loss()
@@ -230,6 +253,8 @@ class ICM42688PBoard(FifoBoard):
         pk = part.read_packets(packets * icm42688p.PACKET)
         drained = packets * icm42688p.PACKET > count - icm42688p.PACKET
         overflow = self._overflow_pending
+        if overflow and self._stale_start(part):
+            return SampleBlock.empty()
         header = pk["header"]
         ok = ((header & 0xFC) == icm42688p.HIRES_HEADER) & \
             (pk["acc20"] != icm42688p.INVALID_20BIT).all(axis=1) & \
@@ -352,6 +377,9 @@ class BMI088Board(FifoBoard):
         if take == 0:
             return self._empty()
         overflow = self._overflow_pending
+        if overflow and self._stale_start(gyro):
+            _twin(self.transport).take_popped_truth()
+            return SampleBlock.empty()
         lost = self._take_loss()
         t = self.timeline.stamp(host, take, full=overflow, read_end_ns=host_done)
         if overflow and take == frames:
@@ -427,6 +455,8 @@ class ICM20948Board(FifoBoard):
         p = part.read_packets(packets)
         drained = packets * icm.PACKET > count - icm.PACKET
         overflow = self._overflow_pending
+        if overflow and self._stale_start(part):
+            return SampleBlock.empty()
         lost = self._take_loss()
         t = self.timeline.stamp(host, packets, full=overflow, read_end_ns=host_done)
         if overflow and drained:

@@ -178,6 +178,7 @@ class ICM20948(TransportDevice):
         self.bank(0)
         self.write_u8(FIFO_RST, 0x1F)
         self.write_u8(FIFO_RST, 0x00)
+        self.read_status()  # clears an overflow flag raised before the reset
 
     def read_status(self) -> tuple[bool, int]:
         """(overflow, FIFO count in bytes)."""

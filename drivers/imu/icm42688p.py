@@ -148,8 +148,11 @@ class ICM42688P(TransportDevice):
         self.flush()
 
     def flush(self) -> None:
-        """Empties the FIFO (after an overflow)."""
+        """Empties the FIFO (after an overflow), then reads INT_STATUS: a FIFO_FULL raised
+        before the flush (by samples turned away while the full FIFO was being read) must not
+        show at the next read as a new overflow."""
         self.write_u8(SIGNAL_PATH_RESET, FIFO_FLUSH)
+        self.read_status()
 
     def read_status(self) -> tuple[int, int]:
         """(INT_STATUS, FIFO count in bytes) in one 3-byte read (reading clears INT_STATUS)."""
