@@ -170,7 +170,7 @@ class FifoTimeline:
         if read_end_ns is not None:
             took = read_end_ns - host_ns
             self._shortest_read = min(self._shortest_read, took)
-            if took > 2 * self._shortest_read + 20_000:
+            if took > 2 * self._shortest_read + 200_000:
                 anchor = False
         t = self.clock.stamp(host_ns, self.next_index, n, anchor=anchor)
         self.next_index += n

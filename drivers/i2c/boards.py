@@ -444,6 +444,7 @@ class _PairedFifoBoard(I2CFifoBoard):
                                          events_key="acc_fifo_overflows", rows=False)
         self._acc_t = np.empty(0, np.int64)  # the accelerometer samples a row may still take
         self._acc_c = np.empty((0, 3), np.int64)
+        self._paired = False  # a row has had an accelerometer sample since the start
 
     def _timelines(self) -> list[FifoTimeline]:
         return [self.timeline, self.acc_timeline]
@@ -497,15 +498,19 @@ class _PairedFifoBoard(I2CFifoBoard):
             return SampleBlock.empty()
         a, ta, _ = got_acc
         if len(ta):
-            # the newest accelerometer sample stays: the next drain's first rows may take it
-            self._acc_t = np.concatenate([self._acc_t[-1:], ta])
-            self._acc_c = np.concatenate([self._acc_c[-1:], a])
+            # the last accelerometer samples stay (a FIFO's worth): the next drain's first rows
+            # may take one of them (the two parts' times are estimates, each off by tens of µs)
+            self._acc_t = np.concatenate([self._acc_t[-ST_FIFO_FRAMES:], ta])
+            self._acc_c = np.concatenate([self._acc_c[-ST_FIFO_FRAMES:], a])
         got = self._drain_part("gyro", self.timeline)
         if got is None:
             return SampleBlock.empty()
         g, t, truths = got
         idx = hold_pairing(t, self._acc_t)
+        if self._paired:  # after the start a row older than the kept history takes its oldest
+            idx = np.maximum(idx, 0)
         ok = idx >= 0  # rows before the accelerometer's first sample after start: not handed out
+        self._paired |= bool(ok.any())
         g, t, idx = g[ok], t[ok], idx[ok]
         truth = self._truth_rows([q for q, keep in zip(truths, ok) if keep], len(t))
         lost = self.timeline.take_loss()
