@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from pathlib import Path
 
 # modules that contribute subcommands, in the order they appear in --help
 _COMMAND_MODULES = [
@@ -86,6 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"ahrs-service: {path_error(exc)}", file=sys.stderr)
         return 2
+    except ValueError as exc:  # bad input a command found (an unknown estimator, a bad value)
+        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f"ahrs-service {args.command}: error: {text}", file=sys.stderr)
+        return 2
 
 
 def path_error(exc: OSError) -> str:
@@ -93,6 +98,10 @@ def path_error(exc: OSError) -> str:
     what = {FileNotFoundError: "does not exist", IsADirectoryError: "is a directory, not a file",
             NotADirectoryError: "is not a directory", PermissionError: "permission denied"}
     reason = next((text for cls, text in what.items() if isinstance(exc, cls)), None)
+    if isinstance(exc, FileNotFoundError) and exc.filename is not None:
+        parent = Path(exc.filename).parent
+        if not parent.is_dir():  # a file to be written: its folder is what is missing
+            reason = f"its folder {parent} does not exist"
     reason = reason or exc.strerror or str(exc)
     reason = reason.splitlines()[0] if reason else type(exc).__name__
     return f"{exc.filename}: {reason}" if exc.filename is not None else reason

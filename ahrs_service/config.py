@@ -44,7 +44,10 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-SOURCE_TYPES = ("simulated_i2c", "simulated_spi", "simulated_can", "simulated", "i2c", "spi", "can", "recorded")
+SOURCE_TYPES = ("simulated_i2c", "simulated_spi", "simulated_can", "simulated", "i2c", "spi", "can", "recorded",
+                "mavlink")
+#: source.mavlink_imu: the autopilot's IMU message (drivers/mavlink_imu.py, IMU_MESSAGES)
+MAVLINK_IMUS = ("highres", "scaled", "scaled2", "scaled3", "raw")
 BOARDS = ("gy80", "minimu9v2", "mpu9250", "icm42688p", "icm20948", "bmi088")
 PROFILES = ("static", "validation", "figure8")
 IDENTITIES = ("standalone", "companion")
@@ -137,8 +140,17 @@ def _path(must_exist: bool = False) -> Checker:
     return check
 
 
+def _directory(key: str, v: Any) -> str:
+    """A folder to write into: a non-empty path (made if missing; one that cannot be written
+    is the writer's to report and retry at run time, the service runs on meanwhile)."""
+    v = _path()(key, v)
+    if not v.strip():
+        raise ConfigError(f"{key}: {v!r} is empty; accepted: a folder path (e.g. \"flight-logs\")")
+    return v
+
+
 _ENDPOINT_HELP = ("udpout:HOST:PORT, udpin:HOST:PORT, udp:HOST:PORT, udpbcast:HOST:PORT, tcp:HOST:PORT, "
-                  "tcpin:HOST:PORT (PORT 1..65535) or a serial device /dev/NAME[,BAUD]")
+                  "tcpin:HOST:PORT (PORT 1..65535) or a serial device by absolute path /dev/NAME[,BAUD]")
 
 
 def _endpoint(key: str, v: Any) -> str:
@@ -151,7 +163,8 @@ def _endpoint(key: str, v: Any) -> str:
         if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
             raise ConfigError(f"{key}: {v!r} has no valid HOST:PORT; accepted: {_ENDPOINT_HELP}")
         return v
-    if v.startswith("/dev/") or v.upper().startswith("COM"):
+    # an absolute path: /dev/ttyAMA0, a udev link /dev/serial/by-id/..., a pty link elsewhere
+    if v.startswith("/") or v.upper().startswith("COM"):
         device, sep, baud = v.partition(",")
         if sep and (not baud.isdigit() or not 50 <= int(baud) <= 20_000_000):
             raise ConfigError(f"{key}: {v!r} has baud {baud!r}; accepted: {_ENDPOINT_HELP}")
@@ -174,6 +187,28 @@ def _endpoints(key: str, v: Any) -> list[str]:
     return out
 
 
+#: [mavlink.odometry]: ODOMETRY out for an autopilot (protocols/mavlink/odometry.py, docs/autopilot.md)
+ODOMETRY_RULES = ("px4", "ardupilot")
+ODOMETRY_DEFAULTS = {"rate_hz": 0.0, "rules": "px4"}
+
+
+def _odometry_table(key: str, v: Any) -> dict:
+    """rate_hz: 0 (off) or 1..200 Hz; rules: which autopilot's handler the fields follow."""
+    given = _table(key, v)
+    out = dict(ODOMETRY_DEFAULTS)
+    for k, value in given.items():
+        if k == "rate_hz":
+            rate = _number(0.0, 200.0)(f"{key}.rate_hz", value)
+            if 0.0 < rate < 1.0:
+                raise ConfigError(f"{key}.rate_hz: {value!r} is too slow; accepted: 0 (off) or a number in [1, 200]")
+            out[k] = rate
+        elif k == "rules":
+            out[k] = _choice(ODOMETRY_RULES)(f"{key}.rules", value)
+        else:
+            raise ConfigError(f"{key}.{k}: unknown key; accepted keys: {', '.join(ODOMETRY_DEFAULTS)}")
+    return out
+
+
 def _finite_table(key: str, v: Any) -> dict:
     """A table whose numbers are all finite (estimator parameters, board options)."""
     v = _table(key, v)
@@ -181,6 +216,18 @@ def _finite_table(key: str, v: Any) -> dict:
         if isinstance(x, float) and not math.isfinite(x):
             raise ConfigError(f"{key}.{k}: {x!r} is not a finite number")
     return v
+
+
+def _vector3(lo: float, hi: float) -> Checker:
+    """Three finite numbers, each in [lo, hi]."""
+    number = _number(lo, hi)
+
+    def check(key: str, v: Any) -> list[float]:
+        if not isinstance(v, list) or len(v) != 3:
+            raise ConfigError(f"{key}: {v!r} is not a list of 3 numbers; accepted: 3 numbers in [{lo}, {hi}]")
+        return [number(f"{key}[{i}]", x) for i, x in enumerate(v)]
+
+    return check
 
 
 def _optional(check: Checker) -> Checker:
@@ -226,6 +273,10 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "profile": ("validation", _choice(PROFILES)),
         "loop_profile": (True, _boolean),
         "sensor_errors": (True, _boolean),
+        # simulated sources: a sinusoidal vibration of the airframe, m/s² per body axis, at
+        # vibration_hz (0: none): what VIBRATION measures (docs/simulator.md)
+        "vibration_mss": ([0.0, 0.0, 0.0], _vector3(0.0, 1000.0)),
+        "vibration_hz": (0.0, _number(0.0, 10_000.0)),
         "seed": (0, _number(0, None, integer=True)),
         "can_interface": ("virtual", _string),
         "can_channel": ("ahrs", _string),
@@ -233,6 +284,13 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "can_node_id": (0, _number(0, 127, integer=True)),
         "recorded_path": ("", _path(must_exist=True)),
         "recorded_realtime": (True, _boolean),
+        # source.type = "mavlink": the autopilot's IMU over its link (docs/autopilot.md); the
+        # same connection carries TIMESYNC, ODOMETRY and the attitude monitor
+        "mavlink_connection": ("udpin:127.0.0.1:14540", _endpoint),
+        "mavlink_imu": ("highres", _choice(MAVLINK_IMUS)),
+        "mavlink_imu_hz": (200.0, _number(1.0, 2000.0)),
+        # RAW_IMU counts -> m/s2, rad/s, uT per count; unset keys: ArduPilot's (mG, mrad/s, mgauss)
+        "mavlink_raw_scale": ({}, _finite_table),
     },
     "estimator": {
         "name": ("robust", _estimator_name),
@@ -247,6 +305,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "attitude_quaternion_hz": (50.0, _stream_rate(1000.0)),
         "highres_imu_hz": (0.0, _stream_rate(1000.0)),
         "sys_status_hz": (1.0, _stream_rate(50.0)),
+        "vibration_hz": (2.0, _stream_rate(50.0)),
     },
     "mounting": {
         "roll_deg": (0.0, _number(-180.0, 180.0)),
@@ -259,6 +318,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "identity": ("standalone", _choice(IDENTITIES)),
         "system_id": (1, _number(1, 255, integer=True)),
         "signing_key": ("", _signing_key),
+        "odometry": (dict(ODOMETRY_DEFAULTS), _odometry_table),
     },
     # where the vehicle flies: when latitude and longitude are set, the magnetic declination
     # comes from the World Magnetic Model for today (it replaces estimator.declination_deg)
@@ -269,11 +329,18 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
     },
     "log": {
         "enabled": (True, _boolean),
-        "directory": ("flight-logs", _path()),
+        "directory": ("flight-logs", _directory),
         "rotate_mb": (0.0, _number(0.0, 1_000_000.0)),  # 0 = no size rotation; at most 1 TB
         "rotate_minutes": (0.0, _number(0.0, 525_600.0)),  # 0 = no time rotation; at most a year
         # the estimator's diagnostics (rest, rejections, form) in /attitude this often, Hz
         "diagnostics_hz": (10.0, _number(0.0, 1000.0)),
+    },
+    # the autopilot's attitude against ours when an autopilot link is up (docs/autopilot.md)
+    "monitor": {
+        "enabled": (True, _boolean),
+        "threshold_deg": (5.0, _number(0.1, 180.0)),
+        "hold_s": (2.0, _number(0.0, 600.0)),
+        "rate_hz": (5.0, _number(0.1, 50.0)),  # NAMED_VALUE_FLOAT of the disagreement, Hz
     },
     # Foxglove WebSocket live view (extra "live"): docs/live.md
     "live": {
@@ -401,6 +468,13 @@ def _check_source(section: dict[str, Any]) -> None:
         _check_fifo_board(section, bus)
     elif section["board_options"] and section["type"] in ("i2c", "simulated_i2c"):
         _check_board_options(section["board"], dict(section["board_options"]), section["i2c_speed_hz"])
+    if section["mavlink_raw_scale"]:
+        from ahrs_service.drivers.mavlink_imu import parse_raw_scale
+
+        try:
+            parse_raw_scale(section["mavlink_raw_scale"])
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
     if section["type"] == "recorded" and not section["recorded_path"]:
         raise ConfigError("source.recorded_path: required when source.type = 'recorded' (an .mcap log or a BROAD .hdf5 file)")
 
@@ -455,13 +529,38 @@ def _check_fifo_board(section: dict[str, Any], bus: str) -> None:
         raise ConfigError(f"source.board_options: {exc}") from None
 
 
+#: the largest magnitude of each [calibration] value that a real sensor's calibration can
+#: have (the terms are offsets of a few units and near-identity matrices); beyond it a value is
+#: a typo, and a finite but absurd one (1e300 rad/s of gyro bias) would overflow the estimate
+CALIBRATION_LIMITS = {
+    "gyro_bias": 10.0,  # rad/s (a gyro off by ~570 °/s is broken, not biased)
+    "acc_bias": 50.0,  # m/s²
+    "acc_scale": 10.0,  # each matrix element
+    "mag_hard_iron": 5000.0,  # µT (the earth field is 25–65 µT; a nearby magnet may add hundreds)
+    "mag_soft_iron": 100.0,  # each matrix element
+    "mounting": 1.0,  # each element of a rotation matrix
+    "mounting_rpy_deg": 360.0,  # each angle, degrees
+}
+
+
 def _check_calibration(given: dict[str, Any]) -> dict[str, Any]:
+    import numpy as np
+
     from ahrs_service.drivers.calibration import SensorCalibration
 
+    for key, value in given.items():  # before from_dict: its matrix checks would overflow on 1e300
+        limit = CALIBRATION_LIMITS.get(key)
+        try:
+            values = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            continue  # not numbers: from_dict names the key and the shape it wants
+        if limit is not None and values.size and np.isfinite(values).all() and np.abs(values).max() > limit * (1 + 1e-9):
+            raise ConfigError(f"calibration.{key}: {value!r} is out of range; accepted: each value within "
+                              f"±{limit:g} (calibration key {key!r})")
     try:
         SensorCalibration.from_dict(given)
     except ValueError as exc:
-        raise ConfigError(f"calibration.{exc}" if not str(exc).startswith("calibration") else str(exc)) from None
+        raise ConfigError(str(exc) if str(exc).startswith("calibration") else f"calibration: {exc}") from None
     return dict(given)
 
 

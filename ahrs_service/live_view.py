@@ -40,7 +40,8 @@ _H = STATE_HEADER.slices  # the state header every estimator shares
 PARAM_PREFIX = "estimator."
 SET_WAIT_S = 1.0  # how long a client's parameter set waits for the loop to apply it, s
 # channels the live view serves: the log's, less those only a file needs
-LIVE_TOPICS = ("/imu/raw", "/attitude", "/attitude/truth", "/tf", "/loop", "/log", "/params", "/config", "/mavlink")
+LIVE_TOPICS = ("/imu/raw", "/attitude", "/attitude/truth", "/tf", "/loop", "/log", "/params", "/config", "/mavlink",
+               "/autopilot/attitude", "/monitor")  # the last two beside an autopilot (attitude monitor)
 
 
 class LiveViewUnavailable(RuntimeError):

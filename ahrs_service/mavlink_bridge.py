@@ -5,12 +5,14 @@ Parameters the ground station sees (PARAM_REQUEST_LIST):
 * ``EST_<NAME>`` — every tuning parameter of the running estimator (e.g. ``EST_BETA``),
   applied live between two samples and recorded in the flight log;
 * ``MAG_DECL_DEG`` — magnetic declination added to the published heading (true north);
-* ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ`` — publishing rates;
+* ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ``, ``RATE_VIBE_HZ`` —
+  publishing rates;
 * ``LOOP_RATE_HZ`` — the estimation rate (read-only: change it in the configuration).
 """
 
 from __future__ import annotations
 
+import contextlib
 from typing import TYPE_CHECKING, Any
 
 from ahrs_service import estimators
@@ -18,6 +20,9 @@ from ahrs_service.drivers.base import MAG_NEW
 from ahrs_service.estimators import STATE_HEADER
 from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, ParameterTable, SensorStatus, Telemetry
 from ahrs_service.protocols.mavlink.dialect import mavlink
+from ahrs_service.protocols.mavlink.odometry import RULES as ODOMETRY_RULES
+from ahrs_service.protocols.mavlink.odometry import AttitudeEstimate, OdometrySender
+from ahrs_service.protocols.mavlink.timesync import TimeSync
 
 if TYPE_CHECKING:
     from ahrs_service.config import Config
@@ -32,6 +37,7 @@ RATE_PARAMS = {
     "RATE_ATTQ_HZ": "ATTITUDE_QUATERNION",
     "RATE_HRIMU_HZ": "HIGHRES_IMU",
     "RATE_SYSST_HZ": "SYS_STATUS",
+    "RATE_VIBE_HZ": "VIBRATION",
 }
 RATE_CONFIG_KEYS = {
     "HEARTBEAT": "heartbeat_hz",
@@ -39,6 +45,7 @@ RATE_CONFIG_KEYS = {
     "ATTITUDE_QUATERNION": "attitude_quaternion_hz",
     "HIGHRES_IMU": "highres_imu_hz",
     "SYS_STATUS": "sys_status_hz",
+    "VIBRATION": "vibration_hz",
 }
 
 
@@ -109,6 +116,58 @@ class MavlinkBridge:
             mag_calibration=lambda action: self._start_collection("mag"),
             accel_calibration=lambda action: self._start_collection("accel"),
             max_rate_hz=1e9 / io_period_ns,
+        )
+        # beside an autopilot the service hands over the link's TIMESYNC estimate and the lock
+        # its reader thread updates it under (docs/autopilot.md, "TIMESYNC")
+        self.timesync: TimeSync | None = None
+        self.timesync_lock: Any = contextlib.nullcontext()
+        #: the autopilot link's send (AutopilotLink.send), set by the service beside an autopilot:
+        #: ODOMETRY goes there as well as on the endpoints
+        self.autopilot_send: Any = None
+        self.odometry = self._odometry_sender(mcfg["odometry"])
+
+    # ------------------------------------------------------------------ ODOMETRY (issue 17)
+    def _odometry_sender(self, ocfg: dict[str, Any]) -> OdometrySender | None:
+        if ocfg["rate_hz"] <= 0.0:
+            return None
+        self._odometry_epoch = 0
+        self._odometry_ref: tuple[Any, float, bool] | None = None
+        return OdometrySender(self._send_odometry, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]])
+
+    def _send_odometry(self, msg: Any) -> None:
+        self.component.send(msg)
+        if self.autopilot_send is not None:
+            self.autopilot_send(msg)
+
+    def odometry_estimate(self, now_ns: int) -> AttitudeEstimate | None:
+        """The published attitude and its variances for ODOMETRY; None before the first sample.
+        The epoch goes up when the estimator object, its initialisation or the declination
+        changes (the heading reference moved: ODOMETRY's reset_counter follows)."""
+        svc = self.svc
+        pipeline = svc.pipeline
+        sample = pipeline.last_sample
+        if sample is None:
+            return None
+        if pipeline.samples != self._samples_seen:
+            self._samples_seen, self._fresh_at_ns = pipeline.samples, now_ns
+        fresh = now_ns - self._fresh_at_ns <= STALE_NS
+        est = svc.estimator
+        initialised = bool(est.state[STATE_HEADER.index.initialised])
+        ref = (id(est), pipeline.declination_deg, initialised)
+        if self._odometry_ref is not None and ref != self._odometry_ref:
+            self._odometry_epoch += 1
+        self._odometry_ref = ref
+        var = est.attitude_variance()
+        heading = pipeline.use_mag and not pipeline.reduced
+        return AttitudeEstimate(
+            t_ns=int(sample.t_ns),
+            q=pipeline.published_quaternion(),
+            body_rate=pipeline.body_rates(),
+            roll_var=var.roll,
+            pitch_var=var.pitch,
+            yaw_var=var.yaw if heading else float("nan"),
+            healthy=initialised and fresh,
+            epoch=self._odometry_epoch,
         )
 
     # ------------------------------------------------------------------ parameters
@@ -190,13 +249,16 @@ class MavlinkBridge:
             accel=SensorStatus(True, True, health["accel_healthy"]),
             mag_status=SensorStatus(health["mag_present"], mag_used, health["mag_healthy"]),
             estimator=svc.estimator.name,
-            ahrs_healthy=bool(svc.estimator.state[STATE_HEADER.index.initialised]),
+            # a stale estimate is an unhealthy AHRS, as ArduPilot's GCS::update_sensor_status_flags
+            # clears MAV_SYS_STATUS_AHRS when ahrs.healthy() fails (docs/mavlink.md, "Health per sensor")
+            ahrs_healthy=bool(svc.estimator.state[STATE_HEADER.index.initialised]) and fresh,
             reduced_mode=pipeline.reduced or not pipeline.use_mag,
             overruns=st.overruns,
             load_percent=svc.last_load_percent,
             comm_errors=diag.bus_errors,
             sensor_faults=diag.saturated + diag.non_finite,
             lost_samples=diag.lost.total,
+            vibration=svc.vibration.levels(),
         )
 
     def tick(self, now_ns: int) -> None:
@@ -208,12 +270,18 @@ class MavlinkBridge:
         component = self.component
         if component.due(now_ns):
             component.publish(now_ns, self.telemetry(now_ns))
+        odometry = self.odometry
+        if odometry is not None and odometry.due(now_ns):
+            odometry.timesync = self.timesync
+            estimate = self.odometry_estimate(now_ns)
+            with self.timesync_lock:
+                odometry.tick(now_ns, estimate)
         if now_ns >= self._next_poll_ns:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)
 
-    def statustext(self, severity: int, text: str) -> None:
-        self.component.statustext(severity, text)
+    def statustext(self, severity: int, text: str, kind: str | None = None) -> None:
+        self.component.statustext(severity, text, kind)
 
     def stats(self) -> dict[str, Any]:
         return self.component.stats.as_dict()

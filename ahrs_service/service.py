@@ -33,6 +33,7 @@ from ahrs_service.calibration.storage import calibration_from_config_dict, calib
 from ahrs_service.pipeline import EstimationPipeline
 from ahrs_service.scheduler import DataReadyScheduler, FixedRateScheduler, LoopStats
 from ahrs_service.sources import make_source
+from ahrs_service.vibration import VibrationMonitor
 from ahrs_service.systemd import Notifier
 
 _H = STATE_HEADER.slices  # the state header every estimator shares
@@ -69,7 +70,10 @@ class Service:
         self.mavlink = None
         self.log_writer = None
         self.live = None  # the Foxglove live view (live_view.LiveView) when [live] enabled
+        self.monitor = None  # the autopilot attitude monitor (attitude_monitor.py) beside an autopilot
         self.live_calibration = LiveCalibrator(max_rate_hz=cfg.rates["estimation_hz"])
+        self.vibration = VibrationMonitor()  # VIBRATION's levels and clipping, from every sample row
+        self._earlier_log_writers: list[Any] = []  # closed by reloads; for the final summary
         # the running fit of a live calibration (see apply_live_calibration) and its kind
         self._live_fit: Future[LiveCalibrationResult] | None = None
         self._live_fit_kind = ""
@@ -80,10 +84,10 @@ class Service:
         self._build_estimation(cfg)
         self.scheduler = FixedRateScheduler(cfg.rates["estimation_hz"])
         t0 = time.monotonic()
-        self.pipeline.warm_up()
+        self._warm_up()
         if time.monotonic() - t0 > 1.0:
             log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
-        self.source = make_source(cfg.source, cfg.rates["estimation_hz"])
+        self.source = make_source(cfg.source, cfg.rates["estimation_hz"], cfg.mavlink["system_id"])
         self.source.open()
         if not self.source.has_mag:
             # a part without magnetometer (ICM-42688-P, BMI088): no start waiting for a field
@@ -96,6 +100,87 @@ class Service:
         self._open_log(cfg)
         self._open_mavlink(cfg)
         self._open_live(cfg)
+        self._open_monitor(cfg)
+        self._open_timesync()
+
+    def _open_timesync(self) -> None:
+        """Beside an autopilot (source.type = "mavlink"): ODOMETRY goes on the autopilot link
+        too, stamped through the link's TIMESYNC estimate, which is logged on /timesync after
+        each accepted sample."""
+        self._autopilot_link = getattr(self.source, "autopilot_link", None)
+        self._timesync_logged_ns = None
+
+    def _timesync_tick(self) -> None:
+        # the link replaces its estimator when the autopilot (re)appears: look it up each time
+        link = self._autopilot_link
+        bridge = self.mavlink
+        bridge.timesync, bridge.timesync_lock = link.timesync, link.timesync_lock
+        bridge.autopilot_send = link.send  # ODOMETRY to the autopilot too
+        with link.timesync_lock:
+            status = link.timesync.last_status
+        if status is not None and status.local_ns != self._timesync_logged_ns and self.log_writer is not None:
+            self._timesync_logged_ns = status.local_ns
+            self.log_writer.write_timesync(status)
+
+    def _open_monitor(self, cfg: config_mod.Config) -> None:
+        """The attitude monitor, when the source has an autopilot link (source.type = "mavlink")."""
+        if self.monitor is not None:  # a reload with other [monitor] settings
+            self.monitor.close()
+            self.monitor = None
+        link = getattr(self.source, "autopilot_link", None)
+        if link is None or not cfg.monitor["enabled"]:
+            return
+        from ahrs_service.attitude_monitor import AttitudeMonitor
+
+        mon = cfg.monitor
+        self.monitor = AttitudeMonitor(link, threshold_deg=mon["threshold_deg"], hold_s=mon["hold_s"])
+        self._monitor_period_ns = int(1e9 / mon["rate_hz"])
+        self._next_monitor_ns = 0
+
+    def _monitor_tick(self, now: int) -> None:
+        """Compares the autopilot's attitudes received so far with ours; at ``[monitor] rate_hz``
+        publishes the disagreement (NAMED_VALUE_FLOAT); logs every comparison; reports the
+        warning and the all-clear (STATUSTEXT through the rate limit, journal, /log)."""
+        from ahrs_service.protocols.mavlink.dialect import mavlink
+
+        comparisons, events = self.monitor.update(self.pipeline.declination_deg)
+        if self.log_writer is not None:
+            for d in comparisons:
+                self.log_writer.write_autopilot_attitude(d)
+        for event in events:
+            self.mavlink.component.statustext(event.severity, event.text, kind="attitude monitor")
+            self.log_event(event.text, event.severity)
+        if now >= self._next_monitor_ns and self.monitor.latest is not None:
+            self._next_monitor_ns = now + self._monitor_period_ns
+            boot_ms = (now - self.boot_ns) // 1_000_000
+            for name, value in self.monitor.named_values():
+                self.mavlink.component.send(
+                    mavlink.MAVLink_named_value_float_message(boot_ms & 0xFFFFFFFF, name.encode(), value))
+            if self.live is not None:  # viewers get the latest comparison at the same rate
+                from ahrs_service.logs import schemas
+
+                d = self.monitor.latest
+                q_ap = list(d.q_autopilot)
+                self.live.publish("/autopilot/attitude", d.t_ns, schemas.attitude_message(d.t_ns, q_ap, "autopilot"))
+                self.live.publish("/tf", d.t_ns, schemas.tf_message(d.t_ns, q_ap, child="autopilot"))
+                self.live.publish("/monitor", d.t_ns, schemas.monitor_message(
+                    d.t_ns, d.total_deg, d.inclination_deg, d.heading_deg, q_ap, list(d.q_estimate)))
+
+    def _warm_up(self) -> None:
+        """Compiles the pipeline's kernels. numba saves each new kernel to its cache after
+        compiling it and raises when the disk refuses the file (full, read-only); the kernel
+        is in memory all the same, so the next call goes on to the next kernel: a full disk
+        costs the cache, never the start."""
+        for attempt in range(64):  # bounded: one kernel more per attempt, a pipeline has ~10
+            try:
+                self.pipeline.warm_up()
+                VibrationMonitor.warm_up()
+                return
+            except OSError as exc:
+                if attempt == 0:
+                    log.warning("compiled kernels not cached: %s", exc)
+        self.pipeline.warm_up()
+        VibrationMonitor.warm_up()
 
     def _open_live(self, cfg: config_mod.Config) -> None:
         if cfg.live["enabled"]:
@@ -162,6 +247,11 @@ class Service:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
         self.mavlink = MavlinkBridge(self, cfg, io_period_ns=IO_PERIOD_NS)
+        link = getattr(self.source, "autopilot_link", None)
+        if link is not None and self.mavlink.odometry is not None:
+            # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
+            self.mavlink.odometry.send = link.send
+            self.mavlink.timesync = link.clock
 
     # ------------------------------------------------------------------ control
     def request_stop(self, *_: Any) -> None:
@@ -175,10 +265,11 @@ class Service:
         signal.signal(signal.SIGINT, self.request_stop)
         signal.signal(signal.SIGHUP, self.request_reload)
 
-    def report(self, text: str, severity: int = 6) -> None:
-        """A health message: STATUSTEXT on MAVLink, the service log and /log."""
+    def report(self, text: str, severity: int = 6, kind: str | None = None) -> None:
+        """A health message: STATUSTEXT on MAVLink, the service log and /log. ``kind`` puts
+        the STATUSTEXT under the rate limit of that kind (``statustext_limit``)."""
         if self.mavlink is not None:
-            self.mavlink.statustext(severity, text)
+            self.mavlink.statustext(severity, text, kind)
         self.log_event(text, severity)
 
     def log_event(self, text: str, severity: int = 6) -> None:
@@ -223,6 +314,7 @@ class Service:
         next_diag = next_io
         diag_due = False  # the next logged sample carries the estimator's diagnostics
         live = self.live
+        monitor = self.monitor
         ready_sent = False
         was_reduced = pipeline.reduced
         while not self._stop:
@@ -234,6 +326,8 @@ class Service:
                 if self.live_calibration.active and self.live_calibration.add(sample):
                     self.start_live_fit()
                 cal = pipeline.process(sample)
+                if cal is not None:
+                    self.vibration.update(pipeline.row, cal.flags)
                 if cal is not None and writer is not None:
                     state = pipeline.estimator.state
                     writer.write_sample(
@@ -242,6 +336,8 @@ class Service:
                         truth_q=cal.truth_q, diagnostics=self._diagnostics_for_log() if diag_due else None,
                     )
                     diag_due = False
+                if cal is not None and monitor is not None:
+                    monitor.add_estimate(cal.t_ns, pipeline.estimator.state[_H.q])
             # one attribute test per tick while no fit runs; done() takes a lock only during one
             if self._live_fit is not None and self._live_fit.done():
                 self.apply_live_calibration()
@@ -252,6 +348,10 @@ class Service:
                 self.mavlink.tick(now)
                 if live is not None:
                     live.tick(now)
+                if monitor is not None:
+                    self._monitor_tick(now)
+                if self._autopilot_link is not None:
+                    self._timesync_tick()
                 if diag_ns is not None and now >= next_diag:
                     next_diag = now + diag_ns
                     diag_due = True
@@ -275,6 +375,7 @@ class Service:
                 self._reload = False
                 self.reload()
                 sched, pipeline, writer, live = self.scheduler, self.pipeline, self.log_writer, self.live
+                monitor = self.monitor
                 was_reduced = pipeline.reduced  # a new pipeline starts in full form
                 _freeze_heap()
             if end_ns is not None and now >= end_ns:
@@ -297,8 +398,7 @@ class Service:
         """Lost IMU samples, total and by cause: "0" or "12 (fifo_overflow 12)"."""
         if lost is None:
             lost = self.source.diagnostics.lost if self.source is not None else LossCounts()
-        causes = [f"{k} {v}" for k, v in lost.as_dict().items() if k != "total" and v]
-        return f"{lost.total} ({', '.join(causes)})" if causes else str(lost.total)
+        return lost.summary()
 
     def _housekeeping(self, now: int) -> None:
         st = self.scheduler.stats()
@@ -320,27 +420,56 @@ class Service:
             self.report(f"sensor lost: {diag.get('last_error', '')}" if lost else "sensor back", 3 if lost else 6)
         if self.live is not None or self.log_writer is not None:
             loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced)
+            if self.log_writer is not None:
+                loop["log"] = self.log_writer.stats()  # docs/logs.md: /loop `log`, what was not logged
+            link = getattr(self.source, "autopilot_link", None)
+            if link is not None:  # the link, TIMESYNC's offset and drift (docs/autopilot.md)
+                loop["autopilot"] = link.status()
             if self.live is not None:
                 self.live.publish("/loop", now, loop)
         if self.log_writer is not None:
             self.log_writer.write_loop(now, loop)
             if self.mavlink is not None:
                 self.log_writer.write_mavlink(now, self.mavlink.stats())
-            status = self.log_writer.status
-            if status != self._last_log_status and status != "starting":
-                self._last_log_status = status
-                if status == "error":
-                    self.report(f"flight log: {self.log_writer.last_error}", 3)
-                elif status == "ok" and self._log_failed_before:
-                    self.report("flight log: writing again", 6)
-                self._log_failed_before |= status == "error"
+            self._report_log_status(self.log_writer)
+
+    def _report_log_status(self, writer: Any) -> None:
+        """STATUSTEXT + journal + /log when logging stops (the path and the system's error
+        text) and when it resumes (what the outage cost); rate-limited as kind "flight log"."""
+        status = writer.status
+        if status == self._last_log_status or status == "starting":
+            return
+        self._last_log_status = status
+        if status == "error":
+            self.report(f"flight log stopped: {writer.last_error}; retrying", 3, kind="flight log")
+        elif status == "ok" and writer.last_outage is not None:
+            out = writer.last_outage
+            self.report(f"flight log resumed: {out.samples} samples ({out.seconds:.1f} s) not logged", 5,
+                        kind="flight log")
+
+    def log_summary(self) -> str:
+        """The flight log's part of the final summary: files, and what is not in them (over
+        every writer of the run: a reload that changed [log] closed the earlier ones)."""
+        writers = [*self._earlier_log_writers, *([self.log_writer] if self.log_writer is not None else [])]
+        if not writers:
+            return "log: off"
+        w = writers[-1]
+        gone = [x.not_logged() for x in writers]
+        samples, messages = sum(g.samples for g in gone), sum(g.messages for g in gone)
+        seconds, outages = sum(g.seconds for g in gone), sum(x.outages for x in writers)
+        kept = [p for x in writers for p in x.files if p.exists()]  # a file deleted while written is not kept
+        files = f"log: {len(kept)} file{'s' if len(kept) != 1 else ''} in {w.directory}"
+        if not messages:
+            return f"{files}, everything logged"
+        last_error = next((x.last_error for x in reversed(writers) if x.last_error), "none")
+        return (f"{files}, not logged: {samples} samples, {messages} messages, {seconds:.1f} s "
+                f"({outages} outage{'s' if outages != 1 else ''}; last error: {last_error})")
 
     _last_overruns: int | None = None
     _last_loss = LossCounts()
     _mag_rejected = False
     _last_lost = False
     _last_log_status = "ok"
-    _log_failed_before = False
     last_load_percent = 0.0
 
     def record_calibration(self, kind: str) -> None:
@@ -477,7 +606,7 @@ class Service:
             self.pipeline.mag_timeout_ns = int(new.estimator["mag_timeout_s"] * 1e9)
         else:
             self._build_estimation(new)
-            self.pipeline.warm_up()
+            self._warm_up()
             self._use_source_calibration()
             if self.log_writer is not None and new.log == old_cfg.log:
                 self.log_writer.new_file()  # a fresh estimator: its own file replays exactly
@@ -488,6 +617,7 @@ class Service:
         if new.log != old_cfg.log:
             if self.log_writer is not None:
                 self.log_writer.close()
+                self._earlier_log_writers.append(self.log_writer)  # its counts stay in the summary
             self._open_log(new)
         elif self.log_writer is not None:
             self.log_writer.write_config(time.monotonic_ns(), self.effective_config())
@@ -495,6 +625,9 @@ class Service:
             # another filter has other EST_* parameters: the table is rebuilt with the component
             self.mavlink.close()
             self._open_mavlink(new)
+            self._open_timesync()
+        if new.monitor != old_cfg.monitor:
+            self._open_monitor(new)
         if new.live != old_cfg.live:  # a new address, rate, or switched on or off
             if self.live is not None:
                 self.live.close()

@@ -85,5 +85,5 @@ def cmd_run(args: argparse.Namespace) -> int:
         service.run()
     finally:
         service.close()
-    logger.info("stopped: %s", service.status_line())
+    logger.info("stopped: %s; %s", service.status_line(), service.log_summary())
     return 0

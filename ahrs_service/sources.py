@@ -14,6 +14,8 @@
 * ``can`` — a DroneCAN IMU on ``source.can_interface`` / ``source.can_channel``.
 * ``simulated`` — the motion simulator without any bus.
 * ``recorded`` — an MCAP log or a BROAD HDF5 recording (``source.recorded_path``).
+* ``mavlink`` — the autopilot's IMU (``source.mavlink_imu``) over its link
+  (``source.mavlink_connection``), which the service also uses to talk to the autopilot.
 """
 
 from __future__ import annotations
@@ -40,6 +42,10 @@ def simulated_imu(source_cfg: dict[str, Any]):
     from ahrs_service.drivers.sim.sensor_model import PART_MODELS
 
     trajectory = profile(source_cfg["profile"], looping=source_cfg["loop_profile"])
+    if any(source_cfg["vibration_mss"]) and source_cfg["vibration_hz"] > 0:
+        from ahrs_service.drivers.sim.motion import Vibrating
+
+        trajectory = Vibrating(trajectory, source_cfg["vibration_mss"], source_cfg["vibration_hz"])
     if source_cfg["sensor_errors"]:
         # analog(): the register devices quantise and saturate at their configured range
         gyr, acc, mag = (PART_MODELS[p].analog() for p in _BOARD_PARTS[source_cfg["board"]])
@@ -49,8 +55,9 @@ def simulated_imu(source_cfg: dict[str, Any]):
     return SimulatedImu(trajectory, models, clock=MonotonicClock(), seed=source_cfg["seed"])
 
 
-def make_source(source_cfg: dict[str, Any], estimation_hz: float) -> ImuSource:
-    """An unopened source for the ``[source]`` section of the configuration."""
+def make_source(source_cfg: dict[str, Any], estimation_hz: float, system_id: int = 1) -> ImuSource:
+    """An unopened source for the ``[source]`` section of the configuration (``system_id``:
+    the service's MAVLink system id, its address on an autopilot link)."""
     kind = source_cfg["type"]
     if kind in ("spi", "simulated_spi") or (kind in ("i2c", "simulated_i2c")
                                              and source_cfg["board"] in _transport_boards()):
@@ -85,7 +92,19 @@ def make_source(source_cfg: dict[str, Any], estimation_hz: float) -> ImuSource:
         from ahrs_service.drivers.recorded import RecordedSource
 
         return RecordedSource(source_cfg["recorded_path"], realtime=source_cfg["recorded_realtime"])
+    if kind == "mavlink":
+        return make_mavlink_source(source_cfg, system_id)
     raise ValueError(f"source.type: unknown source {kind!r}")
+
+
+def make_mavlink_source(source_cfg: dict[str, Any], system_id: int = 1) -> ImuSource:
+    """The autopilot's IMU over a new autopilot link (opened with the source)."""
+    from ahrs_service.drivers.mavlink_imu import MavlinkImuSource, parse_raw_scale
+    from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink
+
+    link = AutopilotLink(source_cfg["mavlink_connection"], system_id=system_id)
+    return MavlinkImuSource(link, message=source_cfg["mavlink_imu"], rate_hz=source_cfg["mavlink_imu_hz"],
+                            raw_scale=parse_raw_scale(source_cfg["mavlink_raw_scale"]))
 
 
 def _transport_boards() -> dict:

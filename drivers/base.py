@@ -104,6 +104,11 @@ class LossCounts:
         return {"fifo_overflow": self.fifo_overflow, "bus_error": self.bus_error, "gap": self.gap,
                 "host_stall": self.host_stall, "total": self.total}
 
+    def summary(self) -> str:
+        """The total and its non-zero causes: "0" or "12 (fifo_overflow 9, bus_error 3)"."""
+        causes = [f"{k} {v}" for k, v in self.as_dict().items() if k != "total" and v]
+        return f"{self.total} ({', '.join(causes)})" if causes else str(self.total)
+
 
 @dataclass(slots=True)
 class SampleBlock:

@@ -97,9 +97,11 @@ def _recover(args: argparse.Namespace) -> int:
 
 
 def _info(args: argparse.Namespace) -> int:
+    from ahrs_service.logs.loss import log_losses
     from ahrs_service.logs.reader import read_log
 
     log = read_log(args.log)
+    losses = log_losses(args.log)
     info = {
         "path": str(log.path),
         "indexed": log.indexed,
@@ -112,6 +114,12 @@ def _info(args: argparse.Namespace) -> int:
         "truth": log.truth is not None,
         "metadata": log.metadata,
         "damage": log.damage.as_dict() if log.damage else None,
+        # IMU samples that never reached the host, by cause (the source's running totals at
+        # the last /loop), and samples that reached it but not the disk (the writer's)
+        "lost_samples": None if losses.last is None else losses.last.as_dict(),
+        "lost_samples_in_file": None if losses.in_file is None else losses.in_file.as_dict(),
+        "not_logged_samples": losses.not_logged_samples,
+        "not_logged_s": losses.outage_s,
     }
     if args.json:
         print(json.dumps(info, indent=2, default=str))
@@ -121,6 +129,14 @@ def _info(args: argparse.Namespace) -> int:
     for topic, n in sorted(log.counts.items()):
         print(f"  {topic:20s} {n}")
     print(f"  live parameter changes: {len(log.param_changes)}")
+    if losses.last is None:
+        print("  lost samples: not recorded (no /loop source counters)")
+    else:
+        print(f"  lost samples (source, since the service started): {losses.last.summary()}")
+        if losses.in_file.total != losses.last.total:
+            print(f"  lost samples in this file (first to last /loop): {losses.in_file.summary()}")
+    if losses.not_logged_samples:
+        print(f"  not logged (disk errors): {losses.not_logged_samples} samples, {losses.outage_s:.1f} s")
     print(f"  damage: {log.damage or 'none'}")
     return 1 if log.damage else 0
 
@@ -130,7 +146,13 @@ def _import_broad(args: argparse.Namespace) -> int:
 
     if not args.input.is_file():  # h5py's own error names no path
         raise (IsADirectoryError if args.input.is_dir() else FileNotFoundError)(2, "cannot open", str(args.input))
-    summary = import_broad(args.input, args.output, args.start, args.duration)
+    try:
+        summary = import_broad(args.input, args.output, args.start, args.duration)
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        # h5py's errors name no file ("Unable to synchronously open file (file signature not found)")
+        raise OSError(exc.errno, f"not a readable HDF5 recording ({exc})", str(args.input)) from None
     print(json.dumps(summary))
     return 0
 
@@ -205,10 +227,10 @@ def _replay(args: argparse.Namespace) -> int:
     name = args.estimator or log.estimator
     if not name:
         if log.damage is not None:
-            print(f"error: the log names no estimator: its /config was lost to the damage "
+            print(f"ahrs-service replay: error: the log names no estimator: its /config was lost to the damage "
                   f"({log.damage}); give --estimator NAME", file=sys.stderr)
         else:
-            print("error: the log names no estimator (no /config or /attitude); give --estimator NAME",
+            print("ahrs-service replay: error: the log names no estimator (no /config or /attitude); give --estimator NAME",
                   file=sys.stderr)
         return 2
     follow = not args.no_param_changes
@@ -219,7 +241,7 @@ def _replay(args: argparse.Namespace) -> int:
         try:
             blend = blend_time(args.offline_blend)
         except ValueError as exc:
-            print(f"error: {exc}")
+            print(f"ahrs-service replay: error: {exc}", file=sys.stderr)
             return 2
         q = replay_offline(log, name, params, follow, blend_time_s=blend).q
     else:

@@ -7,6 +7,16 @@ writes messages with ``mcap.writer.Writer``'s public methods only (``register_sc
 the open chunk and ``fsync``\\ s the file: everything written so far survives a crash, and
 :func:`ahrs_service.logs.recover.recover` turns a file cut off later back into a valid one.
 
+**A failed write loses nothing already written and leaves no torn record.** The ``Writer``
+writes into :class:`_StagedOutput`, which keeps the bytes in memory until ``flush`` (or
+``close``) commits them with ``os.pwrite`` at the end of what is already on disk. If the disk
+refuses them (ENOSPC, EFBIG under ``RLIMIT_FSIZE``, EIO …), the file is cut back to its last
+committed length — always the end of a complete record — and the bytes stay staged: the
+same call later (``retry``) writes them and the file goes on where it was. The file on disk
+is therefore at every moment a valid MCAP prefix (``ahrs-service log recover`` completes it),
+one file per recording however long the disk stays full, and ``discard`` removes a file that
+never got a byte to disk instead of leaving an empty or "bad magic" one behind.
+
 Not thread-safe: :class:`ahrs_service.logs.writer.FlightLogWriter` owns one on its
 background thread; imports, recovery and replay (``broad_import``, ``replay``) use it
 directly, where nothing runs in real time.
@@ -16,6 +26,7 @@ Requires mcap >= 1.5 (``Writer.flush``; see pyproject.toml).
 
 from __future__ import annotations
 
+import errno
 import os
 import time
 from pathlib import Path
@@ -28,6 +39,62 @@ from ahrs_service.logs.schemas import encode
 
 #: the MCAP header's ``library`` field
 LIBRARY = "ahrs-service"
+#: staged bytes beyond which a write commits them at once (without fsync): an import or a
+#: replay that never flushes writes as it goes instead of holding its whole file in memory
+COMMIT_BYTES = 4 * 1024 * 1024
+
+
+class LogFileDeleted(FileNotFoundError):
+    """The file was deleted (or its folder removed) while it was being written: what it held
+    is gone, and writing on would only fill an inode nobody can open."""
+
+
+class _StagedOutput:
+    """The ``Writer``'s output stream: bytes wait in memory until :meth:`commit` writes them.
+
+    ``tell`` is the offset the next byte will have in the file (committed + staged), which is
+    what the ``Writer`` records in its chunk and summary indexes.
+    """
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self.committed = 0  # bytes on disk (and fsync'ed when asked): always a record boundary
+        self._staged = bytearray()
+
+    def write(self, data: bytes) -> int:
+        self._staged += data
+        return len(data)
+
+    def tell(self) -> int:
+        return self.committed + len(self._staged)
+
+    def flush(self) -> None:
+        """The ``Writer`` flushes its stream; the bytes go to the disk only in :meth:`commit`."""
+
+    @property
+    def staged(self) -> int:
+        return len(self._staged)
+
+    def commit(self, fsync: bool) -> None:
+        """Writes the staged bytes after the committed ones; on any OSError the file is cut
+        back to the committed length, the bytes stay staged, and the error is raised."""
+        view = memoryview(self._staged)
+        done = 0
+        try:
+            while done < len(view):
+                done += os.pwrite(self.fd, view[done:], self.committed + done)
+            if fsync:
+                os.fsync(self.fd)
+        except OSError:
+            view.release()
+            try:
+                os.ftruncate(self.fd, self.committed)  # a torn record must not stay on disk
+            except OSError:
+                pass  # read_log and recover stop at a torn record anyway
+            raise
+        view.release()
+        self.committed += done
+        del self._staged[:]
 
 
 class McapLogFile:
@@ -47,20 +114,25 @@ class McapLogFile:
         exclusive: bool = False,
     ) -> None:
         self.path = Path(path)
-        self._f = open(self.path, "xb" if exclusive else "wb")
+        flags = os.O_WRONLY | os.O_CREAT | (os.O_EXCL if exclusive else os.O_TRUNC)
+        self._out = _StagedOutput(os.open(self.path, flags, 0o644))
         try:
-            self._w = Writer(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+            self._w = Writer(self._out, chunk_size=chunk_size, compression=CompressionType.ZSTD)
             self._w.start(profile="", library=LIBRARY)
             if metadata:
                 self._w.add_metadata("ahrs-service", {str(k): str(v) for k, v in metadata.items()})
         except BaseException:
-            self._f.close()
+            os.close(self._out.fd)
             raise
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._seq: dict[int, int] = {}
-        self.unflushed = 0  # messages written since the last flush (lost if the process dies now)
+        self.unflushed = 0  # messages written since the last commit (lost if the process dies now)
+        self.unflushed_samples = 0  # of which /imu/raw samples
+        self.messages = 0  # messages written into this file, in all
+        self.samples = 0  # of which /imu/raw samples
         self.closed = False
+        self._finished = False  # the summary is staged: only commit() is left to do
 
     def _new_channel(self, topic: str) -> int:
         """Registers ``topic``'s channel (and its schema, once) on first use."""
@@ -89,43 +161,72 @@ class McapLogFile:
             cid, int(log_time_ns), data, time.time_ns() if publish_time_ns is None else int(publish_time_ns), seq
         )
         self.unflushed += 1
+        self.messages += 1
+        if topic == "/imu/raw":
+            self.unflushed_samples += 1
+            self.samples += 1
+        if self._out.staged >= COMMIT_BYTES:
+            self.retry(fsync=False)
 
     def add_metadata(self, name: str, data: Mapping[str, Any]) -> None:
         """A metadata record ``name`` with string key/values."""
         self._w.add_metadata(name, {str(k): str(v) for k, v in data.items()})
 
     def flush(self, fsync: bool = True) -> None:
-        """Closes the current chunk and pushes it to the disk: everything so far survives a crash."""
+        """Closes the current chunk and pushes it to the disk: everything so far survives a
+        crash. On an OSError nothing is lost yet: the bytes stay staged for :meth:`retry`."""
         self._w.flush()
-        self._f.flush()
-        if fsync:
-            os.fsync(self._f.fileno())
+        self.retry(fsync)
+
+    def retry(self, fsync: bool = True) -> None:
+        """Writes what a failed ``flush`` or ``close`` left staged (raises OSError again if
+        the disk still refuses it); afterwards the file goes on as if nothing had happened.
+        Raises :class:`LogFileDeleted` when the file has no name on disk any more."""
+        if os.fstat(self._out.fd).st_nlink == 0:
+            raise LogFileDeleted(errno.ENOENT, "deleted while being written", str(self.path))
+        self._out.commit(fsync)
         self.unflushed = 0
+        self.unflushed_samples = 0
 
     @property
     def size(self) -> int:
-        """Bytes on disk so far (the open chunk not counted)."""
-        return self._f.tell()
+        """Bytes written so far, on disk or staged (the open chunk not counted)."""
+        return self._out.tell()
+
+    @property
+    def committed_bytes(self) -> int:
+        """Bytes on disk: a valid MCAP prefix (0: nothing reached the disk yet)."""
+        return self._out.committed
 
     def close(self, fsync: bool = True) -> None:
-        """Finishes the file with its summary and indexes."""
+        """Finishes the file with its summary and indexes. On an OSError the file stays open
+        with the summary staged: :meth:`retry` then :meth:`close` again, or :meth:`abandon`."""
+        if self.closed:
+            return
+        if not self._finished:
+            self._finished = True
+            self._w.finish()
+        self.retry(fsync)
+        self.closed = True
+        os.close(self._out.fd)
+
+    def abandon(self) -> None:
+        """Gives the file up after an I/O error: what is on disk stays (a valid MCAP prefix
+        that ``ahrs-service log recover`` completes); a file with nothing on disk is removed."""
         if self.closed:
             return
         self.closed = True
         try:
-            self._w.finish()
-            self._f.flush()
-            if fsync:
-                os.fsync(self._f.fileno())
-            self.unflushed = 0
-        finally:
-            self._f.close()
+            os.close(self._out.fd)
+        except OSError:
+            pass
+        if self._out.committed == 0:
+            self.discard()
 
-    def abandon(self) -> None:
-        """Closes the handle without finishing (after an I/O error); recover() can still read it."""
-        self.closed = True
+    def discard(self) -> None:
+        """Removes the file (one that never got its first bytes to disk)."""
         try:
-            self._f.close()
+            self.path.unlink()
         except OSError:
             pass
 

@@ -251,7 +251,8 @@ def cmd_plot(args: Any) -> int:
         return 2
     import matplotlib  # noqa: F401  (missing: the command line names the 'analysis' extra)
     if not Path(args.log).is_file():
-        print(f"ahrs-service: log plot: {args.log}: no such file", file=sys.stderr)
+        what = "is a directory, not a file" if Path(args.log).is_dir() else "no such file"
+        print(f"ahrs-service: log plot: {args.log}: {what}", file=sys.stderr)
         return 2
     try:
         series = read_series(args.log)

@@ -208,6 +208,9 @@ def recover(path: str | os.PathLike, out_path: str | os.PathLike | None = None) 
     out = Path(out_path) if out_path is not None else default_output(src)
     if out.resolve() == src.resolve():
         raise ValueError("recover() must not overwrite its input")
+    with open(src, "rb") as f:
+        if f.read(len(MAGIC)) != MAGIC:  # nothing to recover: write no empty "recovered" file
+            raise ValueError(f"{src}: not an MCAP file (bad magic): nothing to recover")
     report = RecoveryReport(source=str(src), output=str(out), bytes_total=src.stat().st_size)
     scanner = RecordScanner(src)
     schema_ids: dict[int, int] = {}

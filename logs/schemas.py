@@ -109,7 +109,18 @@ ATTITUDE = {
         "yaw": {"type": ["number", "null"], "description": "rad, ZYX Euler, (−π, π]"},
         "estimator": {"type": "string"},
         "gyro_bias": _vec(3, _NUM_OR_NULL, "gyro-bias estimate, rad/s, body FRD"),
-        "diagnostics": {"type": "object", "description": "estimator counters (initialised, *_skipped …)"},
+        "diagnostics": {
+            "type": "object",
+            "description": "estimator counters (initialised, *_skipped …)",
+            "properties": {
+                # issue 17: optional, in the diagnostics the service writes at log.diagnostics_hz
+                "attitude_variance": {
+                    "type": "object",
+                    "description": "variances of roll, pitch, yaw (ZYX), rad²; null: unknown (estimators.uncertainty)",
+                    "properties": {k: {"type": ["number", "null"]} for k in ("roll", "pitch", "yaw")},
+                },
+            },
+        },
     },
     "required": ["t_ns", "q", "roll", "pitch", "yaw", "estimator"],
 }
@@ -253,12 +264,49 @@ LOG = {
     "required": ["timestamp", "level", "message", "name", "file", "line"],
 }
 
+MONITOR = {
+    "title": "ahrs.AttitudeMonitor",
+    "description": "The autopilot's attitude against the service's estimate at the autopilot's time "
+    "(ahrs_service/attitude_monitor.py).",
+    "type": "object",
+    "properties": {
+        "t_ns": _T_NS,
+        "total_deg": _NUM_OR_NULL,
+        "inclination_deg": _NUM_OR_NULL,
+        "heading_deg": {"type": ["number", "null"], "description": "autopilot yaw - ours, deg, [-180, 180)"},
+        "q_autopilot": _QUAT,
+        "q_estimate": _QUAT,
+    },
+    "required": ["t_ns", "total_deg", "inclination_deg", "heading_deg"],
+}
+
+TIMESYNC = {
+    "title": "ahrs.Timesync",
+    "description": "The autopilot's clock against ours after each accepted TIMESYNC sample "
+    "(protocols/mavlink/timesync.py, TimesyncStatus).",
+    "type": "object",
+    "properties": {
+        "t_ns": _T_NS,
+        "offset_ns": {"type": "integer", "description": "estimated autopilot − our clock at t_ns, ns"},
+        "observed_offset_ns": {"type": "integer", "description": "this sample's offset, ns"},
+        "drift_ppm": _NUM_OR_NULL,
+        "rtt_ns": {"type": "integer", "description": "this sample's round trip, ns"},
+        "synced": {"type": "boolean"},
+        "samples": {"type": "integer", "description": "accepted samples in the estimate"},
+    },
+    "required": ["t_ns", "offset_ns", "drift_ppm", "rtt_ns", "synced"],
+}
+
 #: topic -> (schema name, JSON Schema)
 CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
     "/imu/raw": ("ahrs.ImuRaw", IMU_RAW),
     "/attitude": ("ahrs.Attitude", ATTITUDE),
     "/attitude/original": ("ahrs.Attitude", ATTITUDE),
     "/attitude/truth": ("ahrs.AttitudeTruth", TRUTH),
+    # beside an autopilot: its own attitude (estimator "autopilot") and the comparison
+    "/autopilot/attitude": ("ahrs.Attitude", ATTITUDE),
+    "/monitor": ("ahrs.AttitudeMonitor", MONITOR),
+    "/timesync": ("ahrs.Timesync", TIMESYNC),
     "/loop": ("ahrs.LoopStats", LOOP),
     "/config": ("ahrs.Config", CONFIG),
     "/params": ("ahrs.ParamChange", PARAM_CHANGE),
@@ -389,12 +437,21 @@ def truth_message(t_ns: int, q: list[float], movement: bool | None = None, sourc
     }
 
 
-def tf_message(t_ns: int, q: list[float]) -> dict[str, Any]:
-    """foxglove.FrameTransform of the body frame in the NED frame (rotation in x, y, z, w order)."""
+def monitor_message(t_ns: int, total_deg: float, inclination_deg: float, heading_deg: float,
+                    q_autopilot: list[float], q_estimate: list[float]) -> dict[str, Any]:
+    """The /monitor message: the autopilot's attitude against ours at the autopilot's time
+    (ahrs_service/attitude_monitor.py), degrees; both q_earth←body [w, x, y, z] (NED/FRD)."""
+    return {"t_ns": int(t_ns), "total_deg": num_or_null(total_deg), "inclination_deg": num_or_null(inclination_deg),
+            "heading_deg": num_or_null(heading_deg), "q_autopilot": list(q_autopilot), "q_estimate": list(q_estimate)}
+
+
+def tf_message(t_ns: int, q: list[float], child: str = "body") -> dict[str, Any]:
+    """foxglove.FrameTransform of the body frame (or ``child``: ``"autopilot"``, the autopilot's
+    attitude beside an autopilot) in the NED frame (rotation in x, y, z, w order)."""
     return {
         "timestamp": {"sec": int(t_ns) // 1_000_000_000, "nsec": int(t_ns) % 1_000_000_000},
         "parent_frame_id": "ned",
-        "child_frame_id": "body",
+        "child_frame_id": child,
         "translation": {"x": 0.0, "y": 0.0, "z": 0.0},
         "rotation": {"x": q[1], "y": q[2], "z": q[3], "w": q[0]},
     }

@@ -10,8 +10,12 @@ thread closes the current chunk and ``fsync``\\ s the file at least every
 data; :func:`ahrs_service.logs.recover.recover` turns such a file back into a valid one.
 
 Errors (unwritable directory, disk full, any ``OSError``) never reach the caller: they set
-``status``/``last_error``, the messages that could not be written are counted in
-``dropped``, and the writer tries again with a new file every ``retry_interval_s``.
+``status``/``last_error`` (the path and the system's error text), the messages that could not
+be written are counted (``dropped``, ``samples_not_logged``, ``outage_s``), and the writer
+tries again with back-off: ``retry_first_s`` (0.5 s) after the failure, then each delay
+``retry_factor`` (2) times the previous, at most ``retry_max_s`` (30 s). A file the disk
+refused stays open with its unwritten bytes staged (``logs/mcap_file.py``): when the disk takes
+them again the same file goes on — one file per recording, no empty or torn leftovers.
 
 Public API (all keyword arguments after the sample's time, row and flags are named)::
 
@@ -29,7 +33,9 @@ Public API (all keyword arguments after the sample's time, row and flags are nam
     log.close()
 
 Adding a message kind: a record class below (``_Record`` subclass), a ``write_*`` method that
-queues it, and a handler registered in ``FlightLogWriter._HANDLERS``.
+queues it, and a handler registered in ``FlightLogWriter._HANDLERS``. A record that carries
+samples (or several messages) says how many in ``_CARRIES``, and its handler passes them to
+``_ensure_file(messages, samples=…)``, so the "not logged" counts stay exact.
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ import atexit
 import collections
 import datetime as _dt
 import enum
+import errno as errno_mod
 import json
 import math
 import os
@@ -49,12 +56,14 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ahrs_service.logs.mcap_file import McapLogFile
+from ahrs_service.logs.mcap_file import LogFileDeleted, McapLogFile
 from ahrs_service.logs.schemas import (
     attitude_message,
     encode,
     jsonable,
     log_message,
+    num_or_null,
+    monitor_message,
     raw_message,
     tf_message,
     truth_message,
@@ -138,6 +147,31 @@ class _Mavlink:
 
 
 @dataclass(slots=True)
+class _AutopilotAttitude:
+    """The autopilot's attitude and its disagreement with ours (attitude_monitor.Disagreement)."""
+
+    t_ns: int
+    q_autopilot: list[float]
+    q_estimate: list[float]
+    total_deg: float
+    inclination_deg: float
+    heading_deg: float
+
+
+@dataclass(slots=True)
+class _Timesync:
+    """The autopilot's clock estimate after one accepted TIMESYNC sample (timesync.TimesyncStatus)."""
+
+    t_ns: int
+    offset_ns: int
+    observed_offset_ns: int
+    drift_ppm: float
+    rtt_ns: int
+    synced: bool
+    samples: int
+
+
+@dataclass(slots=True)
 class _Log:
     """A health event for /log (foxglove.Log)."""
 
@@ -164,6 +198,29 @@ class _NewFile:
 @dataclass(slots=True)
 class _Close:
     pass
+
+
+#: samples (/imu/raw rows) and messages each record kind carries, for what a full queue or a
+#: failing disk loses; kinds not listed carry one message and no sample
+_CARRIES: dict[type, Callable[[Any], tuple[int, int]]] = {
+    _Raw: lambda item: (1, 1),
+    _Sample: lambda item: (1, 2 + (item.truth_q is not None)),
+}
+
+
+def _carried(item: Any) -> tuple[int, int]:
+    """(samples, messages) of one queue record."""
+    count = _CARRIES.get(type(item))
+    return (0, 1) if count is None else count(item)
+
+
+@dataclass(frozen=True, slots=True)
+class Outage:
+    """What an I/O outage (or the whole run) kept out of the files."""
+
+    seconds: float  # s logging was stopped, monotonic clock
+    messages: int  # messages not written (all channels)
+    samples: int  # of which /imu/raw samples
 
 
 class _Rotation(enum.IntEnum):
@@ -205,7 +262,9 @@ class FlightLogWriter:
     queue_size: messages that may wait for the background thread; beyond it they are dropped
         (counted in ``dropped``). The default holds ~20 s of a 1 kHz loop.
     tf_rate_hz: rate of ``/tf`` transforms for Foxglove's 3-D panel (None: every attitude).
-    retry_interval_s: after an I/O error, wait this long before trying a new file.
+    retry_first_s, retry_factor, retry_max_s: back-off after an I/O error: the first retry
+        ``retry_first_s`` s after it, each later one ``retry_factor`` times the previous
+        delay, at most ``retry_max_s`` s; a success resets it.
     first_sample_index: number given to the first ``write_raw`` sample (the /imu/raw
         ``index`` that /params ``sample_index`` refers to): pass the estimator's sample count
         when a writer is (re)opened mid-run.
@@ -226,7 +285,9 @@ class FlightLogWriter:
         metadata: Mapping[str, Any] | None = None,
         queue_size: int = 65536,
         tf_rate_hz: float | None = 50.0,
-        retry_interval_s: float = 2.0,
+        retry_first_s: float = 0.5,
+        retry_factor: float = 2.0,
+        retry_max_s: float = 30.0,
         fsync: bool = True,
         first_sample_index: int = 0,
     ) -> None:
@@ -239,7 +300,10 @@ class FlightLogWriter:
         self.metadata = dict(metadata or {})
         self.queue_size = int(queue_size)
         self.tf_period_ns = 0 if not tf_rate_hz else int(1e9 / tf_rate_hz)
-        self.retry_interval_s = float(retry_interval_s)
+        self.retry_first_s = float(retry_first_s)
+        self.retry_factor = float(retry_factor)
+        self.retry_max_s = float(retry_max_s)
+        self._retries = 0  # failed attempts since the last success: the back-off's exponent
         self.fsync = fsync
 
         #: "starting" | "ok" | "error" | "closed"
@@ -251,6 +315,17 @@ class FlightLogWriter:
         self.samples = int(first_sample_index)  # number of the next write_raw sample
         self._dropped_full = 0  # caller thread only
         self._dropped_io = 0  # writer thread only
+        self._samples_dropped_full = 0  # of those, samples (/imu/raw): caller thread only
+        self._samples_dropped_io = 0  # writer thread only
+        #: the file refused by the disk and kept open for a retry (see McapLogFile.retry)
+        self._stalled = False
+        self._outage_since: float | None = None  # monotonic s of the failure, while in error
+        self.outage_s = 0.0  # seconds not logged because of I/O errors, over the whole run
+        self.outages = 0  # times logging stopped because of an I/O error
+        #: the last outage that ended: (seconds, messages, samples) not logged — the service
+        #: reports it when logging resumes
+        self.last_outage: Outage | None = None
+        self._outage_start_counts = (0, 0)
         self._q: collections.deque = collections.deque()
         self._wake = threading.Event()
         # an idle writer thread sleeps this long (close() wakes it): at 1 kHz it then writes
@@ -280,11 +355,26 @@ class FlightLogWriter:
         """Messages lost: queue full, or not written because of an I/O error."""
         return self._dropped_full + self._dropped_io
 
+    @property
+    def samples_not_logged(self) -> int:
+        """Samples (/imu/raw rows) given to the writer that are not in any file."""
+        return self._samples_dropped_full + self._samples_dropped_io
+
+    def not_logged(self) -> "Outage":
+        """What is missing from the files: messages, samples, and the seconds logging was
+        stopped by I/O errors (an outage still running counted up to now)."""
+        seconds = self.outage_s
+        if self._outage_since is not None:
+            seconds += time.monotonic() - self._outage_since
+        return Outage(seconds, self.dropped, self.samples_not_logged)
+
     def _put(self, item: Any) -> bool:
         # one producer (the service loop): len() then append() cannot overshoot by more than one
         n = len(self._q)
         if self._closing or n >= self.queue_size:
-            self._dropped_full += 1
+            samples, messages = _carried(item)
+            self._dropped_full += messages
+            self._samples_dropped_full += samples
             return False
         if n == self._wake_at:  # a producer faster than real time: the thread must not sleep on
             self._wake.set()
@@ -401,6 +491,19 @@ class FlightLogWriter:
         debug), mapped to Foxglove's level by :func:`~ahrs_service.logs.schemas.log_level`."""
         self._put(_Log(t_ns, int(severity), str(text)))
 
+    def write_autopilot_attitude(self, d: Any) -> None:
+        """One comparison of the attitude monitor (``attitude_monitor.Disagreement``): the
+        autopilot's attitude on /autopilot/attitude and as frame ``autopilot`` on /tf, the
+        disagreement on /monitor, all at the autopilot's time mapped onto ours."""
+        self._put(_AutopilotAttitude(int(d.t_ns), list(d.q_autopilot), list(d.q_estimate), float(d.total_deg),
+                                     float(d.inclination_deg), float(d.heading_deg)))
+
+    def write_timesync(self, status: Any) -> None:
+        """The TIMESYNC estimate (``timesync.TimesyncStatus``) on /timesync: offset and drift
+        of the autopilot's clock against ours, at the sample's time on our clock."""
+        self._put(_Timesync(int(status.local_ns), int(status.offset_ns), int(status.observed_offset_ns),
+                            float(status.drift_ppm), int(status.rtt_ns), bool(status.synced), int(status.samples)))
+
     def write_mavlink(self, t_ns: int, counters: Mapping[str, Any]) -> None:
         """MAVLink traffic counters."""
         self._put(_Mavlink(t_ns, dict(counters)))
@@ -425,6 +528,9 @@ class FlightLogWriter:
             "queued": len(self._q),
             "file": str(f.path) if f is not None else None,
             "files": len(self.files),
+            "samples_not_logged": self.samples_not_logged,
+            "outage_s": round(self.not_logged().seconds, 3),
+            "outages": self.outages,
         }
 
     def close(self, timeout: float = 30.0) -> None:
@@ -459,7 +565,7 @@ class FlightLogWriter:
                     self._handle(item)
                 except Exception as exc:  # noqa: BLE001 - a bad message must not end the recording
                     self._dropped_io += 1
-                    self._error(exc)
+                    self._fail(exc) if isinstance(exc, OSError) else self._note(exc)
             else:
                 self._wake.wait(self._idle_wait_s)
                 self._wake.clear()
@@ -472,7 +578,13 @@ class FlightLogWriter:
 
     def _flush(self) -> None:
         f = self._file
-        if f is None or f.unflushed == 0:
+        if f is None:
+            return
+        if self._stalled:  # an idle writer retries too, not only when messages arrive
+            if time.monotonic() >= self._next_retry:
+                self._resume()
+            return
+        if f.unflushed == 0:
             return
         try:
             f.flush(self.fsync)
@@ -480,42 +592,114 @@ class FlightLogWriter:
             self._fail(exc)
 
     def _close_file(self) -> None:
-        """Finishes the current file (summary, indexes); on failure counts what it held unflushed."""
+        """Finishes the current file (summary, indexes); on failure counts what it held
+        unflushed and leaves what is on disk (a valid prefix, ``log recover`` completes it)."""
         f = self._file
         self._file = None
+        self._stalled = False
         if f is None:
             return
         try:
             f.close(self.fsync)
         except Exception as exc:  # noqa: BLE001
-            self._dropped_io += f.unflushed
-            self._error(exc)
+            deleted = isinstance(exc, LogFileDeleted)  # then nothing of it is left
+            self._lose(*((f.messages, f.samples) if deleted else (f.unflushed, f.unflushed_samples)))
+            self._error(exc, f)
             f.abandon()
 
     def _finish(self) -> None:
         self._close_file()
+        self._end_outage()
         self.status = "closed"
 
-    def _error(self, exc: BaseException) -> None:
+    def _error(self, exc: BaseException, f: McapLogFile | None = None) -> None:
         self.errors += 1
-        self.last_error = f"{type(exc).__name__}: {exc}"
+        if isinstance(exc, OSError):
+            # the path and the system's text ("No space left on device"), the errno's name
+            path = exc.filename if exc.filename is not None else (f.path if f is not None else self.directory)
+            code = errno_mod.errorcode.get(exc.errno or 0, "")
+            self.last_error = f"{path}: {exc.strerror or exc}" + (f" ({code})" if code else "")
+        else:
+            self.last_error = f"{type(exc).__name__}: {exc}"
+        if self.status != "error" and self._outage_since is None:
+            self._outage_since = time.monotonic()
+            self.outages += 1
+            self._outage_start_counts = (self.dropped, self.samples_not_logged)
         self.status = "error"
 
+    def _note(self, exc: BaseException) -> None:
+        """A message that could not be encoded or handled: counted, the file goes on."""
+        self.errors += 1
+        self.last_error = f"{type(exc).__name__}: {exc}"
+
+    def _lose(self, messages: int, samples: int = 0) -> None:
+        self._dropped_io += messages
+        self._samples_dropped_io += samples
+
+    def retry_delay(self, attempt: int) -> float:
+        """Seconds from the ``attempt``-th failure in a row (0: the first) to the next try."""
+        return min(self.retry_max_s, self.retry_first_s * self.retry_factor ** min(attempt, 64))
+
+    def _schedule_retry(self) -> None:
+        self._next_retry = time.monotonic() + self.retry_delay(self._retries)
+        self._retries += 1
+
+    def _end_outage(self) -> None:
+        if self._outage_since is None:
+            return
+        seconds = time.monotonic() - self._outage_since
+        self.outage_s += seconds
+        self._outage_since = None
+        m0, s0 = self._outage_start_counts
+        self.last_outage = Outage(seconds, self.dropped - m0, self.samples_not_logged - s0)
+
     def _fail(self, exc: BaseException) -> None:
-        """An I/O error on the current file: count what it held unflushed, drop it, retry later."""
-        self._error(exc)
+        """An error writing the current file. An OSError (the disk): the file stays open with
+        its bytes staged and is retried with back-off. Anything else (the file's own state may
+        be broken): what it held unflushed is lost and the next retry starts a new file."""
         f = self._file
-        self._file = None
-        if f is not None:
-            self._dropped_io += f.unflushed
+        self._error(exc, f)
+        if isinstance(exc, LogFileDeleted) and f is not None:
+            # nothing of it can be read any more: all it held is lost; a new file comes next
+            self._lose(f.messages, f.samples)
+            f.unflushed = f.unflushed_samples = 0
+            self._file = None
+            self._stalled = False
             f.abandon()
-        self._next_retry = time.monotonic() + self.retry_interval_s
+        elif isinstance(exc, OSError) and f is not None:
+            self._stalled = True
+        else:
+            self._file = None
+            self._stalled = False
+            if f is not None:
+                self._lose(f.unflushed, f.unflushed_samples)
+                f.abandon()
+        self._schedule_retry()
+
+    def _resume(self) -> bool:
+        """Retries the stalled file; True when the disk took its staged bytes."""
+        try:
+            self._file.retry(self.fsync)
+        except Exception as exc:  # noqa: BLE001
+            self._fail(exc)
+            return False
+        self._stalled = False
+        self._recovered()
+        return True
+
+    def _recovered(self) -> None:
+        self._retries = 0
+        self._end_outage()
+        self.status = "ok"
 
     def _open(self, reason: str | None = None) -> bool:
         now = time.monotonic()
         if now < self._next_retry:
             return False
         try:
+            if self.directory.exists() and not self.directory.is_dir():
+                # mkdir would say "File exists", which reads as if all were well
+                raise NotADirectoryError(errno_mod.ENOTDIR, os.strerror(errno_mod.ENOTDIR), str(self.directory))
             self.directory.mkdir(parents=True, exist_ok=True)
             stamp = _dt.datetime.now(_dt.timezone.utc)
             base = log_file_name(self.prefix, stamp)
@@ -528,12 +712,12 @@ class FlightLogWriter:
             self._file = McapLogFile(path, chunk_size=self.chunk_size, metadata=meta, exclusive=True)
         except Exception as exc:  # noqa: BLE001
             self._error(exc)
-            self._next_retry = now + self.retry_interval_s
+            self._schedule_retry()
             return False
         self.files.append(path)
         self._opened_at = now
         self._last_tf_ns = None
-        self.status = "ok"
+        self._recovered()
         if self._config is not None:
             reason = reason or ("start" if len(self.files) == 1 else "rotation")
             self._write("/config", self._config["t_ns"], {**self._config, "reason": reason})
@@ -541,6 +725,8 @@ class FlightLogWriter:
 
     def _should_rotate(self) -> bool:
         f = self._file
+        if self._stalled:
+            return False
         if self.rotate_bytes is not None and f.size >= self.rotate_bytes:
             return True
         return self.rotate_seconds is not None and time.monotonic() - self._opened_at >= self.rotate_seconds
@@ -551,8 +737,7 @@ class FlightLogWriter:
         except (TypeError, ValueError) as exc:
             # a message the caller filled with something JSON cannot hold: lose it, not the file
             self._dropped_io += 1
-            self._error(exc)
-            self.status = "ok"
+            self._note(exc)
             return
         try:
             self._file.write_encoded(topic, t_ns, data)
@@ -565,12 +750,18 @@ class FlightLogWriter:
         self._HANDLERS[type(item)](self, item)
 
     # one handler per record kind (_HANDLERS maps each record class to its handler)
-    def _ensure_file(self, messages: int, reason: str | None = None) -> bool:
-        """True when a file is open (opening one if needed); else counts ``messages`` as lost."""
-        if self._file is None and not self._open(reason):
-            self._dropped_io += messages
-            return False
-        return True
+    def _ensure_file(self, messages: int, reason: str | None = None, samples: int = 0) -> bool:
+        """True when a file takes messages (opening one, or retrying the stalled one, when the
+        back-off allows); else counts ``messages`` (of which ``samples`` samples) as lost."""
+        if self._file is not None and not self._stalled:
+            return True
+        if self._file is None:
+            if self._open(reason):
+                return True
+        elif time.monotonic() >= self._next_retry and self._resume():
+            return True
+        self._lose(messages, samples)
+        return False
 
     def _rotate_if_due(self) -> None:
         """At a sample boundary: rotates, or asks the caller for a state snapshot first."""
@@ -616,12 +807,12 @@ class FlightLogWriter:
 
     def _on_raw(self, item: _Raw) -> None:
         self._rotate_if_due()
-        if self._ensure_file(1):
+        if self._ensure_file(1, samples=1):
             self._write("/imu/raw", item.t_ns, raw_message(item.t_ns, item.row, item.flags, item.raw, item.temperature, item.index))
 
     def _on_sample(self, item: _Sample) -> None:
         self._rotate_if_due()
-        if not self._ensure_file(2 + (item.truth_q is not None)):
+        if not self._ensure_file(2 + (item.truth_q is not None), samples=1):
             return
         t_ns = item.t_ns
         self._write("/imu/raw", t_ns, raw_message(t_ns, item.row, item.flags, item.raw, item.temperature, item.index))
@@ -648,6 +839,22 @@ class FlightLogWriter:
         if self._ensure_file(1):
             self._write("/mavlink", item.t_ns, {"t_ns": int(item.t_ns), "counters": jsonable(item.counters)})
 
+    def _on_autopilot_attitude(self, item: _AutopilotAttitude) -> None:
+        if self._ensure_file(3):
+            t = item.t_ns
+            self._write("/autopilot/attitude", t, attitude_message(t, item.q_autopilot, "autopilot"))
+            self._write("/tf", t, tf_message(t, item.q_autopilot, child="autopilot"))
+            self._write("/monitor", t, monitor_message(t, item.total_deg, item.inclination_deg, item.heading_deg,
+                                                       item.q_autopilot, item.q_estimate))
+
+    def _on_timesync(self, item: _Timesync) -> None:
+        if self._ensure_file(1):
+            self._write("/timesync", item.t_ns, {
+                "t_ns": item.t_ns, "offset_ns": item.offset_ns, "observed_offset_ns": item.observed_offset_ns,
+                "drift_ppm": num_or_null(item.drift_ppm), "rtt_ns": item.rtt_ns, "synced": item.synced,
+                "samples": item.samples,
+            })
+
     def _on_log(self, item: _Log) -> None:
         if self._ensure_file(1):
             self._write("/log", item.t_ns, log_message(item.t_ns, item.severity, item.text))
@@ -663,6 +870,8 @@ class FlightLogWriter:
         _Truth: _on_truth,
         _Loop: _on_loop,
         _Mavlink: _on_mavlink,
+        _AutopilotAttitude: _on_autopilot_attitude,
+        _Timesync: _on_timesync,
         _Log: _on_log,
     }
 
@@ -688,8 +897,7 @@ class FlightLogWriter:
         self._cancel_rotation()
         if self._file is not None:
             self._finish_for_rotation()
-        if not self._open():
-            self._dropped_io += 1
+        if not self._ensure_file(1):
             return
         msg = {
             "t_ns": int(item.t_ns),

@@ -61,6 +61,8 @@ def test_every_key_refuses_hostile_values_with_one_line_naming_it(section, key):
     ({"source": {"board_options": {"gyro_rate_hz": float("nan")}}}, "source.board_options.gyro_rate_hz"),
     ({"source": {"type": "recorded", "recorded_path": "/nope/none.mcap"}}, "source.recorded_path"),
     ({"estimator": {"params": {"beta": float("inf")}}}, "estimator.params.beta"),
+    ({"log": {"directory": ""}}, "log.directory"),
+    ({"calibration": {"gyro_bias": [1e300, 0.0, 0.0]}}, "calibration.gyro_bias"),
 ])
 def test_defects_of_the_issue_are_refused_naming_the_key(doc, key):
     with pytest.raises(config_mod.ConfigError) as exc:
@@ -108,3 +110,33 @@ def test_check_and_run_refuse_the_same_file(tmp_path, capsys):
     rc = cli.main(["run", "-c", str(path), "--no-log", "--duration", "0.1"])
     err = capsys.readouterr().err
     assert rc == 2 and "mavlink.endpoints[0]" in err
+
+
+def _calibration_keys():
+    """Every key of the free-form [calibration] section: SensorCalibration's fields (read from
+    the dataclass, not listed by hand) and the Euler form of the mounting."""
+    import dataclasses
+
+    import numpy as np
+
+    from ahrs_service.drivers.calibration import SensorCalibration
+
+    default = SensorCalibration()
+    for f in dataclasses.fields(SensorCalibration):
+        yield f.name, np.shape(getattr(default, f.name))
+    yield "mounting_rpy_deg", (3,)
+
+
+@pytest.mark.parametrize("key,shape", list(_calibration_keys()))
+def test_every_calibration_key_refuses_hostile_values_with_one_line_naming_it(key, shape):
+    import numpy as np
+
+    hostile = [np.full(shape, v).tolist() for v in (float("nan"), float("inf"), float("-inf"))]
+    hostile += [np.full(shape, 1e300).tolist(), "text", True, 1.0, [1.0, 2.0], [[1.0, 2.0]], {"a": 1}]
+    if len(shape) == 2:
+        hostile.append(np.zeros(shape).tolist())  # a singular matrix
+    for value in hostile:
+        with pytest.raises(config_mod.ConfigError) as exc:
+            config_mod.validate({"calibration": {key: value}})
+        msg = str(exc.value)
+        assert "\n" not in msg and msg.startswith("calibration") and repr(key) in msg, (value, msg)

@@ -3,10 +3,11 @@ Odometry", RA-L 7(4), 2022, arXiv:2203.03149), read from ../shared/data/dido: sk
 loader's reason when absent.
 
 The figures are asserted against VQF 6D (the ``vqf`` package, its defaults, at the flight's
-fitted rate) in the same run, not against stored numbers. Measured 2026-12-01 (mean
-inclination RMSE of the 8 flights): robust 1.80° with recovered stamps, 2.35° with the raw
-steps; VQF 6D 1.71°. The issue's target (robust ≤ 0.85 × VQF) is not reached yet: the test
-guards what is (recovery closes most of the gap; robust within 10 % of VQF).
+fitted rate) and the best filters of the source papers at their defaults in the same run, not
+against stored numbers. Measured 2026-12-02 (mean inclination RMSE of the 8 flights): robust
+1.24° with recovered stamps (0.73 × VQF 6D's 1.71°; the issue's target is ≤ 0.85 ×), 1.60°
+with the raw steps, 1.80° with the accelerometer time constant fixed at 3 s
+(``tilt_rate_ref=0``); complementary_reduced 1.55°, valenti 1.66°.
 """
 
 from __future__ import annotations
@@ -37,16 +38,27 @@ def inclination(q_ned: np.ndarray, flight: dido.Flight) -> float:
     return metrics.score(q_ned, flight.ref, flight.movement, rate_hz=flight.rate_hz, with_heading=False).inclination_rmse
 
 
+#: the source papers' filters that score best on the flights at their defaults (the others
+#: are at 2.5° and above, docs/evaluation.md): robust must be no worse than either
+PAPER_BEST = ("complementary_reduced", "valenti")
+
+
 @pytest.fixture(scope="module")
 def figures():
     """Per flight: robust (recovered stamps), robust (raw steps), VQF 6D."""
-    out = {"robust": [], "robust_raw": [], "vqf6d": [], "rates": []}
+    out = {"robust": [], "robust_raw": [], "robust_fixed_tau": [], "vqf6d": [], "rates": []}
+    out.update({name: [] for name in PAPER_BEST})
     for name in dido.list_trials(DATA):
         f = dido.load_trial(DATA, name)
         out["robust"].append(inclination(estimators.run("robust", f.gyr, f.acc, None, timestamps=f.timestamps), f))
         out["robust_raw"].append(
             inclination(estimators.run("robust", f.gyr, f.acc, None, timestamps=f.timestamps, recover_clock=False), f)
         )
+        out["robust_fixed_tau"].append(
+            inclination(estimators.run("robust", f.gyr, f.acc, None, timestamps=f.timestamps, tilt_rate_ref=0.0), f)
+        )
+        for paper in PAPER_BEST:
+            out[paper].append(inclination(estimators.run(paper, f.gyr, f.acc, None, timestamps=f.timestamps), f))
         out["vqf6d"].append(inclination(peers.run("vqf", f.gyr, f.acc, f.mag, rate_hz=f.rate_hz), f))
         out["rates"].append(f.rate_hz)
     return {k: np.array(v) for k, v in out.items()}
@@ -70,11 +82,15 @@ def test_loader_reads_the_flights():
 def test_robust_against_vqf_6d_in_the_same_run(figures):
     assert np.allclose(figures["rates"], 400.0, rtol=1e-3)  # the fitted rate of every flight
     robust, raw, vqf6d = figures["robust"].mean(), figures["robust_raw"].mean(), figures["vqf6d"].mean()
-    # clock recovery: the raw jittered steps cost robust over 20 % (measured 2.35° vs 1.80°)
+    # the issue's acceptance: at most 0.85 × VQF 6D (measured 1.24° against 1.71°, 0.73×)
+    assert robust <= 0.85 * vqf6d
+    for paper in PAPER_BEST:  # measured 1.55° and 1.66°
+        assert robust <= figures[paper].mean(), paper
+    # clock recovery: the raw jittered steps cost robust over 20 % (measured 1.60° vs 1.24°)
     assert raw > 1.2 * robust
-    # within 10 % of VQF 6D (measured 1.05×)
-    assert robust < 1.10 * vqf6d
-    assert np.all(np.isfinite(figures["robust"])) and figures["robust"].max() < 3.0 * vqf6d
+    # the tilt-rate time constant is what wins here: fixed at 3 s, 1.80° (1.05 × VQF)
+    assert figures["robust_fixed_tau"].mean() > 1.3 * robust
+    assert np.all(np.isfinite(figures["robust"])) and figures["robust"].max() < 1.5 * vqf6d  # measured 1.79° / 1.71°
 
 
 @needs_data

@@ -144,46 +144,163 @@ def test_file_name_carries_utc_start_and_directory_is_created(tmp_path):
 def test_unwritable_directory_is_reported_not_raised_and_retried(tmp_path):
     blocker = tmp_path / "not-a-dir"
     blocker.write_text("a file where the log folder should be")
-    w = FlightLogWriter(blocker / "logs", retry_interval_s=0.05)
+    w = FlightLogWriter(blocker / "logs", retry_first_s=0.05, retry_max_s=0.1)
     for i in range(50):
         w.write_raw(i, np.zeros(10), 0)  # must not raise
         w.write_attitude(i, [1.0, 0.0, 0.0, 0.0], "madgwick")
     assert _wait_for(lambda: w.dropped >= 100)
-    assert w.status == "error" and "NotADirectoryError" in w.last_error and w.files == []
+    assert w.status == "error" and w.files == [] and w.samples_not_logged == 50
+    # the path and the system's text, not a Python class name
+    assert w.last_error == f"{blocker / 'logs'}: Not a directory (ENOTDIR)"
     # the folder becomes writable: the writer starts a file on its own
     blocker.unlink()
     assert _wait_for(lambda: (w.write_raw(10**6, np.zeros(10), 0), w.status == "ok")[1])
     w.close()
     assert len(w.files) == 1 and read_log(w.files[0]).counts["/imu/raw"] >= 1
+    assert w.outages == 1 and w.last_outage.samples == w.samples_not_logged >= 50
 
 
-def test_disk_full_drops_counts_and_continues_in_a_new_file(tmp_path, monkeypatch):
-    original = mcap_file_mod.McapLogFile.flush
-    state = {"fail": True}
+def test_back_off_doubles_from_the_first_delay_up_to_the_cap(tmp_path):
+    w = FlightLogWriter(tmp_path, retry_first_s=0.5, retry_factor=2.0, retry_max_s=30.0)
+    assert [w.retry_delay(k) for k in range(8)] == [0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 30.0, 30.0]
+    assert w.retry_delay(10**6) == 30.0  # no overflow after a very long outage
+    w.close()
 
-    def flush(self, fsync=True):
-        if state["fail"]:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return original(self, fsync)
 
-    monkeypatch.setattr(mcap_file_mod.McapLogFile, "flush", flush)
-    w = FlightLogWriter(tmp_path, flush_interval_s=0.05, retry_interval_s=0.05)
+class _FullDisk:
+    """os.pwrite of a disk that fills: while ``full`` each call writes at most ``room`` bytes
+    (a torn write) and then raises ENOSPC, as the kernel does."""
+
+    def __init__(self, monkeypatch) -> None:
+        self.full = False
+        self.room = 100
+        self.calls = 0
+        self._pwrite = mcap_file_mod.os.pwrite
+        monkeypatch.setattr(mcap_file_mod.os, "pwrite", self)
+
+    def __call__(self, fd, data, offset):
+        self.calls += 1
+        if not self.full:
+            return self._pwrite(fd, data, offset)
+        if self.room and len(data) > 0:
+            n = self._pwrite(fd, bytes(data[: self.room]), offset)
+            self.room = 0
+            return n
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_disk_full_keeps_one_valid_file_and_goes_on_in_it(tmp_path, monkeypatch):
+    disk = _FullDisk(monkeypatch)
+    w = FlightLogWriter(tmp_path, flush_interval_s=0.05, retry_first_s=0.05, retry_max_s=0.1)
     w.write_config(0, {"estimator": {"name": "madgwick", "params": {"beta": 0.1}}})
     for i in range(20):
         w.write_raw(i + 1, np.full(10, float(i)), 0)
-    assert _wait_for(lambda: w.status == "error")
-    assert "No space left" in w.last_error and w.dropped >= 20
-    state["fail"] = False
-    i = 100
-    while not (w.status == "ok" and len(w.files) == 2) and i < 2000:  # bounded
-        w.write_raw(i, np.full(10, float(i)), 0)
+    assert _wait_for(lambda: w.status == "ok" and w._file.committed_bytes > 0 and w._file.unflushed == 0)
+    disk.full = True
+    i = 20
+    while w.status != "error" and i < 2000:  # bounded
+        w.write_raw(i + 1, np.full(10, float(i)), 0)
         i += 1
-        time.sleep(0.005)
+        time.sleep(0.002)
+    assert w.status == "error"
+    (path,) = w.files
+    assert w.last_error == f"{path}: No space left on device (ENOSPC)"
+    # the torn write was cut off: what is on disk is a valid MCAP prefix, first samples in it
+    on_disk = read_log(path)
+    assert on_disk.index.tolist() == list(range(20)) and on_disk.damage is not None
+    calls = disk.calls
+    for _ in range(50):  # the outage goes on: samples counted, not one new file
+        w.write_raw(i + 1, np.full(10, float(i)), 0)
+        i += 1
+        time.sleep(0.004)
+    assert disk.calls > calls and w.files == [path] and sorted(tmp_path.iterdir()) == [path]
+    disk.full = False
+    while w.status != "ok" and i < 4000:
+        w.write_raw(i + 1, np.full(10, float(i)), 0)
+        i += 1
+        time.sleep(0.002)
+    total = i
     w.close()
-    assert len(w.files) == 2
-    second = read_log(w.files[1])
-    # the new file restates the configuration, so it can be replayed on its own
-    assert second.damage is None and second.estimator == "madgwick" and len(second) > 0
+    assert w.files == [path] and sorted(tmp_path.iterdir()) == [path]
+    log = read_log(path)
+    assert log.damage is None and log.indexed and log.estimator == "madgwick"
+    # every sample is either in the file (in order, exact) or counted as not logged
+    assert len(log) + w.samples_not_logged == total and w.samples_not_logged >= 50
+    assert np.array_equal(log.rows[:, 0], log.index.astype(float))
+    assert w.outages == 1 and w.last_outage.samples == w.samples_not_logged
+    assert w.not_logged().seconds == pytest.approx(w.last_outage.seconds) and w.last_outage.seconds > 0
+
+
+def test_close_during_an_outage_leaves_a_recoverable_file_or_none(tmp_path, monkeypatch):
+    from ahrs_service.logs.recover import recover
+
+    disk = _FullDisk(monkeypatch)
+    w = FlightLogWriter(tmp_path / "a", flush_interval_s=0.05, retry_first_s=0.05)
+    for i in range(30):
+        w.write_raw(i + 1, np.full(10, float(i)), 0)
+    assert _wait_for(lambda: w._file is not None and w._file.committed_bytes > 0 and w._file.unflushed == 0)
+    disk.full = True
+    for i in range(30, 60):
+        w.write_raw(i + 1, np.full(10, float(i)), 0)
+    w.close()
+    (path,) = w.files
+    assert sorted(path.parent.iterdir()) == [path] and w.samples_not_logged == 30
+    assert read_log(path).index.tolist() == list(range(30))
+    out = recover(path, tmp_path / "fixed.mcap")
+    assert out is not None
+    with open(tmp_path / "fixed.mcap", "rb") as f:
+        assert sum(1 for _ in make_reader(f).iter_messages(topics=["/imu/raw"])) == 30
+    # a disk full from the first byte: nothing on disk, so no empty "bad magic" file is left
+    w = FlightLogWriter(tmp_path / "b", flush_interval_s=0.05, retry_first_s=0.05)
+    for i in range(30):
+        w.write_raw(i + 1, np.zeros(10), 0)
+    assert _wait_for(lambda: w.status == "error")
+    w.close()
+    assert len(w.files) == 1 and list((tmp_path / "b").iterdir()) == [] and w.samples_not_logged == 30
+
+
+def test_log_folder_deleted_then_a_file_in_its_place_mid_run(tmp_path):
+    """rm -rf of the log folder while a file is open, then a regular file where the folder was:
+    the deleted file is noticed at its next flush (not written on into a nameless inode), its
+    samples are counted as not logged, the writer waits out the blocked path with back-off and
+    starts one new file once the folder can be made again."""
+    import shutil
+
+    folder = tmp_path / "logs"
+    w = FlightLogWriter(folder, flush_interval_s=0.05, retry_first_s=0.05, retry_max_s=0.1)
+    i = 0
+
+    def feed(n: int) -> None:
+        nonlocal i
+        for _ in range(n):
+            w.write_raw(i + 1, np.full(10, float(i)), 0)
+            i += 1
+            time.sleep(0.002)
+
+    feed(30)
+    assert _wait_for(lambda: w._file is not None and w._file.committed_bytes > 0)
+    (first,) = w.files
+    shutil.rmtree(folder)
+    folder.write_text("a file where the log folder was")
+    while w.status != "error" and i < 2000:
+        feed(1)
+    assert w.last_error == f"{first}: deleted while being written (ENOENT)"
+    while "ENOTDIR" not in w.last_error and i < 4000:  # the path is blocked: counted, retried
+        feed(1)
+    feed(10)
+    assert w.status == "error" and w.last_error == f"{folder}: Not a directory (ENOTDIR)" and w.files == [first]
+    folder.unlink()
+    while w.status != "ok" and i < 4000:
+        feed(1)
+    feed(20)
+    total = i
+    w.close()
+    (second,) = folder.iterdir()
+    assert w.files == [first, second] and w.outages == 1
+    log = read_log(second)
+    assert log.damage is None and len(log) + w.samples_not_logged == total
+    # the deleted file's 30 first samples at least, and the 10 fed while the path was blocked
+    assert w.samples_not_logged >= 30 + 10
 
 
 def test_rotation_by_size_keeps_every_sample_and_restates_config(tmp_path):
@@ -234,7 +351,7 @@ def test_full_queue_drops_and_counts_without_blocking(tmp_path, monkeypatch):
     assert _wait_for(lambda: len(w._q) == 0)  # the thread holds the first sample
     for i in range(1, 16):
         w.write_raw(i, np.zeros(10), 0)  # 10 fit in the queue, 5 do not
-    assert w.dropped == 5
+    assert w.dropped == 5 and w.samples_not_logged == 5
     release.set()
     w.close()
     log = read_log(w.files[0])
@@ -396,3 +513,19 @@ def test_log_file_writes_the_same_bytes_as_the_mcap_library(tmp_path):
     w.finish()
     ours = path.read_bytes()
     assert len(ours) > 100_000 and ours == out.getvalue()
+
+
+def test_a_file_written_without_flushes_streams_to_disk(tmp_path, monkeypatch):
+    """Imports and replays never flush: past COMMIT_BYTES the staged bytes go to disk as
+    written (whole records), not all at close."""
+    monkeypatch.setattr(mcap_file_mod, "COMMIT_BYTES", 16_384)
+    path = tmp_path / "big.mcap"
+    f = McapLogFile(path, chunk_size=4096)
+    rows = _rows(2000)
+    for i, row in enumerate(rows):
+        f.write("/imu/raw", i + 1, schemas.raw_message(i + 1, row.tolist(), 0, None, None, i))
+        assert f.size - f.committed_bytes < 16_384 + 8192  # never much more than the threshold staged
+    assert f.committed_bytes > 0
+    f.close()
+    log = read_log(path)
+    assert log.damage is None and np.array_equal(log.rows, rows, equal_nan=True)

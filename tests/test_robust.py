@@ -89,9 +89,10 @@ def broad_rmse(q_enu, ref, movement):
 
 
 def test_broad_acceptance_against_vqf(broad_dir):
-    """Defaults, no latency compensation: mean total ≤ 2.4°, mean inclination no worse than
-    VQF's, and no group worse than VQF (same run). The issue's 0.6° inclination target is not
-    reached this way (0.678°, VQF 0.678°); see docs/robust-estimator.md."""
+    """Defaults, no latency compensation: no regression from the flight changes of issue 21
+    (mean total ≤ 1.95°, mean inclination ≤ 0.69°; measured 1.911° / 0.672°, before them
+    1.910° / 0.678°), inclination no worse than VQF's and no group worse than VQF (same run).
+    The issue's 0.6° inclination target is not reached this way; see docs/robust-estimator.md."""
     h5py = pytest.importorskip("h5py")
     vqf = pytest.importorskip("vqf")
     files = sorted(broad_dir.glob("*.hdf5"))
@@ -109,7 +110,8 @@ def test_broad_acceptance_against_vqf(broad_dir):
         theirs[name] = broad_rmse(vqf.VQF(1.0 / rate).updateBatch(gyr, acc, mag)["quat9D"], ref, movement)
     mean_ours = np.mean(list(ours.values()), axis=0)
     mean_vqf = np.mean(list(theirs.values()), axis=0)
-    assert mean_ours[0] <= 2.4, ours
+    assert mean_ours[0] <= 1.95, ours
+    assert mean_ours[2] <= 0.69, ours
     assert mean_ours[2] <= mean_vqf[2], (mean_ours, mean_vqf)
     for group, names in GROUPS.items():
         g_ours = np.mean([ours[n][0] for n in names])
@@ -163,8 +165,48 @@ def test_tapping_bursts_do_not_tilt_the_inclination():
     assert rms(incl_tap[during]) < 0.5
     assert rms(incl_tap[during]) < rms(incl_clean[during]) + 0.3
     # the same filter low-passing over 50 ms instead of seconds is visibly tilted by the taps
-    _, q_fast = run_robust(gyr, acc_tapped, mag, 1 / rate, tau_acc=0.05)
+    _, q_fast = run_robust(gyr, acc_tapped, mag, 1 / rate, tau_acc=0.05, tau_acc_max=0.05)
     assert rms(error_deg(q_fast, q)[2][during]) > 2 * rms(incl_tap[during])
+
+
+def circling(amp_dps, seed=3):
+    """A vehicle circling: at rest for 5 s, then tilting (wobble of ``amp_dps``) while a
+    centripetal 3 m/s² that turns once every 3.9 s in the earth frame ramps in from 10 s
+    (the sustained acceleration of a quadrotor on a 1.5 m circle at 2 m/s). (t, q, gyr, acc)."""
+    rate = 200.0
+    t = np.arange(0, 80, 1 / rate)
+    omega = wobble(t, amp_dps) * (t > 5)[:, None]
+    q = simulate(t, omega)
+    gyr, acc, _ = sense(q, omega, seed=seed)
+    ramp = np.clip((t - 10) / 5, 0, 1)[:, None]
+    a_earth = 3.0 * ramp * np.stack([np.cos(1.6 * t), np.sin(1.6 * t), np.zeros_like(t)], axis=1)
+    return t, q, gyr, acc + quat_rotate_array(quat_conj_array(q), a_earth)
+
+
+def test_accelerometer_time_constant_follows_the_tilt_rate():
+    """Sustained, turning accelerations while the sensor tilts slowly (flight): the longer time
+    constant the tilt rate allows averages them out; while it tilts fast, tau_acc holds."""
+    p = estimators.create("robust").params
+    t, q, gyr, acc = circling(8.0)
+    est, q_adapt = run_robust(gyr, acc, None, 1 / 200.0)
+    _, q_fixed = run_robust(gyr, acc, None, 1 / 200.0, tilt_rate_ref=0.0)
+    late = t > 40
+    adapt, fixed = rms(error_deg(q_adapt, q)[2][late]), rms(error_deg(q_fixed, q)[2][late])
+    # measured 0.54° against 1.52° with the fixed 3 s; other seeds up to 0.36×
+    assert adapt < 0.5 * fixed and adapt < 1.0
+    # the time constant in force is the law's, from the low-passed tilt rate (≈ 7.5 °/s here)
+    tilt = est.state[R.ST.tilt_rate]
+    tau = est.state[R.ST.coef_tau_acc]
+    assert 5 * DEG < tilt < 10 * DEG
+    expected = max(p.tau_acc, p.tau_acc_max / math.sqrt(1 + tilt / (p.tilt_rate_ref * DEG)))
+    assert tau == pytest.approx(expected, abs=0.026)  # rounded to 0.05 s for the cache
+    # tilting at ≈ 45 °/s the time constant stays near tau_acc and nothing gets worse
+    t, q, gyr, acc = circling(60.0)
+    est, q_adapt = run_robust(gyr, acc, None, 1 / 200.0)
+    _, q_fixed = run_robust(gyr, acc, None, 1 / 200.0, tilt_rate_ref=0.0)
+    assert p.tau_acc <= est.state[R.ST.coef_tau_acc] < 1.2 * p.tau_acc  # measured 3.35 s
+    # measured 1.42° against 1.52°
+    assert rms(error_deg(q_adapt, q)[2][t > 40]) <= rms(error_deg(q_fixed, q)[2][t > 40])
 
 
 def _bump(t, t0, t1, ramp=1.0):

@@ -253,7 +253,7 @@ def test_unwritable_log_directory_is_reported_and_publishing_goes_on(tmp_path, g
     seen = {"report": False, "attitude": 0}
 
     def enough(m) -> bool:
-        seen["report"] |= m.get_type() == "STATUSTEXT" and m.text.startswith("flight log:")
+        seen["report"] |= m.get_type() == "STATUSTEXT" and m.text.startswith("flight log stopped:")
         seen["attitude"] += m.get_type() == "ATTITUDE"
         return seen["report"] and seen["attitude"] >= 10
 
@@ -262,7 +262,7 @@ def test_unwritable_log_directory_is_reported_and_publishing_goes_on(tmp_path, g
     finally:
         run.stop()
     texts = [m.text for m in msgs if m.get_type() == "STATUSTEXT"]
-    assert any(t.startswith("flight log:") for t in texts), texts
+    assert any(t.startswith("flight log stopped:") for t in texts), texts
     # publishing goes on, on its 20 Hz schedule
     t_ms = [m.time_boot_ms for m in msgs if m.get_type() == "ATTITUDE"]
     assert_stream_on_schedule(t_ms, 20)
@@ -664,12 +664,19 @@ def test_health_per_sensor_and_no_fresh_looking_attitude_without_a_gyroscope(tmp
         assert _wait_until(lambda: svc.mavlink.component.stats.stale_withheld > withheld)
         collect(conn, 0.3)
         got = collect(conn, 1.0)
-        assert not [m for m in got if m.get_type() in ("ATTITUDE", "ATTITUDE_QUATERNION")]
+        assert not [m for m in got if m.get_type() in ("ATTITUDE", "ATTITUDE_QUATERNION", "VIBRATION")]
         assert any(m.get_type() == "HEARTBEAT" and m.system_status == mavlink2.MAV_STATE_CRITICAL for m in got)
-        assert any(m.get_type() == "SYS_STATUS" and not m.onboard_control_sensors_health & gyro_bit for m in got)
+        ahrs_bit = mavlink2.MAV_SYS_STATUS_AHRS
+        assert any(m.get_type() == "SYS_STATUS" and not m.onboard_control_sensors_health & (gyro_bit | ahrs_bit)
+                   for m in got)
 
+        samples_at_return = svc.pipeline.samples
         bus.set_present(0x69, True)
         att = collect(conn, 10.0, until=lambda m: m.get_type() == "ATTITUDE")
         assert att and att[-1].get_type() == "ATTITUDE" and math.isfinite(att[-1].roll)
+        assert svc.pipeline.samples > samples_at_return  # published from new estimates
+        back = collect(conn, 10.0, until=lambda m: m.get_type() == "SYS_STATUS")
+        assert back[-1].get_type() == "SYS_STATUS" and back[-1].onboard_control_sensors_health & (gyro_bit | ahrs_bit) \
+            == gyro_bit | ahrs_bit
     finally:
         run.stop()

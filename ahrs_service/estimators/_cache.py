@@ -16,7 +16,7 @@ from pathlib import Path
 _HERE = Path(__file__).resolve().parent
 # modules that call kernels but that no kernel reads (functions or constants) from: editing
 # them must not cost a recompilation of everything
-_NOT_KERNEL_SOURCES = {"_cache.py", "offline.py"}
+_NOT_KERNEL_SOURCES = {"_cache.py", "offline.py", "uncertainty.py"}
 _SOURCES = sorted(p for p in _HERE.glob("*.py") if p.name not in _NOT_KERNEL_SOURCES) + [_HERE.parent / "quaternion.py"]
 _CACHE = _HERE / "__pycache__"
 _STAMP = _CACHE / "kernel-sources.sha256"

@@ -44,10 +44,14 @@ STATE_HEADER = Layout(
         Slot("mag_skipped", 1, "count of samples whose magnetometer correction was skipped (includes no magnetometer)"),
         Slot("gyr_skipped", 1, "count of samples whose gyro/dt could not be integrated"),
         Slot("bias", 3, "gyro-bias estimate, rad/s, body frame (zero where not estimated)"),
+        Slot("acc_age", 1, "time since the last usable accelerometer sample, s (NO_SAMPLE_YET: none yet)"),
+        Slot("mag_age", 1, "time since the last usable magnetometer sample, s (NO_SAMPLE_YET: none yet)"),
     ],
 )
-Q, INITIALISED, ACC_SKIPPED, MAG_SKIPPED, GYR_SKIPPED, BIAS = STATE_HEADER.index
+Q, INITIALISED, ACC_SKIPPED, MAG_SKIPPED, GYR_SKIPPED, BIAS, ACC_AGE, MAG_AGE = STATE_HEADER.index
 HEADER = STATE_HEADER.end  # where an estimator's own slots start
+#: acc_age / mag_age before the first usable sample (a state stays finite: logs, checks)
+NO_SAMPLE_YET = -1.0
 
 #: slices for Python code outside the kernels: ``state[HEADER_SLICES.bias]``, ``row[ROW_SLICES.mag]``
 HEADER_SLICES = STATE_HEADER.slices
@@ -58,7 +62,9 @@ _jit = njit(cache=True, inline="always")
 
 @_jit
 def check_sample(s, x, uses_mag):
-    """Validity of the three inputs of one row; counts each skipped correction in the header.
+    """Validity of the three inputs of one row; counts each skipped correction in the header
+    and keeps the age of the newest usable accelerometer and magnetometer sample (the error
+    models of ``uncertainty`` grow with it).
 
     Returns (gyro_ok, acc_ok, mag_ok). gyro_ok also requires a finite dt > 0.
     """
@@ -72,6 +78,14 @@ def check_sample(s, x, uses_mag):
         s[ACC_SKIPPED] += 1.0
     if uses_mag and not mag_ok:
         s[MAG_SKIPPED] += 1.0
+    if acc_ok:
+        s[ACC_AGE] = 0.0
+    elif gyro_ok and s[ACC_AGE] >= 0.0:
+        s[ACC_AGE] += dt
+    if mag_ok:
+        s[MAG_AGE] = 0.0
+    elif gyro_ok and s[MAG_AGE] >= 0.0:
+        s[MAG_AGE] += dt
     return gyro_ok, acc_ok, mag_ok
 
 

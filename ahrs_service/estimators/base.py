@@ -18,12 +18,14 @@ a closure over it) is compiled anew at every start — seconds of start-up for t
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, ClassVar
 
 import numpy as np
 from numba import njit
 
 from ahrs_service.estimators import _kernel as K
+from ahrs_service.estimators.uncertainty import AttitudeVariance, ErrorModel
 
 _H = K.HEADER_SLICES
 _R = K.ROW_SLICES
@@ -35,6 +37,10 @@ class Estimator:
     Subclasses set ``name``, ``Params``, ``uses_mag``, ``observes_heading``, ``state_size``,
     ``step`` and ``batch``, and may override ``initial_state`` (covariances and the like).
     The estimate is q_earth←body, [w, x, y, z], earth NED, body FRD.
+
+    ``attitude_variance()`` reports the uncertainty of the current attitude: from the
+    ``error_model`` here, overridden by the estimators that keep a covariance (see
+    ``uncertainty``).
     """
 
     name: ClassVar[str]
@@ -44,6 +50,8 @@ class Estimator:
     state_size: ClassVar[int] = K.HEADER
     step: ClassVar[Any]
     batch: ClassVar[Any]
+    #: attitude error model of the estimators without a covariance of their own (``uncertainty``)
+    error_model: ClassVar[ErrorModel] = ErrorModel()
 
     def __init__(self, **params: float) -> None:
         self.params = _make_params(self.Params, params, self.name)
@@ -76,6 +84,7 @@ class Estimator:
         """State before the first sample: identity attitude, not initialised, zero counters."""
         s = np.zeros(self.state_size)
         s[K.Q] = 1.0
+        s[K.ACC_AGE] = s[K.MAG_AGE] = K.NO_SAMPLE_YET
         return s
 
     def reset(self) -> None:
@@ -92,6 +101,19 @@ class Estimator:
         """Current gyro-bias estimate, rad/s, body frame (zeros where not estimated)."""
         return self.state[_H.bias].copy()
 
+    def attitude_variance(self) -> AttitudeVariance:
+        """Variances of the current roll, pitch and yaw (ZYX Euler angles), rad²; NaN where
+        unknown (before initialisation; yaw of the estimators that do not observe heading, or
+        before the first usable field sample). This default is the ``error_model`` over the
+        ages of the newest usable accelerometer and magnetometer samples; estimators with a
+        covariance override it."""
+        s = self.state
+        if not s[K.INITIALISED]:
+            return AttitudeVariance.unknown()
+        return self.error_model.variance(
+            sample_age(s[K.ACC_AGE]), sample_age(s[K.MAG_AGE]), self.observes_heading and self.uses_mag
+        )
+
     @property
     def diagnostics(self) -> dict[str, float]:
         s = self.state
@@ -100,6 +122,8 @@ class Estimator:
             "acc_skipped": int(s[K.ACC_SKIPPED]),
             "mag_skipped": int(s[K.MAG_SKIPPED]),
             "gyr_skipped": int(s[K.GYR_SKIPPED]),
+            # logged with the attitude at log.diagnostics_hz (logs/schemas.py ATTITUDE)
+            "attitude_variance": self.attitude_variance().as_dict(),
         }
 
     # ---------------------------------------------------------------- stepping
@@ -143,6 +167,11 @@ class Estimator:
         out = np.empty((rows.shape[0], 4))
         self.batch(self.state, self._p, rows, out)
         return out
+
+
+def sample_age(age: float) -> float:
+    """A header ``acc_age`` / ``mag_age`` in s, ``inf`` before the first usable sample."""
+    return math.inf if age < 0.0 else float(age)
 
 
 def stack_rows(gyr: Any, acc: Any, mag: Any, dt: Any) -> np.ndarray:

@@ -41,6 +41,11 @@ from numba import njit
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.layout import Layout, Slot, param_index
+from ahrs_service.estimators.uncertainty import (
+    AttitudeVariance,
+    euler_variance_of_quaternion_covariance,
+    with_unmodelled_floor,
+)
 from ahrs_service.quaternion import quat_normalize, quat_rotate, quat_rotate_inv
 
 N = 7  # state dimension: quaternion (4) + gyro bias (3)
@@ -366,3 +371,12 @@ class QuaternionEKF(Estimator):
         p[np.arange(4), np.arange(4)] = self.params.init_attitude_std**2
         p[np.arange(4, N), np.arange(4, N)] = self.params.init_bias_std**2
         return s
+
+    def attitude_variance(self) -> AttitudeVariance:
+        """Roll, pitch, yaw variances (rad²) from the quaternion block of P (J P_qq Jᵀ), plus
+        the floors of what the model leaves out (``uncertainty.with_unmodelled_floor``)."""
+        s = self.state
+        if not s[K.INITIALISED]:
+            return AttitudeVariance.unknown()
+        p = s[STATE.slices.p].reshape(N, N)[:4, :4]
+        return with_unmodelled_floor(euler_variance_of_quaternion_covariance(s[K.HEADER_SLICES.q], p))

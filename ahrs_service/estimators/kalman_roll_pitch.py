@@ -26,6 +26,7 @@ from numba import njit
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.layout import Layout, Slot, param_index
+from ahrs_service.estimators.uncertainty import AttitudeVariance
 from ahrs_service.quaternion import quat_from_euler, quat_to_euler
 
 STATE = Layout(
@@ -145,3 +146,11 @@ class KalmanRollPitch(Estimator):
     state_size = STATE_SIZE
     step = staticmethod(kalman_roll_pitch_step)
     batch = staticmethod(kalman_roll_pitch_batch)
+
+    def attitude_variance(self) -> AttitudeVariance:
+        """The two filters' own variances of roll and pitch (rad²); yaw NaN (not observed)."""
+        s = self.state
+        if not s[K.INITIALISED]:
+            return AttitudeVariance.unknown()
+        roll, pitch = s[STATE.slices.p_roll_pitch]
+        return AttitudeVariance(float(roll), float(pitch), float("nan"))

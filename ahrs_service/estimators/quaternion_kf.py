@@ -27,6 +27,11 @@ from numba import njit
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.layout import Layout, Slot, param_index
+from ahrs_service.estimators.uncertainty import (
+    AttitudeVariance,
+    euler_variance_of_quaternion_covariance,
+    with_unmodelled_floor,
+)
 from ahrs_service.estimators.quest import DIP, learn_dip, quest_quat
 from ahrs_service.estimators.quest import STATE as QUEST_STATE
 from ahrs_service.estimators.triad import align_down, down_direction
@@ -191,3 +196,17 @@ class QuaternionKF(Estimator):
         s = super().initial_state()
         s[P : P + 16] = (self.params.p0 * np.eye(4)).ravel()
         return s
+
+    def attitude_variance(self) -> AttitudeVariance:
+        """Roll, pitch, yaw variances (rad²) from the filter's 4 × 4 P (J P Jᵀ) plus the floors
+        of what the model leaves out (``uncertainty.with_unmodelled_floor``); yaw NaN until
+        the first usable field sample (before it the measurement is gravity only)."""
+        s = self.state
+        if not s[K.INITIALISED]:
+            return AttitudeVariance.unknown()
+        var = with_unmodelled_floor(
+            euler_variance_of_quaternion_covariance(s[K.HEADER_SLICES.q], s[STATE.slices.p].reshape(4, 4))
+        )
+        if s[K.MAG_AGE] < 0.0:  # K.NO_SAMPLE_YET
+            return AttitudeVariance(var.roll, var.pitch, float("nan"))
+        return var

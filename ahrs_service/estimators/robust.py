@@ -19,7 +19,9 @@ NED/FRD. The project's own: the output lead and the magnetic features marked so 
 * q_a (E6←I): inclination correction. The accelerometer is rotated into I and low-pass
   filtered there (2nd-order, τ_acc), so linear accelerations that average out over a few
   seconds (tapping, translation) cannot tilt the estimate; q_a turns the filtered vector onto
-  the vertical (VQF eq. 7–10);
+  the vertical (VQF eq. 7–10). τ_acc follows the tilt rate (the project's own, see
+  ``_accel_time_constant``): longer while the sensor tilts slowly, as a vehicle in flight
+  does, so that sustained accelerations average out;
 * q_δ (E←E6): rotation about the vertical by the heading offset δ, a first-order filter of
   the magnetometer's heading disagreement (τ_mag, VQF eq. 11–12) gated by the magnetic
   rejection features below.
@@ -67,28 +69,48 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators import robust_blocks as B
-from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.base import Estimator, sample_age
 from ahrs_service.estimators.robust_layout import DEG, N_PARAMS, P, ST, STATE, STATE_SIZE, RobustParams
 from ahrs_service.estimators.robust_mag import hard_iron_and_consistency, heading
+from ahrs_service.estimators.uncertainty import AttitudeVariance, ErrorModel
 from ahrs_service.quaternion import quat_integrate, quat_mul, quat_normalize, quat_rotate
 
 _jit = njit(cache=True, inline="always")
 
 
 @_jit
-def _update_coefficients(s, p, dt):
-    """Recomputes the cached low-pass coefficients when dt or a time constant changed."""
-    if (
-        s[ST.coef_dt] != dt
-        or s[ST.coef_tau_acc] != p[P.tau_acc]
-        or s[ST.coef_tau_rest] != p[P.rest_filter_tau]
-        or s[ST.coef_tau_acc_rest] != p[P.tau_acc_rest]
+def _accel_time_constant(s, p):
+    """τ of the accelerometer low-pass in I for the recent tilt rate, s (the project's own).
+
+    The gyro frame I drifts in inclination by the residual bias plus the gyro's scale and
+    misalignment error times the rate at which the sensor tilts (|ω| about the horizontal
+    axes): r = b + ε |ω̄_h|. A low-pass of time constant τ leaves a drift error ≈ r τ and an
+    acceleration error that falls with τ; their sum is smallest for τ ∝ 1/√r, hence
+    τ = tau_acc_max / √(1 + |ω̄_h| / tilt_rate_ref), with tilt_rate_ref = b/ε, never below
+    tau_acc. Rounded to 0.05 s so the coefficient cache holds between changes; the filters
+    keep their delay states across a change, which shifts their output by Δb0 times the input
+    (transposed direct form II): b0 ≈ 3·10⁻⁷ for τ = 3 s at 400 Hz, a 0.05 s step changes it by
+    about 10⁻⁸, so gravity's 9.8 m/s² jumps by about 10⁻⁷ m/s².
+    """
+    ref = p[P.tilt_rate_ref] * DEG
+    if ref <= 0.0:
+        return p[P.tau_acc]
+    tau = max(p[P.tau_acc], p[P.tau_acc_max] / math.sqrt(1.0 + s[ST.tilt_rate] / ref))
+    return math.floor(tau * 20.0 + 0.5) / 20.0
+
+
+@_jit
+def _update_coefficients(s, p, dt, tau_acc):
+    """Recomputes the cached low-pass coefficients when dt or a time constant changed;
+    ``tau_acc`` is the accelerometer time constant in force (``_accel_time_constant``)."""
+    if B.cache_is_stale(
+        s,
+        (ST.coef_dt, ST.coef_tau_acc, ST.coef_tau_rest, ST.coef_tau_acc_rest),
+        (dt, tau_acc, p[P.rest_filter_tau], p[P.tau_acc_rest]),
     ):
-        B.butter2_coefficients(s, ST.ca, dt, p[P.tau_acc])
+        B.butter2_coefficients(s, ST.ca, dt, tau_acc)
         B.butter2_coefficients(s, ST.cr, dt, p[P.rest_filter_tau])
         B.butter2_coefficients(s, ST.car, dt, p[P.tau_acc_rest])
-        s[ST.coef_dt], s[ST.coef_tau_acc], s[ST.coef_tau_rest] = dt, p[P.tau_acc], p[P.rest_filter_tau]
-        s[ST.coef_tau_acc_rest] = p[P.tau_acc_rest]
 
 
 @_jit
@@ -188,6 +210,11 @@ def _inclination_and_bias(s, p, x, dt, qg, rg):
     )  # fmt: skip
     blp0 = B.butter2_step(s, ST.ca, ST.bias_lp, 2, 0, rb0)
     blp1 = B.butter2_step(s, ST.ca, ST.bias_lp, 2, 1, rb1)
+    # tilt rate: the bias-corrected rate about the two horizontal axes of E6, low-passed over
+    # tau_acc_max (drift turned in within the filter's longest memory still needs correcting)
+    wx, wy, wz = x[0] - b0, x[1] - b1, x[2] - b2
+    wh = math.sqrt((r[0] * wx + r[1] * wy + r[2] * wz) ** 2 + (r[3] * wx + r[4] * wy + r[5] * wz) ** 2)
+    s[ST.tilt_rate] += dt / (p[P.tau_acc_max] + dt) * (wh - s[ST.tilt_rate])
 
     # process noise: the variance grows by (0.1 °/s)² per forgetting time, up to its initial value
     v = 100.0 * dt / p[P.bias_forgetting_time]
@@ -240,7 +267,10 @@ def _first_sample(s, params, x, gyro_ok, acc_ok, mag_ok):
         return
     p = B.load_tuple(params, N_PARAMS)
     dt0 = x[K.DT] if gyro_ok else 0.01
-    _update_coefficients(s, p, dt0)
+    # until the tilt rate is measured, assume the fast tilting that tau_acc is meant for
+    ref = p[P.tilt_rate_ref] * DEG
+    s[ST.tilt_rate] = ref * ((p[P.tau_acc_max] / p[P.tau_acc]) ** 2 - 1.0) if p[P.tau_acc_max] > p[P.tau_acc] else 0.0
+    _update_coefficients(s, p, dt0, p[P.tau_acc])
     _start(s, x)
     if mag_ok:
         s[ST.mag_dt] = dt0
@@ -252,7 +282,7 @@ def _update(s, params, x, acc_ok, mag_ok):
     """One sample with a usable gyroscope after the start (VQF eq. 3: q = q_δ ⊗ q_a ⊗ q_g)."""
     p = B.load_tuple(params, N_PARAMS)
     dt = x[K.DT]
-    _update_coefficients(s, p, dt)
+    _update_coefficients(s, p, dt, _accel_time_constant(s, p))
     s[ST.mag_dt] += dt
     s[ST.hi_t] += dt
     # strapdown integration of the bias-corrected rate (VQF eq. 4)
@@ -305,6 +335,9 @@ def robust_step(s, params, row):
     robust_batch(s, params, row[np.newaxis, :], None)
 
 
+BIAS_P_UNIT = 0.01 * DEG
+
+
 class RobustEstimator(Estimator):
     """GIMLET, the project's robust estimator: VQF-structured inclination and bias, heading
     with norm/dip, gyro-consistency and hard-iron-learning magnetic rejection."""
@@ -340,3 +373,22 @@ class RobustEstimator(Estimator):
             # residual / tolerance of the gyro-consistency test (< 1: consistent), no unit
             "consistency_ratio": float(np.sqrt(max(s[ST.cons], 0.0))),
         }
+
+    #: floors of the error model (``uncertainty``); the drift comes from the bias covariance,
+    #: whose unit (robust_layout: bias_p) is (0.01 °/s)²: σ_b = √p · BIAS_P_UNIT rad/s
+    error_model = ErrorModel(tilt_sigma=1.5 * DEG, heading_sigma=4.0 * DEG)
+
+    def attitude_variance(self) -> AttitudeVariance:
+        """Error model (``uncertainty``): tilt floor plus the bias σ of the body x/y axes times
+        the age of the newest accelerometer sample; heading floor plus the body-z bias σ times
+        the time the heading has run on the gyro alone (no usable field, or a rejected one:
+        the rejection clock)."""
+        s = self.state
+        if not s[K.INITIALISED]:
+            return AttitudeVariance.unknown()
+        sigma_b = np.sqrt(np.maximum(np.diag(s[STATE.slices.bias_p].reshape(3, 3)), 0.0)) * BIAS_P_UNIT
+        m = self.error_model
+        tilt = m.tilt_sigma**2 + (float(max(sigma_b[0], sigma_b[1])) * sample_age(s[K.ACC_AGE])) ** 2
+        unused = sample_age(s[K.MAG_AGE]) + (float(s[ST.mag_reject_t]) if s[ST.mag_dist] else 0.0)
+        yaw = m.heading_sigma**2 + (float(sigma_b[2]) * unused) ** 2 if np.isfinite(unused) else float("nan")
+        return AttitudeVariance(tilt, tilt, yaw)

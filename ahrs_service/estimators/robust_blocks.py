@@ -1,5 +1,5 @@
 """Compiled building blocks of the robust estimator (``robust.py``): low-pass filters that
-live inside the state array, the gyro-bias Kalman update, the 3×3 inverse that the
+live inside the state array, the dt-keyed coefficient cache, the gyro-bias Kalman update, the 3×3 inverse that the
 hard-iron least squares (``robust_mag``) uses, and ``load_tuple`` for the parameter vector.
 
 Every function works on slots of the float64 state array ``s`` given by their first index,
@@ -37,6 +37,24 @@ def first_order_gain(dt, tau):
     if tau <= 0.0:
         return 1.0
     return 1.0 - math.exp(-dt / tau)
+
+
+@_jit
+def cache_is_stale(s, key_slots, keys):
+    """The dt-keyed coefficient cache's check: True, with the new ``keys`` stored in their
+    slots ``key_slots`` (tuples of equal length: the dt and the time constants the cached
+    coefficients were computed for), when any of them changed; False when the cache holds.
+
+    Coefficients cost a tan() or an exp() each: at a steady rate they are computed once.
+    """
+    stale = False
+    for k in range(len(keys)):
+        if s[key_slots[k]] != keys[k]:
+            stale = True
+    if stale:
+        for k in range(len(keys)):
+            s[key_slots[k]] = keys[k]
+    return stale
 
 
 @_jit

@@ -164,18 +164,15 @@ def heading(s, p, x, q6):
     first = s[ST.mag_n] == 0.0
     s[ST.mag_n] += 1.0
     s[ST.mag_t] += dtm
-    if (
-        s[ST.gain_dt] != dtm
-        or s[ST.gain_tau_mag] != p[P.tau_mag]
-        or s[ST.gain_tau_cur] != p[P.mag_current_tau]
-        or s[ST.gain_tau_ref] != p[P.mag_ref_tau]
+    if B.cache_is_stale(
+        s,
+        (ST.gain_dt, ST.gain_tau_mag, ST.gain_tau_cur, ST.gain_tau_ref),
+        (dtm, p[P.tau_mag], p[P.mag_current_tau], p[P.mag_ref_tau]),
     ):
         # exp() three times per field sample is avoidable at a steady rate: cache by dt
         s[ST.gain_cur] = B.first_order_gain(dtm, p[P.mag_current_tau])
         s[ST.gain_ref] = B.first_order_gain(dtm, p[P.mag_ref_tau])
         s[ST.gain_mag] = B.first_order_gain(dtm, p[P.tau_mag])
-        s[ST.gain_dt], s[ST.gain_tau_mag] = dtm, p[P.tau_mag]
-        s[ST.gain_tau_cur], s[ST.gain_tau_ref] = p[P.mag_current_tau], p[P.mag_ref_tau]
     kc = 1.0 if first else s[ST.gain_cur]
     s[ST.mag_nd] += kc * (n_raw - s[ST.mag_nd])
     s[ST.mag_nd + 1] += kc * (d_raw - s[ST.mag_nd + 1])

@@ -37,6 +37,7 @@ from ahrs_service.quaternion import (
     quat_from_rotvec,
     quat_mul,
     quat_normalize,
+    quat_rotate,
     quat_rotate_inv,
 )
 
@@ -479,6 +480,33 @@ _PROFILES: dict[str, type[Trajectory]] = {
     "validation": ValidationManoeuvre,
     "figure8": FigureEight,
 }
+
+
+class Vibrating(Trajectory):
+    """``base`` with a sinusoidal linear vibration added along the body axes: the specific
+    force on body axis i gains ``amplitude_mss[i]``·sin(2π·``frequency_hz``·t) (m/s²), as a
+    motor's vibration shakes the airframe (the gyroscope does not see it; the displacement,
+    amplitude / (2π f)², below a millimetre at the rates that matter, is left out of the
+    position). The kinematic acceleration (NED) carries the same vibration rotated to NED."""
+
+    def __init__(self, base: Trajectory, amplitude_mss: Sequence[float], frequency_hz: float) -> None:
+        super().__init__(field_ned=base.field_ned, gravity=base.gravity, looping=False)
+        self.base = base
+        self.duration = base.duration
+        self.amplitude = _vec3(amplitude_mss, "amplitude_mss")
+        if not (math.isfinite(frequency_hz) and frequency_hz >= 0.0):
+            raise ValueError(f"frequency_hz must be a finite number >= 0, got {frequency_hz!r}")
+        self.frequency_hz = float(frequency_hz)
+
+    def _kinematics(self, t: float) -> Kinematics:  # pragma: no cover - state() is overridden
+        raise NotImplementedError
+
+    def state(self, t: float) -> MotionState:
+        s = self.base.state(t)
+        shake = self.amplitude * math.sin(2.0 * math.pi * self.frequency_hz * t)
+        s.specific_force_body = s.specific_force_body + shake
+        s.acceleration = s.acceleration + np.asarray(quat_rotate(tuple(s.q), tuple(shake)))
+        return s
 
 
 def profile_names() -> list[str]:

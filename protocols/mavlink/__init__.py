@@ -8,6 +8,7 @@
 * ``params``    — the parameter protocol (ParameterTable);
 * ``commands``  — COMMAND_LONG handling (CommandTable, calibration handler);
 * ``signing``   — MAVLink 2 signing policy and key helpers;
+* ``timesync``  — TIMESYNC: the autopilot's clock offset and drift (TimeSync);
 * ``endpoints`` — one link opened from a pymavlink connection string;
 * ``component`` — MavlinkComponent, which ties them together. See docs/mavlink.md.
 """

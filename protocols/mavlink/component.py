@@ -49,6 +49,7 @@ from ahrs_service.protocols.mavlink.params import BYTEWISE, ParameterTable
 from ahrs_service.protocols.mavlink.signing import SIGNED_ONLY, check_key
 from ahrs_service.protocols.mavlink.statustext_limit import StatusTextLimiter
 from ahrs_service.protocols.mavlink.telemetry import Telemetry
+from ahrs_service.protocols.mavlink.vibration import encode_vibration
 
 #: default publishing rates, Hz (0 = off)
 DEFAULT_RATES: dict[str, float] = {
@@ -57,6 +58,7 @@ DEFAULT_RATES: dict[str, float] = {
     "ATTITUDE_QUATERNION": 50.0,
     "HIGHRES_IMU": 0.0,
     "SYS_STATUS": 1.0,
+    "VIBRATION": 2.0,
 }
 
 _ENCODERS: dict[str, Callable[[Telemetry], Any]] = {
@@ -64,6 +66,7 @@ _ENCODERS: dict[str, Callable[[Telemetry], Any]] = {
     "ATTITUDE_QUATERNION": encode_attitude_quaternion,
     "HIGHRES_IMU": encode_highres_imu,
     "SYS_STATUS": encode_sys_status,
+    "VIBRATION": encode_vibration,
 }
 # unsigned links send the attitude streams as pre-packed frames: the same bytes at 2.5x less cost
 _UNSIGNED_ENCODERS: dict[str, Callable[[Telemetry], Any]] = {
@@ -104,7 +107,7 @@ class MavlinkStats:
 MIN_RATE_HZ = 0.01
 
 #: streams that carry the estimate or the IMU readings: withheld while the estimate is stale
-_NEEDS_FRESH_ESTIMATE = frozenset({"ATTITUDE", "ATTITUDE_QUATERNION", "HIGHRES_IMU"})
+_NEEDS_FRESH_ESTIMATE = frozenset({"ATTITUDE", "ATTITUDE_QUATERNION", "HIGHRES_IMU", "VIBRATION"})
 
 
 @dataclass
@@ -127,7 +130,7 @@ class MavlinkComponent:
         "/dev/ttyAMA0,921600"]``. Every message goes out on every endpoint.
     identity: system/component id and heartbeat type (``Identity()`` = standalone, sys 1 comp 1).
     rates: message name → Hz over ``DEFAULT_RATES`` (HEARTBEAT, ATTITUDE, ATTITUDE_QUATERNION,
-        HIGHRES_IMU, SYS_STATUS); 0 switches a message off. These are also the "default rates"
+        HIGHRES_IMU, SYS_STATUS, VIBRATION); 0 switches a message off. These are also the "default rates"
         MAV_CMD_SET_MESSAGE_INTERVAL with interval 0 returns to.
     signing_key: 32-byte MAVLink 2 signing key, or None for no signing.
     params: the parameter table the ground station sees (empty if None).
@@ -302,6 +305,11 @@ class MavlinkComponent:
                  else mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST)
         zeros8 = [0] * 8
         return mavlink.MAVLink_autopilot_version_message(caps, 0, 0, 0, 0, zeros8, zeros8, zeros8, 0, 0, 0, [0] * 18)
+
+    def send(self, msg: Any) -> None:
+        """Sends one message built elsewhere (NAMED_VALUE_FLOAT of the attitude monitor, ODOMETRY …) on
+        every link now; errors are counted like the streams'."""
+        self._send_all(msg)
 
     def statustext(self, severity: int, text: str, kind: str | None = None) -> None:
         """Sends ``text`` on every link as STATUSTEXT at MAV_SEVERITY ``severity`` (0..7),

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 from ahrs_service.quaternion import euler_of
+from ahrs_service.vibration import VibrationLevels
 
 
 @dataclass(slots=True)
@@ -52,8 +53,9 @@ class Telemetry:
     lost_samples: IMU samples that never reached the host since start (all causes),
         SYS_STATUS errors_count3.
     faults: other named fault counters (kept for logs; not all fit in SYS_STATUS).
+    vibration: VIBRATION's levels and clipping counts (``ahrs_service.vibration``) or None.
     attitude_fresh: a sample was estimated recently; False (gyroscope gone, source silent)
-        withholds ATTITUDE, ATTITUDE_QUATERNION and HIGHRES_IMU — as PX4's streams, which send
+        withholds ATTITUDE, ATTITUDE_QUATERNION, HIGHRES_IMU and VIBRATION — as PX4's streams, which send
         only on a new estimate — while HEARTBEAT (CRITICAL) and SYS_STATUS go on.
     """
 
@@ -81,6 +83,7 @@ class Telemetry:
     sensor_faults: int = 0
     lost_samples: int = 0
     faults: Mapping[str, int] = field(default_factory=dict)
+    vibration: VibrationLevels | None = None
     attitude_fresh: bool = True
 
     @classmethod

@@ -1,0 +1,123 @@
+"""Attitude uncertainty: the roll, pitch and yaw variances an estimator reports with its attitude.
+
+Every estimator answers ``Estimator.attitude_variance()`` with an :class:`AttitudeVariance`
+(rad², NaN = unknown, as MAVLink's covariance fields define it). Where it comes from:
+
+* **its own covariance** — the EKF (7 × 7 P) and the quaternion KF (4 × 4 P) carry a
+  covariance of the quaternion; :func:`euler_variance_of_quaternion_covariance` maps it onto
+  the ZYX angles with the Jacobian of the angles against the normalised quaternion
+  (Σ_e = J P Jᵀ, diagonal kept). P is how well the state is known *if the model holds*; both
+  models take the accelerometer for gravity alone and the field for undisturbed, so the
+  floors of the default :class:`ErrorModel` (linear acceleration, field distortion) are added
+  for what the model leaves out (:func:`with_unmodelled_floor`). On BROAD, P alone covers
+  the heading error 1σ in under a fifth of the reads (docs/autopilot.md). The roll/pitch
+  Kalman filter keeps its two variances itself (its paper's σ_ξ is large: no floor added).
+* **an error model** — the complementary filters (complementary, Mahony, Madgwick, Valenti,
+  immersion and invariance), the single-sample solutions (TRIAD, QUEST) and ``robust`` have
+  none. :class:`ErrorModel` gives each angle a floor σ (what the corrections leave: linear
+  acceleration seen by the accelerometer, field distortion seen by the magnetometer) plus the
+  gyro drift integrated since the last usable correction (the header's ``acc_age`` /
+  ``mag_age``, kept by the shared kernel; ``robust`` adds its rejection clock and its own bias
+  covariance). The constants are a-priori values from sensor figures, not fitted to any data
+  (docs/autopilot.md, "Attitude uncertainty", shows how they cover BROAD's errors).
+* **NaN** — heading of the estimators that do not observe it (the 6D filters: their yaw is the
+  integrated gyro from an arbitrary start) and of any estimator before its first usable field
+  sample; every angle before the estimator is initialised.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ahrs_service.quaternion import euler_of
+
+DEG = math.pi / 180.0
+
+
+@dataclass(frozen=True, slots=True)
+class AttitudeVariance:
+    """Variances of the ZYX Euler angles of the current attitude, rad² (NaN: unknown)."""
+
+    roll: float
+    pitch: float
+    yaw: float
+
+    @classmethod
+    def unknown(cls) -> "AttitudeVariance":
+        return cls(math.nan, math.nan, math.nan)
+
+    def as_dict(self) -> dict[str, float]:
+        """{"roll", "pitch", "yaw"} in rad² (the log writes NaN as null)."""
+        return {"roll": self.roll, "pitch": self.pitch, "yaw": self.yaw}
+
+    def sigma_deg(self) -> tuple[float, float, float]:
+        """(roll, pitch, yaw) standard deviations, degrees (NaN: unknown)."""
+        return tuple(math.sqrt(v) / DEG if v >= 0 else math.nan for v in (self.roll, self.pitch, self.yaw))  # type: ignore[return-value]
+
+
+@dataclass(frozen=True, slots=True)
+class ErrorModel:
+    """Error model of an estimator without a covariance (σ of each Euler angle):
+
+    σ_tilt² = tilt_sigma² + (drift · t_acc)²,  σ_yaw² = heading_sigma² + (drift · t_mag)²
+
+    with t_acc, t_mag the time since the last usable accelerometer / magnetometer sample (s).
+
+    tilt_sigma: roll/pitch σ while the accelerometer corrects, rad. Default 2°: a vehicle's
+        or hand's sustained linear acceleration of about 0.35 m/s² tilts the gravity reference
+        by atan(0.35 / 9.81) = 2°.
+    heading_sigma: yaw σ while the magnetometer corrects, rad. Default 5°: a field distortion
+        of 4 µT across a 50 µT field turns its horizontal part by up to asin(4 / 45) = 5°.
+    drift: gyro-bias residual the filter does not remove, rad/s. Default 0.2 °/s, the turn-on
+        bias of a calibrated MEMS gyroscope (ICM-20948, BMI088 datasheets: ±0.5 °/s before
+        calibration); integrated over the time without corrections.
+    """
+
+    tilt_sigma: float = 2.0 * DEG
+    heading_sigma: float = 5.0 * DEG
+    drift: float = 0.2 * DEG
+
+    def variance(self, acc_age_s: float, mag_age_s: float, observes_heading: bool) -> AttitudeVariance:
+        tilt = self.tilt_sigma**2 + (self.drift * acc_age_s) ** 2
+        yaw = math.nan
+        if observes_heading and math.isfinite(mag_age_s):
+            yaw = self.heading_sigma**2 + (self.drift * mag_age_s) ** 2
+        if not math.isfinite(tilt):
+            tilt = math.nan
+        return AttitudeVariance(tilt, tilt, yaw)
+
+
+def with_unmodelled_floor(var: AttitudeVariance, model: ErrorModel = ErrorModel()) -> AttitudeVariance:
+    """``var`` plus the model's tilt and heading floors (variances add: independent errors);
+    NaN stays NaN."""
+    t, h = model.tilt_sigma**2, model.heading_sigma**2
+    return AttitudeVariance(var.roll + t, var.pitch + t, var.yaw + h)
+
+
+def euler_jacobian(q: np.ndarray) -> np.ndarray:
+    """J = ∂(roll, pitch, yaw)/∂q (3 × 4) of the ZYX angles of q/‖q‖ at ``q`` (central
+    differences; the normalisation makes the direction along q itself carry no angle)."""
+    q = np.asarray(q, dtype=np.float64)
+    eps = 1e-7
+    jac = np.empty((3, 4))
+    for k in range(4):
+        d = np.zeros(4)
+        d[k] = eps
+        hi = np.array(euler_of(tuple((q + d) / np.linalg.norm(q + d))))
+        lo = np.array(euler_of(tuple((q - d) / np.linalg.norm(q - d))))
+        diff = hi - lo
+        diff = (diff + math.pi) % (2.0 * math.pi) - math.pi  # yaw across ±π
+        jac[:, k] = diff / (2.0 * eps)
+    return jac
+
+
+def euler_variance_of_quaternion_covariance(q: np.ndarray, p: np.ndarray, observes_heading: bool = True) -> AttitudeVariance:
+    """Roll, pitch, yaw variances (rad²) of an attitude q [w, x, y, z] whose quaternion
+    covariance is ``p`` (4 × 4): the diagonal of J P Jᵀ. Yaw is NaN unless observed."""
+    jac = euler_jacobian(q)
+    cov = jac @ np.asarray(p, dtype=np.float64) @ jac.T
+    roll, pitch, yaw = (float(cov[i, i]) for i in range(3))
+    return AttitudeVariance(roll, pitch, yaw if observes_heading else math.nan)

@@ -1,0 +1,70 @@
+"""What a flight log says was lost: IMU samples by cause, and what the writer could not log.
+
+Both are running totals the service writes in every ``/loop`` message (once a second):
+``source.lost`` — the source's :class:`~ahrs_service.drivers.base.LossCounts` (samples that
+never reached the host: ``fifo_overflow``, ``bus_error``, ``gap``, ``host_stall``) — and ``log``
+(the writer's ``stats()``: ``samples_not_logged``, ``outage_s`` …, samples that reached the host
+but not the disk). :func:`log_losses` reads them back for ``ahrs-service log info``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+from ahrs_service.drivers.base import LossCounts
+from ahrs_service.logs.reader import MessageSource
+from ahrs_service.logs.schemas import decode
+
+CAUSES = ("fifo_overflow", "bus_error", "gap", "host_stall")
+
+
+def _counts(lost: Any) -> LossCounts | None:
+    if not isinstance(lost, dict):
+        return None
+    return LossCounts(**{c: int(lost.get(c) or 0) for c in CAUSES})
+
+
+@dataclass
+class LogLosses:
+    """Loss as the log's ``/loop`` messages report it.
+
+    loops: /loop messages read. first, last: ``source.lost`` of the first and the last of them
+    (running totals since the service started; None when the log has no such counters).
+    not_logged_samples, outage_s: the writer's running totals at the last /loop (None when not
+    recorded); a file that follows an outage carries the samples it could not hold.
+    """
+
+    loops: int = 0
+    first: LossCounts | None = None
+    last: LossCounts | None = None
+    not_logged_samples: int | None = None
+    outage_s: float | None = None
+
+    @property
+    def in_file(self) -> LossCounts | None:
+        """Lost between the file's first and last /loop (what a rotated file adds)."""
+        if self.first is None or self.last is None:
+            return None
+        return self.last.since(self.first)
+
+
+def log_losses(path: str | os.PathLike) -> LogLosses:
+    """The loss counters of the log at ``path`` (read up to any damage)."""
+    out = LogLosses()
+    for topic, _, _, data in MessageSource(path):
+        if topic != "/loop":
+            continue
+        m = decode(data)
+        out.loops += 1
+        lost = _counts((m.get("source") or {}).get("lost"))
+        if lost is not None:
+            if out.first is None:
+                out.first = lost
+            out.last = lost
+        log = m.get("log")
+        if isinstance(log, dict) and log.get("samples_not_logged") is not None:
+            out.not_logged_samples = int(log["samples_not_logged"])
+            out.outage_s = float(log.get("outage_s") or 0.0)
+    return out

@@ -1,0 +1,493 @@
+"""The link to the flight controller: one pymavlink connection, read on its own thread.
+
+Beside an autopilot the service uses a single connection (``source.mavlink_connection``, any
+pymavlink string: ``/dev/ttyAMA0,921600``, ``udpin:0.0.0.0:14540``, ``udpout:…``, ``tcp:…``)
+for everything it exchanges with the flight controller: the autopilot's IMU as a source
+(``drivers/mavlink_imu.py``), TIMESYNC, ODOMETRY out and the attitude monitor
+(``ahrs_service/attitude_monitor.py``). This module owns that connection.
+
+Why a thread: a message's receive time must be taken when it arrives, not when the 200 Hz
+loop next polls (PX4 drops TIMESYNC samples whose round trip exceeds 10 ms, and an IMU
+sample's arrival is the fallback for mapping the autopilot's clock). The thread waits on the
+link's file descriptor (``select``), stamps each read with ``time.monotonic_ns()`` and hands
+every parsed message with that stamp to the subscribers of its type. Subscribers run on this
+thread and must be quick (append to a deque); everything else happens on the loop's thread.
+
+What it detects and survives:
+
+* **the autopilot**: the first HEARTBEAT whose ``autopilot`` is not ``MAV_AUTOPILOT_INVALID``
+  and whose type is not a ground station or companion names it (:class:`AutopilotInfo`: PX4,
+  ArduPilot or other, system and component id); subscribers may ask for messages from it only;
+* **silence** (a UDP peer gone, a cable pulled): no message for ``silence_s`` makes the link
+  *lost* (``stats.losses``); the next message makes it *up* again (``stats.recoveries``) and
+  starts a new ``session`` — users that configured the autopilot (stream intervals) do it again;
+* **where we are**: our own HEARTBEAT (a companion component, ``MAV_TYPE_IMU``) goes out every
+  ``HEARTBEAT_S``, so an autopilot or router reached with ``udpout:``/``tcp:`` learns our
+  address before it has sent anything;
+* **a vanished device** (a USB serial adapter unplugged, the pty closed): a read error or an
+  end of file closes the connection and re-opens it every ``reopen_s`` until it opens
+  (``stats.read_errors``, ``stats.reopens``, ``stats.open_failures``).
+
+Time is ``time.monotonic_ns()`` throughout. The remote clock (the autopilot's boot time) is
+mapped onto ours by :class:`RemoteTimeline`, one per link, so the IMU source and the monitor
+use the same mapping and their times stay consistent.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import select
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable
+
+from ahrs_service.protocols.mavlink.dialect import mavlink
+from ahrs_service.protocols.mavlink.endpoints import Endpoint
+from ahrs_service.protocols.mavlink.identity import Identity, encode_heartbeat
+from ahrs_service.protocols.mavlink.timesync import REQUEST_RATE_HZ, TimeSync
+
+#: no message for this long: the link counts as lost (autopilots beat at 1 Hz, stream faster)
+SILENCE_S = 2.0
+#: a connection that failed or vanished is re-opened this often, s
+REOPEN_S = 0.5
+#: how long one wait on the file descriptor lasts, s (bounds the reaction to stop() and silence)
+POLL_S = 0.05
+#: our HEARTBEAT on the link, s: a ``udpout:``/``tcp:`` autopilot (or router) learns where we are
+#: from it before we have heard anything, and autopilots route to components they have heard
+HEARTBEAT_S = 1.0
+#: messages parsed per read at most (a read of 4 kB holds at most ~90 MAVLink frames)
+_MAX_PER_READ = 256
+
+#: HEARTBEAT types that are never the flight controller
+_NOT_AUTOPILOT_TYPES = frozenset({
+    mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_GIMBAL,
+    mavlink.MAV_TYPE_ADSB, mavlink.MAV_TYPE_CAMERA, mavlink.MAV_TYPE_IMU,
+})
+
+Sink = Callable[[Any, int], None]
+
+
+@dataclass(frozen=True)
+class AutopilotInfo:
+    """The flight controller heard on the link.
+
+    kind: ``"px4"``, ``"ardupilot"`` or ``"other"`` (HEARTBEAT.autopilot).
+    system_id, component_id: its MAVLink address (the target of our commands).
+    mav_type: HEARTBEAT.type (MAV_TYPE_QUADROTOR …).
+    """
+
+    kind: str
+    system_id: int
+    component_id: int
+    mav_type: int
+
+    @classmethod
+    def from_heartbeat(cls, msg: Any) -> "AutopilotInfo | None":
+        """The autopilot a HEARTBEAT announces, or None when it is not a flight controller."""
+        autopilot = int(msg.autopilot)
+        if autopilot == mavlink.MAV_AUTOPILOT_INVALID or int(msg.type) in _NOT_AUTOPILOT_TYPES:
+            return None
+        kind = {mavlink.MAV_AUTOPILOT_PX4: "px4", mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot"}.get(autopilot, "other")
+        return cls(kind, msg.get_srcSystem(), msg.get_srcComponent(), int(msg.type))
+
+
+@dataclass
+class LinkStats:
+    """Counters of the autopilot link (published in the flight log's /loop source section)."""
+
+    messages: int = 0  # parsed messages, all senders
+    bad_data: int = 0  # bad CRC, garbage, truncated datagram tails
+    read_errors: int = 0  # reads that failed (device vanished, socket error)
+    send_errors: int = 0  # messages that could not be written
+    open_failures: int = 0  # attempts to (re-)open the connection that failed
+    reopens: int = 0  # connections re-opened after a failure
+    losses: int = 0  # up -> lost transitions (silence or a vanished device)
+    recoveries: int = 0  # lost -> up transitions
+    last_error: str = ""
+    received: dict[str, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.__dict__.items()}
+
+
+@dataclass
+class _Subscription:
+    names: frozenset[str]
+    sink: Sink
+    autopilot_only: bool
+
+
+class RemoteTimeline:
+    """Maps the autopilot's clock (µs since its boot) onto ours (monotonic ns).
+
+    local_ns = remote_us · 1000 + offset_ns, with one *held* offset: it is taken from the best
+    estimate available when the first time is mapped and then kept, so consecutive samples keep
+    exactly the spacing the autopilot's clock gave them (the estimator integrates that spacing).
+    The estimate is the TIMESYNC one when the attached :class:`TimeSync`
+    (protocols/mavlink/timesync.py, used under ``timesync_lock``) is synced, else the smallest
+    ``arrival − remote time`` of the last few seconds (the latency floor of the link). When the
+    estimate moves more than ``deadband_ns`` away from the held offset (clock drift, a better
+    sync), the held offset slews towards it by at most ``slew_ppm`` of the elapsed remote time;
+    beyond ``step_ns`` it steps (``steps`` counts those; a rebooted autopilot steps too).
+    """
+
+    def __init__(self, *, deadband_ns: int = 10_000_000, slew_ppm: float = 200.0, step_ns: int = 50_000_000,
+                 window_s: float = 4.0) -> None:
+        self.deadband_ns = int(deadband_ns)
+        self.slew = float(slew_ppm) * 1e-6
+        self.step_ns = int(step_ns)
+        self.timesync: TimeSync | None = None
+        self.timesync_lock = threading.Lock()
+        self.offset_ns: int | None = None
+        self.steps = 0
+        self.slewed_ns = 0  # total |adjustment| by slewing, ns (0: every spacing is the autopilot's)
+        self._bin_ns = int(window_s * 1e9 / 4)
+        self._bins: collections.deque[tuple[int, int]] = collections.deque(maxlen=4)  # (bin, min offset)
+        self._last_remote_ns: int | None = None
+        self._lock = threading.Lock()
+
+    def arrival(self, remote_us: int, rx_ns: int) -> None:
+        """A message stamped ``remote_us`` by the autopilot arrived at ``rx_ns`` (reader thread)."""
+        off = int(rx_ns) - int(remote_us) * 1000
+        b = int(rx_ns) // self._bin_ns
+        with self._lock:
+            if self._bins and self._bins[-1][0] == b:
+                if off < self._bins[-1][1]:
+                    self._bins[-1] = (b, off)
+            else:
+                self._bins.append((b, off))
+
+    def estimate_ns(self, remote_us: int) -> int | None:
+        """The best current estimate of local − remote, ns (None before any arrival)."""
+        ts = self.timesync
+        if ts is not None:
+            with self.timesync_lock:
+                if ts.synced:
+                    return int(ts.to_local_ns(int(remote_us))) - int(remote_us) * 1000
+        with self._lock:
+            return min(o for _, o in self._bins) if self._bins else None
+
+    def to_local_ns(self, remote_us: int) -> int | None:
+        """``remote_us`` (autopilot µs) on our monotonic clock, ns; None before anything arrived."""
+        remote_ns = int(remote_us) * 1000
+        want = self.estimate_ns(remote_us)
+        if self.offset_ns is None:
+            if want is None:
+                return None
+            self.offset_ns = want
+        elif want is not None:
+            error = want - self.offset_ns
+            back = self._last_remote_ns is not None and remote_ns < self._last_remote_ns
+            if abs(error) > self.step_ns or back:
+                self.offset_ns = want
+                self.steps += 1
+            elif abs(error) > self.deadband_ns and self._last_remote_ns is not None:
+                most = int((remote_ns - self._last_remote_ns) * self.slew)
+                change = max(-most, min(most, error))
+                self.offset_ns += change
+                self.slewed_ns += abs(change)
+        self._last_remote_ns = remote_ns
+        return remote_ns + self.offset_ns
+
+    def peek_local_ns(self, remote_us: int) -> int | None:
+        """``remote_us`` on our clock with the held offset as it is (no update; any thread);
+        None before the first time was mapped."""
+        offset = self.offset_ns
+        return None if offset is None else int(remote_us) * 1000 + offset
+
+    def reset(self) -> None:
+        """Forgets the held offset and the arrivals (the autopilot rebooted)."""
+        with self._lock:
+            self._bins.clear()
+        self.offset_ns = None
+        self._last_remote_ns = None
+
+
+class LinkClock:
+    """The link's clocks as other threads see them (ODOMETRY's ``time_usec``): the part of
+    :class:`TimeSync` an :class:`~ahrs_service.protocols.mavlink.odometry.OdometrySender` uses,
+    under the link's lock.
+
+    ``presented_ns`` gives a time of ours in the autopilot's clock once TIMESYNC is synced. For a
+    time the IMU source mapped (a sample's), the exact inverse of that mapping is used: the
+    held offset of the :class:`RemoteTimeline`, so an estimate of a sample is stamped with the
+    very time the autopilot gave that sample (TIMESYNC's estimate may since have moved within
+    the timeline's deadband).
+    """
+
+    def __init__(self, timesync: TimeSync, timeline: RemoteTimeline, lock: threading.Lock) -> None:
+        self._ts, self._timeline, self._lock = timesync, timeline, lock
+
+    @property
+    def synced(self) -> bool:
+        with self._lock:
+            return self._ts.synced
+
+    def presented_ns(self, local_ns: int) -> int:
+        """``local_ns`` (our monotonic ns) in the autopilot's clock, ns; ours until synced."""
+        with self._lock:
+            if not self._ts.synced:
+                return int(local_ns)
+            offset = self._timeline.offset_ns
+            if offset is not None:
+                return int(local_ns) - offset
+            return self._ts.presented_ns(local_ns)
+
+
+class AutopilotLink:
+    """One connection to the flight controller, read on a thread (see the module docstring).
+
+    url: pymavlink connection string. system_id, component_id: our own MAVLink address on the
+    link (the service's identity). silence_s, reopen_s: see the module constants.
+    """
+
+    def __init__(self, url: str, *, system_id: int = 1, component_id: int = mavlink.MAV_COMP_ID_IMU,
+                 silence_s: float = SILENCE_S, reopen_s: float = REOPEN_S) -> None:
+        self.url = url
+        self.system_id, self.component_id = int(system_id), int(component_id)
+        self.silence_ns = int(silence_s * 1e9)
+        self.reopen_ns = int(reopen_s * 1e9)
+        self.stats = LinkStats()
+        #: TIMESYNC with the autopilot: requested at REQUEST_RATE_HZ by the reader thread once an
+        #: autopilot was heard, its replies and requests handled there on arrival. Other threads
+        #: (ODOMETRY's time stamps) use it under ``timesync_lock``.
+        self.timesync = TimeSync()
+        self.timeline = RemoteTimeline()
+        self.timeline.timesync = self.timesync
+        self.timesync_lock = self.timeline.timesync_lock
+        #: what ODOMETRY (another thread) uses to stamp its messages in the autopilot's clock
+        self.clock = LinkClock(self.timesync, self.timeline, self.timesync_lock)
+        self._next_timesync_ns = 0
+        self._next_heartbeat_ns = 0
+        # the service's address on this link: a component of the autopilot's vehicle (MAV_TYPE_IMU)
+        self._heartbeat = encode_heartbeat(Identity("companion", self.system_id, self.component_id),
+                                           mavlink.MAV_STATE_ACTIVE)
+        self.autopilot: AutopilotInfo | None = None
+        #: increments each time the link comes up (first message, after silence, after a re-open)
+        self.session = 0
+        self.state = "waiting"  # waiting (nothing heard yet), up, lost
+        self.last_rx_ns: int | None = None
+        self._ep: Endpoint | None = None
+        self._subs: list[_Subscription] = []
+        self._send_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._reopen_at_ns = 0
+
+    # ------------------------------------------------------------------ set-up
+    def subscribe(self, names: Iterable[str], sink: Sink, *, autopilot_only: bool = True) -> None:
+        """Calls ``sink(msg, rx_ns)`` on the reader thread for every message named in ``names``
+        (``autopilot_only``: only those the detected autopilot sent). Any thread, any time."""
+        # a new list, not an append: the reader thread iterates the old one meanwhile
+        self._subs = [*self._subs, _Subscription(frozenset(names), sink, autopilot_only)]
+
+    def unsubscribe(self, sink: Sink) -> None:
+        """Stops calling ``sink`` (any thread; a message being dispatched may still reach it)."""
+        self._subs = [sub for sub in self._subs if sub.sink != sink]
+
+    def open(self) -> None:
+        """Opens the connection and starts the reader thread. A connection string that cannot be
+        opened at all (no such scheme, a port in use) raises OSError naming it; a serial device
+        that is missing at the start is waited for like one that vanished."""
+        try:
+            self._ep = self._connect()
+        except OSError as exc:
+            if not self._is_serial():
+                raise
+            self._note_error(f"{exc}")
+            self.stats.open_failures += 1
+            self._reopen_at_ns = time.monotonic_ns() + self.reopen_ns
+        self._thread = threading.Thread(target=self._run, name="autopilot-link", daemon=True)
+        self._thread.start()
+
+    def _is_serial(self) -> bool:
+        return not any(self.url.startswith(p) for p in ("udp", "tcp", "mcast"))
+
+    def _connect(self) -> Endpoint:
+        return Endpoint(self.url, self.system_id, self.component_id)
+
+    # ------------------------------------------------------------------ sending
+    def send(self, msg: Any) -> bool:
+        """Writes ``msg`` on the link (any thread); False when there is no connection or the
+        write failed (counted in ``stats.send_errors``)."""
+        with self._send_lock:
+            ep = self._ep
+            if ep is None:
+                self.stats.send_errors += 1
+                return False
+            if ep.send_many([msg]):
+                return True
+            self.stats.send_errors += 1
+            self.stats.last_error = ep.last_send_error
+            return False
+
+    def command_long(self, command: int, *params: float) -> bool:
+        """COMMAND_LONG to the detected autopilot (False while none was heard)."""
+        ap = self.autopilot
+        if ap is None:
+            return False
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        return self.send(mavlink.MAVLink_command_long_message(ap.system_id, ap.component_id, command, 0, *p[:7]))
+
+    def set_message_interval(self, name: str, rate_hz: float) -> bool:
+        """Asks the autopilot to stream message ``name`` at ``rate_hz`` (MAV_CMD_SET_MESSAGE_INTERVAL,
+        param2 = interval µs); False while no autopilot was heard."""
+        msg_id = getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
+        return self.command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, round(1e6 / rate_hz))
+
+    # ------------------------------------------------------------------ state
+    def status(self) -> dict[str, Any]:
+        """The link for the flight log (``/loop`` ``autopilot``, once a second): state, the
+        autopilot, counters, TIMESYNC's offset (remote − local, ns) and drift (ppm), the
+        samples' held offset (local − remote, ns)."""
+        ap = self.autopilot
+        with self.timesync_lock:
+            ts = self.timesync
+            timesync = {"synced": ts.synced, "offset_ns": ts.offset_ns, "drift_ppm": ts.drift_ppm,
+                        **dataclasses.asdict(ts.counters)}
+        tl = self.timeline
+        return {
+            "state": self.state,
+            "session": self.session,
+            "autopilot": None if ap is None else dataclasses.asdict(ap),
+            "link": self.stats.as_dict(),
+            "timesync": timesync,
+            "timeline": {"offset_ns": tl.offset_ns, "slewed_ns": tl.slewed_ns, "steps": tl.steps},
+        }
+
+    @property
+    def up(self) -> bool:
+        return self.state == "up"
+
+    def _note_error(self, text: str) -> None:
+        self.stats.last_error = f"{self.url}: {text}"
+
+    def _went_up(self) -> None:
+        if self.state == "lost":
+            self.stats.recoveries += 1
+        self.state = "up"
+        self.session += 1
+
+    def _went_lost(self, why: str) -> None:
+        if self.state == "up":
+            self.stats.losses += 1
+        self.state = "lost"
+        self._note_error(why)
+
+    # ------------------------------------------------------------------ the reader thread
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ep = self._ep
+            now = time.monotonic_ns()
+            if ep is None:
+                if now >= self._reopen_at_ns:
+                    self._reopen(now)
+                self._stop.wait(POLL_S)
+                continue
+            if self.state == "up" and self.last_rx_ns is not None and now - self.last_rx_ns > self.silence_ns:
+                self._went_lost(f"silent for {(now - self.last_rx_ns) / 1e9:.1f} s")
+            if now >= self._next_heartbeat_ns:
+                self._next_heartbeat_ns = now + int(HEARTBEAT_S * 1e9)
+                self.send(self._heartbeat)
+            if self.autopilot is not None and self.state == "up" and now >= self._next_timesync_ns:
+                self._next_timesync_ns = now + int(1e9 / REQUEST_RATE_HZ)
+                with self.timesync_lock:
+                    request = self.timesync.request(time.monotonic_ns())
+                self.send(request.encode())
+            try:
+                fd = ep.conn.port.fileno()
+                ready, _, _ = select.select([fd], [], [], POLL_S)
+            except (OSError, ValueError, AttributeError) as exc:
+                self._drop(f"wait failed: {exc}")
+                continue
+            if not ready:
+                continue
+            rx_ns = time.monotonic_ns()  # the arrival, before the bytes are even read
+            before = ep.receive_errors
+            data = ep.read()
+            if ep.receive_errors != before or (not data and not ep.datagram):
+                # a readable stream that gives nothing (EOF) or an error: the device is gone
+                self.stats.read_errors += 1
+                self._drop("read failed: device vanished or closed")
+                continue
+            if data:
+                self._parse(ep, data, rx_ns)
+
+    def _parse(self, ep: Endpoint, data: bytes, rx_ns: int) -> None:
+        msg = self._safe_parse(ep, data)
+        for _ in range(_MAX_PER_READ):
+            if msg is None:
+                break
+            self._dispatch(msg, rx_ns)
+            msg = self._safe_parse(ep, b"")
+        if ep.datagram and ep.end_of_datagram():
+            self.stats.bad_data += 1
+
+    def _safe_parse(self, ep: Endpoint, data: bytes) -> Any:
+        try:
+            return ep.parse(data)
+        except Exception as exc:  # pymavlink turns bad input into BAD_DATA; this is the safety net
+            self.stats.bad_data += 1
+            self._note_error(f"parser: {type(exc).__name__}: {exc}")
+            ep.reset_parser()
+            return None
+
+    def _dispatch(self, msg: Any, rx_ns: int) -> None:
+        name = msg.get_type()
+        if name == "BAD_DATA" or name.startswith("UNKNOWN_"):
+            self.stats.bad_data += 1
+            return
+        self.stats.messages += 1
+        self.stats.received[name] = self.stats.received.get(name, 0) + 1
+        self.last_rx_ns = rx_ns
+        if self.state != "up":
+            self._went_up()
+        if name == "HEARTBEAT" and self.autopilot is None:
+            self.autopilot = AutopilotInfo.from_heartbeat(msg)
+        ap = self.autopilot
+        from_ap = ap is not None and msg.get_srcSystem() == ap.system_id and msg.get_srcComponent() == ap.component_id
+        if name == "TIMESYNC" and from_ap:
+            with self.timesync_lock:
+                answer = self.timesync.handle(msg, rx_ns)
+            if answer is not None:  # the autopilot asked us: answer at once
+                self.send(answer.encode())
+        for sub in self._subs:
+            if name in sub.names and (from_ap or not sub.autopilot_only):
+                try:
+                    sub.sink(msg, rx_ns)
+                except Exception as exc:  # a consumer's bug must not stop the link
+                    self._note_error(f"{name} handler: {type(exc).__name__}: {exc}")
+
+    def _drop(self, why: str) -> None:
+        """The connection failed: close it, and re-open it after ``reopen_s``."""
+        with self._send_lock:
+            ep, self._ep = self._ep, None
+        if ep is not None:
+            ep.close()
+        self._went_lost(why)
+        self._reopen_at_ns = time.monotonic_ns() + self.reopen_ns
+
+    def _reopen(self, now: int) -> None:
+        try:
+            ep = self._connect()
+        except OSError as exc:
+            self.stats.open_failures += 1
+            self._note_error(f"{exc}")
+            self._reopen_at_ns = now + self.reopen_ns
+            return
+        with self._send_lock:
+            self._ep = ep
+        self.stats.reopens += 1
+
+    # ------------------------------------------------------------------ lifetime
+    def close(self) -> None:
+        """Stops the reader thread and closes the connection."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        with self._send_lock:
+            ep, self._ep = self._ep, None
+        if ep is not None:
+            ep.close()

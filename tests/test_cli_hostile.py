@@ -1,0 +1,53 @@
+"""Careless and hostile command lines: one line naming what is wrong, exit status 2, no
+traceback, and no output file left behind (issue 14, items 3-4, re-probed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ahrs_service.cli import main
+from ahrs_service.logs.writer import FlightLogWriter
+
+
+@pytest.fixture(scope="module")
+def log_path(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("log")
+    w = FlightLogWriter(folder)
+    w.write_config(0, {"estimator": {"name": "madgwick", "params": {"beta": 0.1}}})
+    for i in range(50):
+        row = np.zeros(10)
+        row[5], row[9] = -9.81, 0.005
+        w.write_raw(1_000_000 * (i + 1), row, 3)
+        w.write_attitude(1_000_000 * (i + 1), [1.0, 0.0, 0.0, 0.0], "madgwick")
+    w.close()
+    return w.files[0]
+
+
+def _run(capsys, argv):
+    rc = main(argv)
+    err = capsys.readouterr().err.strip()
+    return rc, err
+
+
+@pytest.mark.parametrize(
+    "argv, expected",
+    [
+        (["replay", "{log}", "--estimator", "nope"], "ahrs-service replay: error: unknown estimator 'nope'"),
+        (["replay", "{log}", "--param", "beta=nan"], "ahrs-service replay: error: parameter 'beta' of estimator 'madgwick' must be finite"),
+        (["replay", "{log}", "--param", "nope=1"], "ahrs-service replay: error: unknown parameter(s) nope"),
+        (["replay", "{log}", "--out", "{tmp}/missing/out.mcap"], "{tmp}/missing/out.mcap: its folder {tmp}/missing does not exist"),
+        (["log", "recover", "{log}", "{tmp}/missing/out.mcap"], "{tmp}/missing/out.mcap: its folder {tmp}/missing does not exist"),
+        (["log", "recover", "{text}"], "{text}: not an MCAP file (bad magic): nothing to recover"),
+        (["log", "import-broad", "{text}", "{tmp}/out.mcap"], "ahrs-service: {text}: not a readable HDF5 recording"),
+        (["log", "plot", "{tmp}", "--out", "{tmp}/x.png"], "ahrs-service: log plot: {tmp}: is a directory, not a file"),
+    ],
+)
+def test_one_line_naming_the_problem_and_nothing_written(tmp_path, capsys, log_path, argv, expected):
+    text = tmp_path / "notes.txt"
+    text.write_text("not a log\n")
+    fill = {"log": str(log_path), "tmp": str(tmp_path), "text": str(text)}
+    rc, err = _run(capsys, [a.format(**fill) for a in argv])
+    assert rc == 2 and "\n" not in err and "Traceback" not in err, err
+    assert expected.format(**fill) in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]  # no empty output left
