@@ -480,7 +480,7 @@ def _check_source(section: dict[str, Any]) -> None:
     if section["board"] in TRANSPORT_BOARDS and bus in ("i2c", "spi"):
         _check_fifo_board(section, bus)
     elif section["board_options"] and section["type"] in ("i2c", "simulated_i2c"):
-        _check_board_options(section["board"], dict(section["board_options"]))
+        _check_board_options(section["board"], dict(section["board_options"]), section["i2c_speed_hz"])
     if section["mavlink_raw_scale"]:
         from ahrs_service.drivers.mavlink_imu import parse_raw_scale
 
@@ -492,7 +492,7 @@ def _check_source(section: dict[str, Any]) -> None:
         raise ConfigError("source.recorded_path: required when source.type = 'recorded' (an .mcap log or a BROAD .hdf5 file)")
 
 
-def _check_board_options(board: str, options: dict[str, Any]) -> None:
+def _check_board_options(board: str, options: dict[str, Any], i2c_speed_hz: float = 400_000) -> None:
     """Each option's type against the board's signature, then its value by building the board's
     drivers (on no bus: their constructors only check and store), so that a range or rate the
     part does not have is refused here rather than at start."""
@@ -510,9 +510,10 @@ def _check_board_options(board: str, options: dict[str, Any]) -> None:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or (want == "an integer" and not isinstance(value, int)):
                 raise ConfigError(f"source.board_options.{name}: {value!r} is not {want} (board {board!r})")
     try:
-        cls(None, **options)  # type: ignore[arg-type]
+        cls(None, i2c_speed_hz=i2c_speed_hz, **options)  # type: ignore[arg-type]
     except (ValueError, TypeError, OverflowError) as exc:
-        raise ConfigError(f"source.board_options = {options!r}: {exc}") from None
+        msg = str(exc)  # the rate checks name their key already (odr_hz, acc_rate_hz …)
+        raise ConfigError(msg if msg.startswith("source.") else f"source.board_options = {options!r}: {msg}") from None
 
 
 def _check_fifo_board(section: dict[str, Any], bus: str) -> None:

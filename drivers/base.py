@@ -206,6 +206,37 @@ class SampleBlock:
             None if math.isnan(temp) else temp,
         )
 
+    @classmethod
+    def concat(cls, blocks: list["SampleBlock"]) -> "SampleBlock":
+        """Consecutive blocks of one source as one (the first's ``lost``; the others must
+        carry none: a block ends at a loss). ``raw`` keeps the keys all have, ``truth_q`` is
+        kept when all have it."""
+        if len(blocks) == 1:
+            return blocks[0]
+        if any(b.lost.total for b in blocks[1:]):
+            raise ValueError("SampleBlock.concat: only the first block may carry a loss")
+        raw = None
+        if all(b.raw is not None for b in blocks):
+            keys = set.intersection(*(set(b.raw) for b in blocks))  # type: ignore[arg-type]
+            raw = {k: np.concatenate([b.raw[k] for b in blocks]) for k in sorted(keys)}  # type: ignore[index]
+        truth = (np.concatenate([b.truth_q for b in blocks])  # type: ignore[misc]
+                 if all(b.truth_q is not None for b in blocks) else None)
+        return cls(np.concatenate([b.t_ns for b in blocks]), np.concatenate([b.gyr for b in blocks]),
+                   np.concatenate([b.acc for b in blocks]), np.concatenate([b.mag for b in blocks]),
+                   np.concatenate([b.flags for b in blocks]),
+                   np.concatenate([b.temperature_c for b in blocks]), raw, truth, blocks[0].lost)
+
+    def split(self, n: int) -> tuple["SampleBlock", "SampleBlock"]:
+        """(the first ``n`` rows, the rest): the first keeps ``lost`` (it is before row 0),
+        the rest has none (its row 0 follows the first part's last row without a gap)."""
+        def cut(sl: slice, lost: LossCounts) -> "SampleBlock":
+            return SampleBlock(
+                self.t_ns[sl], self.gyr[sl], self.acc[sl], self.mag[sl], self.flags[sl],
+                self.temperature_c[sl],
+                None if self.raw is None else {k: v[sl] for k, v in self.raw.items()},
+                None if self.truth_q is None else self.truth_q[sl], lost)
+        return cut(slice(0, n), self.lost), cut(slice(n, None), LossCounts())
+
     def samples(self) -> Iterator[ImuSample]:
         """The rows as :class:`ImuSample` objects, oldest first (for per-sample consumers)."""
         for i in range(len(self.t_ns)):
