@@ -13,4 +13,4 @@ print("lower bounds:", ", ".join(f"{n} {m.version(n)}" for n in ("mcap", "pymavl
 PY
 PYTHONPATH="$PWD/.ci-lower-bounds" .venv/bin/python -m pytest -q -p no:cacheprovider \
     tests/test_logs_writer.py tests/test_logs_encoding.py tests/test_logs_fixtures.py tests/test_logs_recover.py \
-    tests/test_logs_replay.py tests/test_mavlink.py tests/test_config_file.py tests/test_service.py tests/test_daemon.py
+    tests/test_logs_replay.py tests/test_mavlink.py tests/test_config_file.py
