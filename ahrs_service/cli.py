@@ -11,6 +11,9 @@ import argparse
 import importlib
 import sys
 from pathlib import Path
+from typing import Callable
+
+from ahrs_service.execution import RunnerError
 
 # modules that contribute subcommands, in the order they appear in --help
 _COMMAND_MODULES = [
@@ -32,6 +35,17 @@ def add_offline_options(parser: argparse.ArgumentParser, offline_help: str) -> N
         metavar="S",
         help="with --offline: time constant of the fusion weights 1 - exp(-t/S), seconds (default 10)",
     )
+
+
+def lazy_command(target: str) -> Callable[[argparse.Namespace], int]:
+    """A subcommand's ``func`` that imports ``"module:function"`` only when it runs, so that
+    ``ahrs-service --help`` and the other commands do not import what they do not use."""
+    module, _, name = target.partition(":")
+
+    def run(args: argparse.Namespace) -> int:
+        return getattr(importlib.import_module(module), name)(args)
+
+    return run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,7 +84,9 @@ def missing_extra(exc: ModuleNotFoundError) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     """Runs one subcommand. A path that cannot be opened (missing, a directory where a file is
-    expected, no permission) ends any command with one line naming it, exit status 2."""
+    expected, no permission), a missing extra, or an execution layer that cannot start (a
+    Dask scheduler out of reach, a bad ``--workers``) ends any command with one line, exit
+    status 2."""
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
@@ -86,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except OSError as exc:
         print(f"ahrs-service: {path_error(exc)}", file=sys.stderr)
+        return 2
+    except RunnerError as exc:
+        print(f"ahrs-service {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except ValueError as exc:  # bad input a command found (an unknown estimator, a bad value)
         text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__

@@ -295,6 +295,9 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
     "estimator": {
         "name": ("robust", _estimator_name),
         "params": ({}, _finite_table),
+        # "" = the tuned defaults; "paper" = the source paper's values; else a preset file
+        # (ahrs-service tune): its values sit under estimator.params, which override them
+        "preset": ("", _string),
         "mag_timeout_s": (0.5, _number(0.01, 60.0)),
         "declination_deg": (0.0, _number(-180.0, 180.0)),
     },
@@ -441,6 +444,16 @@ def read_toml(path: Path) -> dict[str, Any]:
 def _check_estimator_params(section: dict[str, Any]) -> None:
     from ahrs_service import estimators
 
+    if section["preset"]:
+        from ahrs_service.estimators.presets import load_preset
+
+        try:
+            preset = load_preset(section["name"], section["preset"])
+            estimators.create(section["name"], **preset)
+        except (ValueError, TypeError, OverflowError) as exc:
+            raise ConfigError(f"estimator.preset: {exc}") from None
+        # what runs is the preset with the table's own values over it (service, reload, live)
+        section["params"] = {**preset, **section["params"]}
     try:
         estimators.create(section["name"], **section["params"])
     except (ValueError, TypeError, OverflowError) as exc:
@@ -467,7 +480,7 @@ def _check_source(section: dict[str, Any]) -> None:
     if section["board"] in TRANSPORT_BOARDS and bus in ("i2c", "spi"):
         _check_fifo_board(section, bus)
     elif section["board_options"] and section["type"] in ("i2c", "simulated_i2c"):
-        _check_board_options(section["board"], dict(section["board_options"]))
+        _check_board_options(section["board"], dict(section["board_options"]), section["i2c_speed_hz"])
     if section["mavlink_raw_scale"]:
         from ahrs_service.drivers.mavlink_imu import parse_raw_scale
 
@@ -479,7 +492,7 @@ def _check_source(section: dict[str, Any]) -> None:
         raise ConfigError("source.recorded_path: required when source.type = 'recorded' (an .mcap log or a BROAD .hdf5 file)")
 
 
-def _check_board_options(board: str, options: dict[str, Any]) -> None:
+def _check_board_options(board: str, options: dict[str, Any], i2c_speed_hz: float = 400_000) -> None:
     """Each option's type against the board's signature, then its value by building the board's
     drivers (on no bus: their constructors only check and store), so that a range or rate the
     part does not have is refused here rather than at start."""
@@ -497,9 +510,10 @@ def _check_board_options(board: str, options: dict[str, Any]) -> None:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or (want == "an integer" and not isinstance(value, int)):
                 raise ConfigError(f"source.board_options.{name}: {value!r} is not {want} (board {board!r})")
     try:
-        cls(None, **options)  # type: ignore[arg-type]
+        cls(None, i2c_speed_hz=i2c_speed_hz, **options)  # type: ignore[arg-type]
     except (ValueError, TypeError, OverflowError) as exc:
-        raise ConfigError(f"source.board_options = {options!r}: {exc}") from None
+        msg = str(exc)  # the rate checks name their key already (odr_hz, acc_rate_hz …)
+        raise ConfigError(msg if msg.startswith("source.") else f"source.board_options = {options!r}: {msg}") from None
 
 
 def _check_fifo_board(section: dict[str, Any], bus: str) -> None:
@@ -564,31 +578,8 @@ def _check_calibration(given: dict[str, Any]) -> dict[str, Any]:
 
 
 def to_toml(cfg: dict[str, dict[str, Any]]) -> str:
-    """A TOML rendering of a configuration dict (for --print-default and saving calibration)."""
-    lines: list[str] = []
-    for section, keys in cfg.items():
-        nested = {k: v for k, v in keys.items() if isinstance(v, dict)}
-        lines.append(f"[{section}]")
-        for k, v in keys.items():
-            if v is None:
-                lines.append(f"# {k} = (not set)")
-            elif not isinstance(v, dict):
-                lines.append(f"{k} = {_toml_value(v)}")
-        lines.append("")
-        for k, v in nested.items():
-            lines.append(f"[{section}.{k}]")
-            lines.extend(f"{kk} = {_toml_value(vv)}" for kk, vv in v.items())
-            lines.append("")
-    return "\n".join(lines)
+    """A TOML rendering of a configuration dict (``run --print-default``, ``calibrate``'s
+    printout): :func:`ahrs_service.config_file.render`."""
+    from ahrs_service.config_file import render  # config_file imports this module
 
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if hasattr(v, "tolist"):
-        return _toml_value(v.tolist())
-    return repr(v)
+    return render(cfg)

@@ -62,7 +62,10 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-_CACHE_SIZE = 4  # recordings a worker keeps; jobs come recording by recording, so 1 would do
+# entries a worker keeps (a recording takes a few: its data, IMU delay, recovered steps):
+# evaluate's jobs come recording by recording, but a tune study cycles over every recording
+# of BROAD and DIDO in each trial (20 recordings, ≈ 200 MB), so the whole set must fit
+_CACHE_SIZE = 128
 
 
 def worker_cache(key: Any, load: Callable[[], R]) -> R:

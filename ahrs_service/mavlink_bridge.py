@@ -8,15 +8,19 @@ Parameters the ground station sees (PARAM_REQUEST_LIST):
 * ``RATE_ATT_HZ``, ``RATE_ATTQ_HZ``, ``RATE_HRIMU_HZ``, ``RATE_SYSST_HZ``, ``RATE_VIBE_HZ`` —
   publishing rates;
 * ``LOOP_RATE_HZ`` — the estimation rate (read-only: change it in the configuration).
+
+The bridge sees the service only through :class:`ServiceLink`: the newest estimate
+(:class:`LatestEstimate`), the health and loss counters (:class:`LinkHealth`), the estimator's
+parameters, the declination, the loop rate and the two calibration commands. It holds no
+reference to the service, its pipeline, scheduler, source or estimator.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from ahrs_service import estimators
-from ahrs_service.drivers.base import MAG_NEW
-from ahrs_service.estimators import STATE_HEADER
 from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, ParameterTable, SensorStatus, Telemetry
 from ahrs_service.protocols.mavlink.dialect import mavlink
 from ahrs_service.protocols.mavlink.odometry import RULES as ODOMETRY_RULES
@@ -25,7 +29,87 @@ from ahrs_service.protocols.mavlink.timesync import TimeSync
 
 if TYPE_CHECKING:
     from ahrs_service.config import Config
-    from ahrs_service.service import Service
+
+
+@dataclass(frozen=True, slots=True)
+class LatestEstimate:
+    """The newest estimated sample, as the streams publish it.
+
+    samples: samples estimated so far (grows with every new one: freshness). t_ns: the
+    sample's time, monotonic ns. q: q_earth←body [w, x, y, z] against true north (declination
+    applied), NED/FRD. body_rate: (p, q, r) rad/s, bias removed. gyr, acc, mag: calibrated
+    body-frame readings, rad/s, m/s², µT (mag None: no reading). mag_new: the field is a fresh
+    reading. temperature_c: °C or None. initialised: the estimator's output is trustworthy.
+    mag_used: the field is in use (a magnetometer estimator, not in reduced form). reduced:
+    the heading is not observed (reduced form, or an estimator without magnetometer).
+    estimator_id: identifies the estimator object (a new one after a reload: ODOMETRY's
+    reset counter follows it). declination_deg: the declination in ``q``, degrees east.
+    """
+
+    samples: int
+    t_ns: int
+    q: Sequence[float]
+    body_rate: Sequence[float]
+    gyr: Sequence[float]
+    acc: Sequence[float]
+    mag: Sequence[float] | None
+    mag_new: bool
+    temperature_c: float | None
+    initialised: bool
+    mag_used: bool
+    reduced: bool
+    estimator_id: int
+    declination_deg: float
+
+
+@dataclass(frozen=True, slots=True)
+class LinkHealth:
+    """SYS_STATUS inputs: sensor health bits and the fault counters since the start.
+
+    overruns: loop deadline misses. load_percent: loop busy time, % of its period.
+    comm_errors: bus errors. sensor_faults: saturated + non-finite readings. lost_samples:
+    IMU samples that never reached the host, all causes (SYS_STATUS errors_count3).
+    """
+
+    gyro_healthy: bool
+    accel_healthy: bool
+    mag_present: bool
+    mag_healthy: bool
+    overruns: int
+    load_percent: float
+    comm_errors: int
+    sensor_faults: int
+    lost_samples: int
+
+
+@dataclass(frozen=True)
+class ServiceLink:
+    """Everything the bridge may ask of the running service (built by the service).
+
+    boot_ns: the service's start, monotonic ns (MAVLink's "time since boot"). estimator:
+    the running estimator's name; param_names: its tuning parameters. latest: the newest
+    estimate, None before the first. health: :class:`LinkHealth` now. get_param /
+    set_param: an estimator parameter (set applies it live, logged; returns the value in
+    force). get_declination / set_declination: degrees east. loop_rate_hz: the estimation
+    rate. calibrate_gyro: () → (accepted, text). start_calibration: kind ("mag" | "accel")
+    → (started, text). vibration: the VIBRATION levels now (``vibration.VibrationLevels``).
+    attitude_variance: the estimator's roll/pitch/yaw variances now, rad² (ODOMETRY).
+    """
+
+    boot_ns: int
+    estimator: str
+    param_names: Sequence[str]
+    latest: Callable[[], LatestEstimate | None]
+    health: Callable[[], LinkHealth]
+    get_param: Callable[[str], float]
+    set_param: Callable[[str, float], float]
+    get_declination: Callable[[], float]
+    set_declination: Callable[[float], None]
+    loop_rate_hz: Callable[[], float]
+    calibrate_gyro: Callable[[], tuple[bool, str]]
+    start_calibration: Callable[[str], tuple[bool, str]]
+    vibration: Callable[[], Any]
+    attitude_variance: Callable[[], Any]
 
 # incoming commands and parameter writes are handled at 50 Hz: a ground station does not
 # notice 20 ms, and an idle non-blocking read costs as much as a published message
@@ -91,12 +175,12 @@ def estimator_param_names(names: list[str]) -> dict[str, str]:
 class MavlinkBridge:
     """The service's MAVLink side; :meth:`tick` is called from the estimation loop."""
 
-    def __init__(self, service: "Service", cfg: "Config", *, io_period_ns: int) -> None:
-        """io_period_ns: how often the loop calls :meth:`tick` (ns); the fastest a stream can
-        go. Handed in by the service, so this module does not import the service's."""
-        self.svc = service
+    def __init__(self, link: ServiceLink, cfg: "Config", *, io_period_ns: int) -> None:
+        """link: what the bridge may use of the service. io_period_ns: how often the loop
+        calls :meth:`tick` (ns); the fastest a stream can go."""
+        self.link = link
         self._next_poll_ns = 0
-        self._samples_seen = -1  # pipeline.samples at the last telemetry, and when it last grew
+        self._samples_seen = -1  # samples estimated at the last telemetry, and when it last grew
         self._fresh_at_ns = 0
         mcfg = cfg.mavlink
         identity = (
@@ -133,52 +217,47 @@ class MavlinkBridge:
         """The published attitude and its variances for ODOMETRY; None before the first sample.
         The epoch goes up when the estimator object, its initialisation or the declination
         changes (the heading reference moved: ODOMETRY's reset_counter follows)."""
-        svc = self.svc
-        pipeline = svc.pipeline
-        sample = pipeline.last_sample
-        if sample is None:
+        est = self.link.latest()
+        if est is None:
             return None
-        if pipeline.samples != self._samples_seen:
-            self._samples_seen, self._fresh_at_ns = pipeline.samples, now_ns
+        if est.samples != self._samples_seen:
+            self._samples_seen, self._fresh_at_ns = est.samples, now_ns
         fresh = now_ns - self._fresh_at_ns <= STALE_NS
-        est = svc.estimator
-        initialised = bool(est.state[STATE_HEADER.index.initialised])
-        ref = (id(est), pipeline.declination_deg, initialised)
+        ref = (est.estimator_id, est.declination_deg, est.initialised)
         if self._odometry_ref is not None and ref != self._odometry_ref:
             self._odometry_epoch += 1
         self._odometry_ref = ref
-        var = est.attitude_variance()
-        heading = pipeline.use_mag and not pipeline.reduced
+        var = self.link.attitude_variance()
         return AttitudeEstimate(
-            t_ns=int(sample.t_ns),
-            q=pipeline.published_quaternion(),
-            body_rate=pipeline.body_rates(),
+            t_ns=int(est.t_ns),
+            q=est.q,
+            body_rate=est.body_rate,
             roll_var=var.roll,
             pitch_var=var.pitch,
-            yaw_var=var.yaw if heading else float("nan"),
-            healthy=initialised and fresh,
+            yaw_var=var.yaw if est.mag_used else float("nan"),
+            healthy=est.initialised and fresh,
             epoch=self._odometry_epoch,
         )
 
     # ------------------------------------------------------------------ parameters
     def _parameter_table(self) -> ParameterTable:
-        svc = self.svc
+        link = self.link
         table = ParameterTable()
-        defaults = estimators.create(svc.estimator.name).get_params()
-        for name, mav_name in estimator_param_names(svc.estimator.param_names()).items():
+        defaults = estimators.create(link.estimator).get_params()
+        for name, mav_name in estimator_param_names(list(link.param_names)).items():
             lo, hi = estimator_param_bounds(defaults[name])
             table.add(
                 mav_name,
-                getter=lambda n=name: svc.estimator.get_params()[n],
-                setter=lambda v, n=name: svc.set_estimator_param(n, float(v)),
+                getter=lambda n=name: link.get_param(n),
+                setter=lambda v, n=name: link.set_param(n, float(v)),
                 minimum=lo,
                 maximum=hi,
-                description=f"{svc.estimator.name} parameter {name}",
+                description=f"{link.estimator} parameter {name}",
             )
         table.add(
             "MAG_DECL_DEG",
-            getter=lambda: svc.pipeline.declination_deg,
-            setter=lambda v: svc.pipeline.set_declination(float(v)),
+            getter=link.get_declination,
+            setter=lambda v: link.set_declination(float(v)),
             minimum=-180.0,
             maximum=180.0,
             description="magnetic declination, degrees east, added to the published heading",
@@ -192,63 +271,55 @@ class MavlinkBridge:
                 maximum=200.0,
                 description=f"{msg} rate, Hz (0 = off)",
             )
-        table.add("LOOP_RATE_HZ", getter=lambda: svc.scheduler.rate_hz, description="estimation rate, Hz (read-only)")
+        table.add("LOOP_RATE_HZ", getter=link.loop_rate_hz, description="estimation rate, Hz (read-only)")
         return table
 
     # ------------------------------------------------------------------ commands
     def _calibrate_gyro(self, action: int) -> tuple[int, str]:
-        check = self.svc.pipeline.calibrate_gyro_bias()
-        if not check.at_rest:
-            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, f"gyro calibration refused: {check.reason}"
-        bias = self.svc.pipeline.calibration.gyro_bias
-        self.svc.record_calibration("gyro")
-        return mavlink.MAV_RESULT_ACCEPTED, "gyro bias set to [{:.4f}, {:.4f}, {:.4f}] rad/s".format(*bias)
+        accepted, text = self.link.calibrate_gyro()
+        return (mavlink.MAV_RESULT_ACCEPTED if accepted else mavlink.MAV_RESULT_TEMPORARILY_REJECTED), text
 
     def _start_collection(self, kind: str) -> tuple[int, str]:
-        started, text = self.svc.start_live_calibration(kind)
+        started, text = self.link.start_calibration(kind)
         return (mavlink.MAV_RESULT_ACCEPTED if started else mavlink.MAV_RESULT_TEMPORARILY_REJECTED), text
 
     # ------------------------------------------------------------------ per tick
     def telemetry(self, now_ns: int) -> Telemetry | None:
         """What the streams publish now; None until the first sample is estimated (then
         HEARTBEAT alone goes out, state BOOT: there is no attitude yet)."""
-        svc = self.svc
-        pipeline = svc.pipeline
-        sample = pipeline.last_sample
-        if sample is None:
+        link = self.link
+        est = link.latest()
+        if est is None:
             return None
-        if pipeline.samples != self._samples_seen:
-            self._samples_seen, self._fresh_at_ns = pipeline.samples, now_ns
+        if est.samples != self._samples_seen:
+            self._samples_seen, self._fresh_at_ns = est.samples, now_ns
         fresh = now_ns - self._fresh_at_ns <= STALE_NS
-        health = svc.health()
-        st = svc.scheduler
-        diag = svc.source.diagnostics
-        mag_used = pipeline.use_mag and not pipeline.reduced
+        h = link.health()
         return Telemetry.from_quaternion(
-            (now_ns - svc.boot_ns) // 1_000_000,
-            pipeline.published_quaternion(),
-            pipeline.body_rates(),
-            gyr=sample.gyr,
-            acc=sample.acc,
-            mag=sample.mag,
-            mag_new=bool(sample.flags & MAG_NEW),
-            temperature_c=sample.temperature_c,
-            time_usec=(sample.t_ns - svc.boot_ns) // 1000,
+            (now_ns - link.boot_ns) // 1_000_000,
+            est.q,
+            est.body_rate,
+            gyr=est.gyr,
+            acc=est.acc,
+            mag=est.mag,
+            mag_new=est.mag_new,
+            temperature_c=est.temperature_c,
+            time_usec=(est.t_ns - link.boot_ns) // 1000,
             attitude_fresh=fresh,
-            gyro=SensorStatus(True, True, health["gyro_healthy"] and fresh),
-            accel=SensorStatus(True, True, health["accel_healthy"]),
-            mag_status=SensorStatus(health["mag_present"], mag_used, health["mag_healthy"]),
-            estimator=svc.estimator.name,
+            gyro=SensorStatus(True, True, h.gyro_healthy and fresh),
+            accel=SensorStatus(True, True, h.accel_healthy),
+            mag_status=SensorStatus(h.mag_present, est.mag_used, h.mag_healthy),
+            estimator=link.estimator,
             # a stale estimate is an unhealthy AHRS, as ArduPilot's GCS::update_sensor_status_flags
             # clears MAV_SYS_STATUS_AHRS when ahrs.healthy() fails (docs/mavlink.md, "Health per sensor")
-            ahrs_healthy=bool(svc.estimator.state[STATE_HEADER.index.initialised]) and fresh,
-            reduced_mode=pipeline.reduced or not pipeline.use_mag,
-            overruns=st.overruns,
-            load_percent=svc.last_load_percent,
-            comm_errors=diag.bus_errors,
-            sensor_faults=diag.saturated + diag.non_finite,
-            lost_samples=diag.lost.total,
-            vibration=svc.vibration.levels(),
+            ahrs_healthy=est.initialised and fresh,
+            reduced_mode=est.reduced,
+            overruns=h.overruns,
+            load_percent=h.load_percent,
+            comm_errors=h.comm_errors,
+            sensor_faults=h.sensor_faults,
+            lost_samples=h.lost_samples,
+            vibration=link.vibration(),
         )
 
     def tick(self, now_ns: int) -> None:

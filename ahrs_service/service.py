@@ -1,10 +1,13 @@
 """The AHRS service: source → estimator at a fixed rate → MAVLink out, MCAP log, systemd.
 
-One thread runs everything, in this order each tick: read the source, step the estimator,
-hand the sample to the log writer's queue (the writer encodes on its own thread), and every
-``IO_PERIOD_NS`` publish what MAVLink has due and handle what came in. Parameter changes and
-commands are therefore applied between two samples, at a sample index the log records, so a
-replay reproduces every published attitude.
+One thread runs everything, in this order each tick: read a block of samples from the source
+(a FIFO burst, or the one sample a polling source has), run the estimator over it
+(:meth:`~ahrs_service.pipeline.EstimationPipeline.process_block`), hand the block to the log
+writer's queue in one call (the writer encodes on its own thread), then run the periodic
+jobs that are due (:class:`LoopSchedule`: MAVLink and the live view publish from the newest
+state at their own rates, diagnostics, the systemd watchdog, housekeeping). Parameter changes
+and commands are therefore applied between two blocks, at a sample index the log records, so
+a replay reproduces every published attitude.
 
 The one computation too long for a tick, the fit at the end of a live calibration (tens of
 milliseconds), runs on a daemon thread ("live-calibration",
@@ -21,16 +24,18 @@ import signal
 import sys
 import time
 from concurrent.futures import Future, wait
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Callable
 
 from ahrs_service import config as config_mod
-from ahrs_service import estimators
+from ahrs_service import estimators, kernels
 from ahrs_service.estimators import STATE_HEADER
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID, ImuSource, LossCounts
+from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSource, LossCounts, SampleBlock
 from ahrs_service.drivers.calibration import SensorCalibration
 from ahrs_service.calibration.live import LiveCalibrationResult, LiveCalibrator
 from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
-from ahrs_service.pipeline import EstimationPipeline
+from ahrs_service.mavlink_bridge import LatestEstimate, LinkHealth, ServiceLink
+from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline
 from ahrs_service.scheduler import DataReadyScheduler, FixedRateScheduler, LoopStats
 from ahrs_service.sources import make_source
 from ahrs_service.vibration import VibrationMonitor
@@ -42,10 +47,49 @@ log = logging.getLogger("ahrs_service")
 
 IO_PERIOD_NS = 5_000_000  # MAVLink publish/poll granularity: 200 Hz
 HOUSEKEEPING_NS = 1_000_000_000  # loop statistics, STATUS=, health reports
-MAX_SAMPLES_PER_TICK = 16  # a source with a backlog catches up at most this fast
+MAX_SAMPLES_PER_TICK = 64  # a source with a backlog catches up at most this fast (one block)
 # how long close() waits for a running live-calibration fit, s: fits take tens of ms, and
 # the whole stop must stay well within 2 s (systemd's TimeoutStopSec is 5 s)
 LIVE_FIT_CLOSE_WAIT_S = 0.5
+
+
+@dataclass
+class PeriodicJob:
+    """A job the loop runs every ``period_ns`` (monotonic ns) of its own clock.
+
+    keep_phase: the next run is one period after the last *scheduled* one (a late tick does
+    not shift the schedule, so publishing keeps its rate), unless the loop fell a whole
+    period behind; otherwise one period after the actual run.
+    """
+
+    name: str
+    period_ns: int
+    run: Callable[[int], None]
+    keep_phase: bool = False
+    next_ns: int = 0
+
+
+class LoopSchedule:
+    """The loop's timers in one place: named periodic jobs, run in the order given when due."""
+
+    def __init__(self, jobs: list[PeriodicJob], now_ns: int) -> None:
+        self.jobs = [j for j in jobs if j.period_ns > 0]
+        for job in self.jobs:
+            job.next_ns = now_ns
+
+    def run_due(self, now_ns: int) -> None:
+        for job in self.jobs:
+            if now_ns >= job.next_ns:
+                if job.keep_phase:
+                    job.next_ns += job.period_ns
+                    if now_ns > job.next_ns:
+                        job.next_ns = now_ns + job.period_ns
+                else:
+                    job.next_ns = now_ns + job.period_ns
+                job.run(now_ns)
+
+    def names(self) -> list[str]:
+        return [j.name for j in self.jobs]
 
 
 def _freeze_heap() -> None:
@@ -77,12 +121,20 @@ class Service:
         # the running fit of a live calibration (see apply_live_calibration) and its kind
         self._live_fit: Future[LiveCalibrationResult] | None = None
         self._live_fit_kind = ""
+        self.compiler = kernels.ReloadCompiler()  # a reload to an estimator not yet compiled
 
     # ------------------------------------------------------------------ set-up
     def start(self) -> None:
         cfg = self.cfg
         self._build_estimation(cfg)
-        self.scheduler = FixedRateScheduler(cfg.rates["estimation_hz"])
+        if self.notifier.enabled:
+            # under systemd a first start compiles for up to minutes: a child does it while
+            # this process keeps extending systemd's start timeout (EXTEND_TIMEOUT_USEC)
+            child = kernels.compile_in_child([self.estimator.name], self.notifier, stop=lambda: self._stop)
+            if self._stop:
+                raise RuntimeError("stopped while the estimator kernels compiled")
+            if not child.ok:
+                log.warning("compiling in a child process failed (%s); compiling here", child.error)
         t0 = time.monotonic()
         self._warm_up()
         if time.monotonic() - t0 > 1.0:
@@ -92,10 +144,13 @@ class Service:
         if not self.source.has_mag:
             # a part without magnetometer (ICM-42688-P, BMI088): no start waiting for a field
             self.pipeline.use_mag = False
+        self._clock_recovery()
         line = getattr(self.source, "data_ready_line", None)
         if line is not None:
             # the FIFO watermark wakes the loop; the timer stays the fallback (DataReadyScheduler)
             self.scheduler = DataReadyScheduler(line, self.source.wakeup_rate_hz)
+        else:
+            self.scheduler = FixedRateScheduler(self.loop_rate_hz(cfg))
         self._use_source_calibration()
         self._open_log(cfg)
         self._open_mavlink(cfg)
@@ -177,6 +232,24 @@ class Service:
         self.pipeline.warm_up()
         VibrationMonitor.warm_up()
 
+    def loop_rate_hz(self, cfg: config_mod.Config) -> float:
+        """How often the loop wakes, Hz: a source read in bursts (a FIFO) at its drain rate
+        (``wakeup_rate_hz``, each wake-up a block), any other once per sample."""
+        return self.source.wakeup_rate_hz or cfg.rates["estimation_hz"]
+
+    def _clock_recovery(self) -> None:
+        """Sample times from stamps that are host arrival times: recovered onto the sensor's
+        clock (``sample_clock.SampleClock`` at the estimation rate) for a source that hands
+        out every sample it receives (``may_have_backlog``: a recording, a CAN node). Not for
+        a FIFO board or a flight log (``times_on_sensor_clock``: timed already), nor for a
+        polling board that reads only the newest sample: a late loop skips samples there
+        without a counter to tell, and the clock line then bends instead of counting a gap
+        (measured on the simulated GY-80 at 200 Hz on this loaded host: recovered times up to
+        29 ms before the read times), so its read times are kept (docs/timing.md)."""
+        source = self.source
+        if not source.times_on_sensor_clock and source.may_have_backlog:
+            self.pipeline.use_sample_clock(self.cfg.rates["estimation_hz"])
+
     def _open_live(self, cfg: config_mod.Config) -> None:
         if cfg.live["enabled"]:
             from ahrs_service.live_view import open_live_view
@@ -241,12 +314,75 @@ class Service:
     def _open_mavlink(self, cfg: config_mod.Config) -> None:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
-        self.mavlink = MavlinkBridge(self, cfg, io_period_ns=IO_PERIOD_NS)
+        self.mavlink = MavlinkBridge(self.bridge_link(), cfg, io_period_ns=IO_PERIOD_NS)
         link = getattr(self.source, "autopilot_link", None)
         if link is not None and self.mavlink.odometry is not None:
             # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
             self.mavlink.odometry.send = link.send
             self.mavlink.timesync = link.clock
+
+    def bridge_link(self) -> ServiceLink:
+        """What the MAVLink bridge may use of this service (mavlink_bridge.ServiceLink)."""
+        est = self.estimator
+        return ServiceLink(
+            boot_ns=self.boot_ns,
+            estimator=est.name,
+            param_names=est.param_names(),
+            latest=self.latest_estimate,
+            health=self.link_health,
+            get_param=lambda name: self.estimator.get_params()[name],
+            set_param=self.set_estimator_param,
+            get_declination=lambda: self.pipeline.declination_deg,
+            set_declination=lambda deg: self.pipeline.set_declination(deg),
+            loop_rate_hz=lambda: float(self.cfg.rates["estimation_hz"]),
+            calibrate_gyro=self.calibrate_gyro,
+            start_calibration=self.start_live_calibration,
+            vibration=self.vibration.levels,
+            attitude_variance=lambda: self.estimator.attitude_variance(),
+        )
+
+    def latest_estimate(self) -> LatestEstimate | None:
+        """The newest estimated sample for the publishers; None before the first."""
+        pipeline = self.pipeline
+        sample = pipeline.last_sample
+        if sample is None:
+            return None
+        return LatestEstimate(
+            samples=pipeline.samples,
+            t_ns=sample.t_ns,
+            q=pipeline.published_quaternion(),
+            body_rate=pipeline.body_rates(),
+            gyr=sample.gyr,
+            acc=sample.acc,
+            mag=sample.mag,
+            mag_new=bool(sample.flags & MAG_NEW),
+            temperature_c=sample.temperature_c,
+            initialised=bool(self.estimator.state[STATE_HEADER.index.initialised]),
+            mag_used=pipeline.use_mag and not pipeline.reduced,
+            reduced=pipeline.reduced or not pipeline.use_mag,
+            estimator_id=id(self.estimator),
+            declination_deg=pipeline.declination_deg,
+        )
+
+    def link_health(self) -> LinkHealth:
+        """Health bits and fault counters for SYS_STATUS."""
+        h = self.health()
+        diag = self.source.diagnostics
+        return LinkHealth(
+            gyro_healthy=h["gyro_healthy"], accel_healthy=h["accel_healthy"],
+            mag_present=h["mag_present"], mag_healthy=h["mag_healthy"],
+            overruns=self.scheduler.overruns, load_percent=self.last_load_percent,
+            comm_errors=diag.bus_errors, sensor_faults=diag.saturated + diag.non_finite,
+            lost_samples=diag.lost.total,
+        )
+
+    def calibrate_gyro(self) -> tuple[bool, str]:
+        """The gyro-bias calibration command: accepted only at rest; stored when accepted."""
+        check = self.pipeline.calibrate_gyro_bias()
+        if not check.at_rest:
+            return False, f"gyro calibration refused: {check.reason}"
+        self.record_calibration("gyro")
+        return True, "gyro bias set to [{:.4f}, {:.4f}, {:.4f}] rad/s".format(*self.pipeline.calibration.gyro_bias)
 
     # ------------------------------------------------------------------ control
     def request_stop(self, *_: Any) -> None:
@@ -298,86 +434,90 @@ class Service:
         # the log writer's thread must not hold the interpreter for Python's default 5 ms
         sys.setswitchinterval(0.0001)
         _freeze_heap()
-        sched = self.scheduler
-        pipeline = self.pipeline
-        source = self.source
-        writer = self.log_writer
         end_ns = None if self.duration_s is None else time.monotonic_ns() + int(self.duration_s * 1e9)
-        next_io = next_housekeeping = time.monotonic_ns()
-        next_watchdog = next_io
-        diag_ns = int(1e9 / self.cfg.log["diagnostics_hz"]) if self.cfg.log["diagnostics_hz"] else None
-        next_diag = next_io
-        diag_due = False  # the next logged sample carries the estimator's diagnostics
-        live = self.live
-        monitor = self.monitor
-        ready_sent = False
-        was_reduced = pipeline.reduced
+        self._diag_due = False  # the next logged block carries the estimator's diagnostics
+        self._ready_sent = False
+        self._was_reduced = self.pipeline.reduced
+        schedule = LoopSchedule(self._periodic_jobs(), time.monotonic_ns())
         while not self._stop:
-            now = sched.wait()
-            for _ in range(MAX_SAMPLES_PER_TICK if source.may_have_backlog else 1):
-                sample = source.read()
-                if sample is None:
-                    break
-                if self.live_calibration.active and self.live_calibration.add(sample):
-                    self.start_live_fit()
-                cal = pipeline.process(sample)
-                if cal is not None:
-                    self.vibration.update(pipeline.row, cal.flags)
-                if cal is not None and writer is not None:
-                    state = pipeline.estimator.state
-                    writer.write_sample(
-                        cal.t_ns, pipeline.row, cal.flags, q=state[_H.q], estimator=pipeline.estimator.name,
-                        bias=state[_H.bias], state=state, raw=sample.raw, temperature=cal.temperature_c,
-                        truth_q=cal.truth_q, diagnostics=self._diagnostics_for_log() if diag_due else None,
-                    )
-                    diag_due = False
-                if cal is not None and monitor is not None:
-                    monitor.add_estimate(cal.t_ns, pipeline.estimator.state[_H.q])
+            now = self.scheduler.wait()
+            self._estimate(self.source.read_block(MAX_SAMPLES_PER_TICK if self.source.may_have_backlog else 1))
             # one attribute test per tick while no fit runs; done() takes a lock only during one
             if self._live_fit is not None and self._live_fit.done():
                 self.apply_live_calibration()
-            if now >= next_io:
-                next_io += IO_PERIOD_NS
-                if now > next_io:
-                    next_io = now + IO_PERIOD_NS
-                self.mavlink.tick(now)
-                if live is not None:
-                    live.tick(now)
-                if monitor is not None:
-                    self._monitor_tick(now)
-                if self._autopilot_link is not None:
-                    self._timesync_tick()
-                if diag_ns is not None and now >= next_diag:
-                    next_diag = now + diag_ns
-                    diag_due = True
-                if not ready_sent and pipeline.samples > 0:
-                    self.notifier.ready(self.status_line())
-                    ready_sent = True
-            if self.notifier.watchdog_interval_ns and now >= next_watchdog:
-                self.notifier.watchdog()
-                next_watchdog = now + self.notifier.watchdog_interval_ns
-            if pipeline.reduced != was_reduced:
-                was_reduced = pipeline.reduced
-                self.report(
-                    "magnetometer lost: estimating in reduced form" if was_reduced else "magnetometer back: full form",
-                    4 if was_reduced else 6,
-                )
-            if now >= next_housekeeping:
-                next_housekeeping = now + HOUSEKEEPING_NS
-                self._housekeeping(now)
-            sched.done()
+            schedule.run_due(now)
+            self._report_form_change()
+            self.scheduler.done()
             if self._reload:
                 self._reload = False
                 self.reload()
-                sched, pipeline, writer, live = self.scheduler, self.pipeline, self.log_writer, self.live
-                monitor = self.monitor
-                was_reduced = pipeline.reduced  # a new pipeline starts in full form
+                self._was_reduced = self.pipeline.reduced  # a new pipeline starts in full form
+                schedule = LoopSchedule(self._periodic_jobs(), now)  # a new watchdog interval, rates
                 _freeze_heap()
             if end_ns is not None and now >= end_ns:
                 break
-            if getattr(source, "finished", False):
+            if getattr(self.source, "finished", False):
                 break
         return 0
+
+    def _periodic_jobs(self) -> list[PeriodicJob]:
+        """The loop's timers: what runs when, in this order within a tick (0 ns: off)."""
+        diag_hz = self.cfg.log["diagnostics_hz"]
+        return [
+            PeriodicJob("publish", IO_PERIOD_NS, self._publish, keep_phase=True),
+            PeriodicJob("log diagnostics", int(1e9 / diag_hz) if diag_hz else 0, self._diagnostics_due),
+            PeriodicJob("watchdog", self.notifier.watchdog_interval_ns or 0, lambda now: self.notifier.watchdog()),
+            PeriodicJob("housekeeping", HOUSEKEEPING_NS, self._housekeeping),
+        ]
+
+    def _estimate(self, block: SampleBlock) -> EstimatedBlock | None:
+        """One block from the source: live-calibration collection, estimator, log."""
+        if not len(block):
+            return None
+        if self.live_calibration.active:
+            for sample in block.samples():  # raw sensor-axis samples, as the fit wants them
+                if self.live_calibration.add(sample):
+                    self.start_live_fit()
+                    break
+        done = self.pipeline.process_block(block)
+        if done is not None:
+            self.vibration.update(done.rows, done.flags)  # VIBRATION from the rows fed to the estimator
+            if self.monitor is not None:
+                self.monitor.add_estimates(done.t_ns, done.q)
+        writer = self.log_writer
+        if done is not None and writer is not None:
+            pipeline = self.pipeline
+            writer.write_block(
+                done.t_ns, done.rows, done.flags, q=done.q, estimator=pipeline.estimator.name,
+                t_source_ns=done.t_source_ns if pipeline.clock is not None else None,
+                bias=done.state[_H.bias], state=done.state, raw=done.raw, temperature=done.temperature_c,
+                truth_q=done.truth_q, diagnostics=self._diagnostics_for_log() if self._diag_due else None,
+            )
+            self._diag_due = False
+        return done
+
+    def _publish(self, now: int) -> None:
+        """MAVLink and the live view from the newest state, at their own rates; READY=1 once."""
+        self.mavlink.tick(now)
+        if self.live is not None:
+            self.live.tick(now)
+        if self.monitor is not None:
+            self._monitor_tick(now)
+        if self._autopilot_link is not None:
+            self._timesync_tick()
+        if not self._ready_sent and self.pipeline.samples > 0:
+            self.notifier.ready(self.status_line())
+            self._ready_sent = True
+
+    def _diagnostics_due(self, now: int) -> None:
+        self._diag_due = True
+
+    def _report_form_change(self) -> None:
+        reduced = self.pipeline.reduced
+        if reduced != self._was_reduced:
+            self._was_reduced = reduced
+            self.report("magnetometer lost: estimating in reduced form" if reduced else "magnetometer back: full form",
+                        4 if reduced else 6)
 
     def status_line(self, st: LoopStats | None = None) -> str:
         """One line of rate and health (systemd STATUS=, logs); ``st``: stats already taken."""
@@ -395,7 +535,19 @@ class Service:
             lost = self.source.diagnostics.lost if self.source is not None else LossCounts()
         return lost.summary()
 
+    def _loop_counters(self) -> kernels.LoopCounters:
+        sched = self.scheduler
+        return kernels.LoopCounters(sched.ticks, sched.missed_ticks, sched.overruns, self.pipeline.samples)
+
     def _housekeeping(self, now: int) -> None:
+        if self.compiler.child is not None:  # a reload waits for a child compile
+            self.notifier.extend_timeout(kernels.EXTEND_TIMEOUT_S)
+            done = self.compiler.poll(self._loop_counters())
+            if done is not None and done.ok:
+                self._reload = True  # the loop calls reload() at the end of this tick
+            elif done is not None:
+                self.report(f"reload refused: compiling {done.name} failed: {done.error}", 3)
+                self.notifier.ready(self.status_line())
         st = self.scheduler.stats()
         self.last_load_percent = st.load_percent
         self.notifier.status(self.status_line(st))
@@ -589,6 +741,12 @@ class Service:
         if new.source != self.cfg.source:
             self.report("reload: source changes need a restart; source kept", 4)
             new.raw["source"] = self.cfg.source
+        name = new.estimator["name"]
+        if self.compiler.needed(name, self.estimator.name, self._loop_counters()):
+            # numba holds the interpreter lock while compiling: a child compiles, the loop runs
+            # on with the old estimator, and _housekeeping repeats this reload when it is done
+            self.report(f"reload: compiling {name} in a child process; {self.estimator.name} runs meanwhile", 6)
+            return
         old_cfg, self.cfg = self.cfg, new
         same_filter = new.estimator["name"] == old_cfg.estimator["name"]
         if same_filter and new.calibration == old_cfg.calibration and new.mounting == old_cfg.mounting:
@@ -601,14 +759,19 @@ class Service:
             self.pipeline.mag_timeout_ns = int(new.estimator["mag_timeout_s"] * 1e9)
         else:
             self._build_estimation(new)
+            t0 = time.monotonic_ns()
             self._warm_up()
+            compiled = self.compiler.last
+            if compiled is not None and compiled.name == name and compiled.load_ms is None:
+                compiled.load_ms = (time.monotonic_ns() - t0) / 1e6
+                self.report(compiled.text(), 6)
             self._use_source_calibration()
+            self._clock_recovery()
             if self.log_writer is not None and new.log == old_cfg.log:
                 self.log_writer.new_file()  # a fresh estimator: its own file replays exactly
-        # a data-ready scheduler runs at the part's watermark rate, not estimation_hz
-        if new.rates["estimation_hz"] != old_cfg.rates["estimation_hz"] \
-                and not isinstance(self.scheduler, DataReadyScheduler):
-            self.scheduler.set_rate(new.rates["estimation_hz"])
+        # a FIFO source's loop runs at its drain (watermark) rate, not estimation_hz
+        if self.loop_rate_hz(new) != self.scheduler.rate_hz and not isinstance(self.scheduler, DataReadyScheduler):
+            self.scheduler.set_rate(self.loop_rate_hz(new))
         if new.log != old_cfg.log:
             if self.log_writer is not None:
                 self.log_writer.close()
@@ -638,6 +801,7 @@ class Service:
         """Stops everything after :meth:`run` has returned. A live-calibration fit still
         running gets at most ``LIVE_FIT_CLOSE_WAIT_S`` to finish (see :meth:`_settle_live_fit`)."""
         self.notifier.stopping()
+        self.compiler.close()
         try:
             self._settle_live_fit(LIVE_FIT_CLOSE_WAIT_S)
         except Exception as exc:  # applying it must not keep the parts below open

@@ -1,9 +1,10 @@
-"""``ahrs-service run`` and ``ahrs-service config``."""
+"""``ahrs-service run``, ``ahrs-service config`` and ``ahrs-service compile``."""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 
 from ahrs_service import config as config_mod
@@ -25,6 +26,23 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     group.add_argument("--print-default", action="store_true", help="print the embedded default configuration")
     cfg.set_defaults(func=cmd_config)
 
+    comp = sub.add_parser(
+        "compile",
+        help="compile the estimator kernels into numba's cache (before a first start: ExecStartPre)",
+        description=(
+            "Compiles, or loads from numba's on-disk cache, the kernels the service runs with the "
+            "given estimators (default: the configured one), so that a start or a reload does not "
+            "compile. The cache is $NUMBA_CACHE_DIR when set (the systemd unit sets it), else "
+            "__pycache__ beside the installed sources; run it as the user the service runs as."
+        ),
+    )
+    comp.add_argument("estimators", nargs="*", metavar="NAME", help="estimators to compile (default: the configured one)")
+    comp.add_argument("-c", "--config", help="TOML configuration whose estimator is compiled (default: the embedded default)")
+    comp.add_argument("--all", action="store_true", help="every estimator (a later reload to any of them then compiles nothing)")
+    comp.add_argument("--nice", type=int, default=0, metavar="N",
+                      help="lower this process's CPU priority by N (the service's reload child uses 10)")
+    comp.set_defaults(func=cmd_compile)
+
     lay = sub.add_parser("foxglove-layout", help="print the Foxglove layout for the live view and the logs (JSON)")
     lay.set_defaults(func=cmd_foxglove_layout)
 
@@ -33,6 +51,25 @@ def cmd_foxglove_layout(args: argparse.Namespace) -> int:
     from ahrs_service.foxglove_layout import shipped_layout_json
 
     sys.stdout.write(shipped_layout_json())
+    return 0
+
+
+def cmd_compile(args: argparse.Namespace) -> int:
+    from ahrs_service import estimators, kernels
+
+    try:
+        names = estimators.names() if args.all else list(args.estimators)
+        if not names:
+            names = [config_mod.load(args.config).estimator["name"]]
+        for name in names:
+            estimators.get(name)  # an unknown name is refused before anything compiles
+    except (config_mod.ConfigError, ValueError) as exc:
+        print(f"ahrs-service compile: error: {exc}", file=sys.stderr)
+        return 2
+    if args.nice:
+        os.nice(args.nice)
+    for name in names:
+        print(f"{name}: ready in {kernels.warm_up(name):.1f} s (compiled, or loaded from the cache)", flush=True)
     return 0
 
 

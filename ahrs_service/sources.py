@@ -65,11 +65,13 @@ def make_source(source_cfg: dict[str, Any], estimation_hz: float, system_id: int
     if kind == "simulated_i2c":
         from ahrs_service.drivers.i2c.boards import make_simulated_board
 
-        return make_simulated_board(source_cfg["board"], simulated_imu(source_cfg), **source_cfg["board_options"])
+        return make_simulated_board(source_cfg["board"], simulated_imu(source_cfg),
+                                    i2c_speed_hz=source_cfg["i2c_speed_hz"], **source_cfg["board_options"])
     if kind == "i2c":
         from ahrs_service.drivers.i2c.boards import make_board
 
-        return make_board(source_cfg["board"], source_cfg["i2c_bus"], **source_cfg["board_options"])
+        return make_board(source_cfg["board"], source_cfg["i2c_bus"], i2c_speed_hz=source_cfg["i2c_speed_hz"],
+                          **source_cfg["board_options"])
     if kind == "simulated":
         from ahrs_service.drivers.sim.source import SimulatedSource
 

@@ -1,4 +1,5 @@
-"""systemd ``Type=notify`` support without a dependency: READY, WATCHDOG, STATUS, STOPPING.
+"""systemd ``Type=notify`` support without a dependency: READY, WATCHDOG, STATUS, STOPPING,
+EXTEND_TIMEOUT_USEC (while kernels compile, see ``ahrs_service.kernels``).
 
 The protocol is one datagram per notification to the AF_UNIX socket named in
 ``$NOTIFY_SOCKET`` (a leading ``@`` means the abstract namespace). ``$WATCHDOG_USEC`` tells
@@ -54,6 +55,11 @@ class Notifier:
 
     def status(self, text: str) -> None:
         self.notify(f"STATUS={text}")
+
+    def extend_timeout(self, seconds: float) -> None:
+        """Asks for ``seconds`` more before the start (reload, stop) times out, counted from
+        now; to be repeated before they run out (systemd ≥ 236; older ones ignore it)."""
+        self.notify(f"EXTEND_TIMEOUT_USEC={int(seconds * 1e6)}")
 
     def reloading(self) -> None:
         self.notify("RELOADING=1")

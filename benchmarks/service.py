@@ -4,10 +4,14 @@
                                  [--floor-seconds S]
     python benchmarks/service.py --fifo-pairs 5 [--seconds 20] [--rate 1000]
 
-``--fifo-pairs N``: the simulated MPU-9250 on the simulated I2C bus at 1 kHz, logged and
-publishing, read through its FIFO (the default) and polled one sample per tick
-(``board_options = { fifo = false }``, the reference), in N alternating pairs run back to
-back; prints each run's CPU and lost samples, the medians and the ratio FIFO / polling.
+``--fifo-pairs N``: the simulated MPU-9250 on the simulated I2C bus at 1 kHz, every sample
+estimated and logged, ATTITUDE + ATTITUDE_QUATERNION at ``--publish`` Hz, read through its
+FIFO (drained at 100 Hz: the loop wakes 100 times a second, a block each) and polled one
+sample per tick (``board_options = { fifo = false }``, the reference), with the empty loop at
+the FIFO's wake-up rate as the jitter reference: N alternating triples run back to back.
+Prints each run (CPU, wake-up jitter, lost samples, latency from a sample's time to the
+ATTITUDE_QUATERNION carrying it), then the stall case (SIGSTOP of 20 ms — within the FIFO's
+42 ms — and of 200 ms, FIFO and polling), then a table of the medians and ratios.
 
 What runs: the service as a subprocess (its scheduler, estimator, MAVLink over UDP to a
 pymavlink ground station in this process, MCAP logging to a temporary folder), started under
@@ -148,6 +152,36 @@ def bare_loop(seconds: float, rate_hz: float) -> dict[str, float]:
     return json.loads(out.strip().splitlines()[-1])
 
 
+def source_only(cfg: Path, seconds: float) -> dict[str, float]:
+    """The reference for the service's own work: the configured source alone in its own
+    process, woken as the service wakes (its scheduler at the same loop rate) and read the
+    same way (one block a wake-up), nothing else — for a simulated board that is the register
+    twin and its physics, which the service process pays too but a real part does not."""
+    code = (
+        "import time, json\n"
+        "from ahrs_service import config as config_mod\n"
+        "from ahrs_service.scheduler import FixedRateScheduler\n"
+        "from ahrs_service.sources import make_source\n"
+        f"cfg = config_mod.load({str(cfg)!r})\n"
+        "src = make_source(cfg.source, cfg.rates['estimation_hz']); src.open()\n"
+        "s = FixedRateScheduler(src.wakeup_rate_hz or cfg.rates['estimation_hz'])\n"
+        "n = 0\n"
+        f"end = time.monotonic() + 5.0 + {seconds}\n"
+        "c0 = w0 = None\n"
+        "while time.monotonic() < end:\n"
+        "    s.wait()\n"
+        "    b = src.read_block(64 if src.may_have_backlog else 1)\n"
+        "    if c0 is None and time.monotonic() >= end - " + f"{seconds}" + ":\n"
+        "        c0, w0, n = time.process_time(), time.monotonic(), 0\n"
+        "    n += len(b)\n"
+        "    s.done()\n"
+        "print(json.dumps({'cpu': 100 * (time.process_time() - c0) / (time.monotonic() - w0),\n"
+        "                  'samples_per_s': n / (time.monotonic() - w0)}))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def start_service(cfg: Path, tmp: Path) -> tuple[subprocess.Popen, float]:
     """``ahrs-service run --config cfg`` under a fake systemd; returns it at READY=1 and the
     seconds that took."""
@@ -189,37 +223,157 @@ def service_cpu(cfg: Path, tmp: Path, seconds: float) -> float:
             proc.kill()
 
 
-def fifo_pairs(args: argparse.Namespace) -> int:
-    """FIFO against polling on the simulated MPU-9250: CPU and lost samples per run."""
+def measured_run(cfg: Path, tmp: Path, logs: Path, gcs, seconds: float,
+                 stalls_s: tuple[float, ...] = ()) -> dict[str, float]:
+    """One service run: CPU over ``seconds`` after a 5 s warm-up (one core = 100 %), the loop's
+    wake-up jitter (p99 of the median second, /loop), lost samples by cause, and the latency
+    from a sample's time to the ATTITUDE_QUATERNION carrying it (p50/p99, ms). ``stalls_s``:
+    SIGSTOP the service for these many seconds each, one per second of the run, SIGCONT after.
+
+    Latency: each ATTITUDE_QUATERNION received is matched to the logged sample whose estimate
+    it carries (same quaternion to float32 precision, the newest such sample not after the
+    receive time); the receive time is this process's monotonic clock (system-wide, as the
+    service's), so the figure includes the ground station's own receive delay."""
+    from ahrs_service.logs.reader import read_log
+
+    proc, _ = start_service(cfg, tmp)
+    received: list[tuple[int, list[float]]] = []
+    try:
+        end_warm = time.monotonic() + 5.0
+        while time.monotonic() < end_warm:
+            gcs.recv_match(blocking=True, timeout=0.05)
+        cpu0, wall0 = cpu_seconds(proc.pid), time.monotonic()
+        stalls = list(stalls_s)
+        next_stall = wall0 + 1.0
+        while time.monotonic() - wall0 < seconds:
+            if stalls and time.monotonic() >= next_stall:
+                os.kill(proc.pid, signal.SIGSTOP)
+                time.sleep(stalls.pop(0))
+                os.kill(proc.pid, signal.SIGCONT)
+                next_stall = time.monotonic() + 1.0
+            m = gcs.recv_match(blocking=True, timeout=0.02)
+            if m is not None and m.get_type() == "ATTITUDE_QUATERNION":
+                received.append((time.monotonic_ns(), [m.q1, m.q2, m.q3, m.q4]))
+        cpu = 100.0 * (cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - wall0)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    log = read_log(next(logs.glob("flight-*.mcap")))
     from mcap.reader import make_reader
 
-    runs: dict[bool, list[float]] = {True: [], False: []}
-    lost: dict[bool, list[int]] = {True: [], False: []}
+    with open(log.path, "rb") as f:
+        loops = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/loop"])]
+    steady = loops[5:] or loops
+    lost = loops[-1]["source"].get("lost", {}) if loops else {}
+    q32 = log.attitudes.astype(np.float32)
+    latency = []
+    for t_recv, q in received:
+        hi = int(np.searchsorted(log.t_ns, t_recv, side="right"))
+        lo = int(np.searchsorted(log.t_ns, t_recv - 300_000_000))
+        if hi <= lo:
+            continue
+        same = np.flatnonzero(np.all(q32[lo:hi] == np.asarray(q, dtype=np.float32), axis=1))
+        if same.size:
+            latency.append((t_recv - int(log.t_ns[lo + same[-1]])) / 1e6)
+    return {
+        "cpu": cpu,
+        "jitter_p99_us": float(np.median([l["period_jitter_p99_us"] for l in steady])) if steady else float("nan"),
+        "overruns": loops[-1]["overruns"] if loops else -1,
+        "lost": int(lost.get("total", 0)),
+        "lost_by_cause": {k: v for k, v in lost.items() if k != "total" and v},
+        "logged": len(log),
+        "latency_p50_ms": float(np.percentile(latency, 50)) if latency else float("nan"),
+        "latency_p99_ms": float(np.percentile(latency, 99)) if latency else float("nan"),
+        "matched": len(latency),
+        "received": len(received),
+    }
+
+
+def fifo_pairs(args: argparse.Namespace) -> int:
+    """FIFO against polling on the simulated MPU-9250, and the FIFO loop's wake-up jitter
+    against the empty loop at the same rate: N alternating pairs; then the stall case."""
+    fifo_read_hz = 100.0
+    results: dict[str, list[dict]] = {"fifo": [], "polling": [], "empty": [], "fifo source": [],
+                                      "polling source": []}
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0")
         port = gcs.port.getsockname()[1]
+
+        def config(name: str, fifo: bool) -> tuple[Path, Path]:
+            logs = tmp / f"logs-{name}"
+            cfg = tmp / f"{name}.toml"
+            options = f"fifo = true, fifo_read_hz = {fifo_read_hz}" if fifo else "fifo = false"
+            cfg.write_text(
+                f'[source]\ntype = "simulated_i2c"\nprofile = "figure8"\nboard = "mpu9250"\n'
+                f'board_options = {{ {options} }}\n\n'
+                f'[estimator]\nname = "{args.estimator}"\n\n'
+                f"[rates]\nestimation_hz = {args.rate}\nattitude_hz = {args.publish}\n"
+                f"attitude_quaternion_hz = {args.publish}\n\n"
+                f'[mavlink]\nendpoints = ["udpout:127.0.0.1:{port}"]\n\n[log]\ndirectory = "{logs}"\n')
+            return cfg, logs
+
         for i in range(args.fifo_pairs):
-            for fifo in (True, False):
-                logs = tmp / f"logs-{i}-{fifo}"
-                cfg = tmp / f"fifo-{i}-{fifo}.toml"
-                cfg.write_text(
-                    f'[source]\ntype = "simulated_i2c"\nprofile = "figure8"\nboard = "mpu9250"\n'
-                    f'board_options = {{ fifo = {str(fifo).lower()} }}\n\n'
-                    f'[estimator]\nname = "{args.estimator}"\n\n'
-                    f"[rates]\nestimation_hz = {args.rate}\nattitude_hz = {args.publish}\n"
-                    f"attitude_quaternion_hz = {args.publish}\n\n"
-                    f'[mavlink]\nendpoints = ["udpout:127.0.0.1:{port}"]\n\n[log]\ndirectory = "{logs}"\n')
-                runs[fifo].append(service_cpu(cfg, tmp, args.seconds))
-                with open(next(logs.glob("flight-*.mcap")), "rb") as f:
-                    loops = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/loop"])]
-                lost[fifo].append(int(loops[-1]["source"].get("lost", {}).get("total", 0)) if loops else -1)
-                print(f"pair {i + 1}: {'FIFO   ' if fifo else 'polling'} CPU {runs[fifo][-1]:.1f} %, "
-                      f"lost samples {lost[fifo][-1]}", flush=True)
-    f_cpu, p_cpu = float(np.median(runs[True])), float(np.median(runs[False]))
-    print(f"median of {args.fifo_pairs} pairs, {args.seconds:.0f} s each after 5 s warm-up, "
-          f"{args.rate:.0f} Hz loop, {args.estimator}: FIFO {f_cpu:.1f} %, polling {p_cpu:.1f} %, "
-          f"ratio {f_cpu / p_cpu:.2f}")
+            for kind in ("fifo", "polling", "empty", "fifo source", "polling source"):
+                if kind == "empty":
+                    floor = bare_loop(args.seconds, fifo_read_hz)
+                    r = {"cpu": floor["cpu"], "jitter_p99_us": floor["period_jitter_p99_median_us"]}
+                elif kind.endswith("source"):
+                    r = source_only(config(f"{kind.replace(' ', '-')}-{i}", kind.startswith("fifo"))[0], args.seconds)
+                else:
+                    cfg, logs = config(f"{kind}-{i}", kind == "fifo")
+                    r = measured_run(cfg, tmp, logs, gcs, args.seconds)
+                results[kind].append(r)
+                print(f"pair {i + 1}: {kind:8s} " + ", ".join(
+                    f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()), flush=True)
+        stall = {}
+        for kind in ("fifo", "polling"):
+            cfg, logs = config(f"stall-{kind}", kind == "fifo")
+            stall[kind] = measured_run(cfg, tmp, logs, gcs, max(args.seconds, 6.0), stalls_s=(0.02, 0.02, 0.2, 0.2))
+            print(f"stall case {kind}: " + ", ".join(f"{k} {v}" for k, v in stall[kind].items()), flush=True)
+
+    def med(kind: str, key: str) -> float:
+        return float(np.median([r[key] for r in results[kind]]))
+
+    n = args.fifo_pairs
+    watermark_ms = 1e3 / fifo_read_hz
+    rows = [
+        ("setup", f"simulated MPU-9250, simulated I2C, {args.rate:.0f} Hz, {args.estimator}, every sample "
+                  f"estimated and logged (raw + estimate), ATTITUDE + ATTITUDE_QUATERNION {args.publish:.0f} Hz; "
+                  f"FIFO drained at {fifo_read_hz:.0f} Hz; {n} alternating runs of each, {args.seconds:.0f} s after "
+                  f"5 s warm-up"),
+        ("CPU, FIFO (median)", f"{med('fifo', 'cpu'):.1f} %"),
+        ("CPU, polling one sample per tick (median)", f"{med('polling', 'cpu'):.1f} %"),
+        ("CPU ratio FIFO / polling (target ≤ 0.5)", f"{med('fifo', 'cpu') / med('polling', 'cpu'):.2f}"),
+        ("samples logged per second, FIFO / polling (median)",
+         f"{med('fifo', 'logged') / (args.seconds + 5):.0f} / {med('polling', 'logged') / (args.seconds + 5):.0f} "
+         "(approximate: the log spans start-up to stop)"),
+        ("the source alone (simulated twin + driver), FIFO / polling: CPU (median)",
+         f"{med('fifo source', 'cpu'):.1f} % / {med('polling source', 'cpu'):.1f} %"),
+        ("service minus its source, FIFO / polling (median of each; ratio)",
+         f"{med('fifo', 'cpu') - med('fifo source', 'cpu'):.1f} % / "
+         f"{med('polling', 'cpu') - med('polling source', 'cpu'):.1f} % "
+         f"({(med('fifo', 'cpu') - med('fifo source', 'cpu')) / (med('polling', 'cpu') - med('polling source', 'cpu')):.2f})"),
+        (f"wake-up jitter p99 (median second), FIFO loop at {fifo_read_hz:.0f} Hz (median)",
+         f"{med('fifo', 'jitter_p99_us'):.0f} µs"),
+        (f"wake-up jitter p99 (median second), empty loop at {fifo_read_hz:.0f} Hz (median)",
+         f"{med('empty', 'jitter_p99_us'):.0f} µs"),
+        ("jitter ratio FIFO / empty loop (target ≤ 2)", f"{med('fifo', 'jitter_p99_us') / med('empty', 'jitter_p99_us'):.2f}"),
+        ("latency sample → ATTITUDE_QUATERNION carrying it, p50 / p99 (median of runs)",
+         f"{med('fifo', 'latency_p50_ms'):.1f} / {med('fifo', 'latency_p99_ms'):.1f} ms "
+         f"(target p99 ≤ {watermark_ms + 2:.0f} ms)"),
+        ("lost samples per run, FIFO / polling (median)", f"{med('fifo', 'lost'):.0f} / {med('polling', 'lost'):.0f}"),
+        ("stall case, FIFO: 2 × 20 ms + 2 × 200 ms SIGSTOP", f"lost {stall['fifo']['lost']} "
+         f"{stall['fifo']['lost_by_cause']}, logged {stall['fifo']['logged']}"),
+        ("stall case, polling: the same stops", f"lost {stall['polling']['lost']} "
+         f"{stall['polling']['lost_by_cause']}, logged {stall['polling']['logged']}"),
+    ]
+    print("| measure | value |\n|---|---|")
+    for k, v in rows:
+        print(f"| {k} | {v} |")
     return 0
 
 

@@ -118,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
                 seen[m.get_type()] += 1
 
     boards = []
+    stalls: list[tuple[float, bool]] = []  # (host time without a FIFO read, s; overflowed)
+    others: list[tuple[float, float]] = []  # overflows outside the injected stalls: (gap, s since the stall)
 
     def make_source(source_cfg, estimation_hz):
         board = make_transport_board("icm42688p", "spi", simulated_imu=recording,
@@ -148,12 +150,26 @@ def main(argv: list[str] | None = None) -> int:
             board = boards[0]
             inner = board.read_block
             next_stall = [time.monotonic() + 1.0]
+            last_read = [time.monotonic()]
 
             def stalling(max_samples=128):
                 if time.monotonic() >= next_stall[0]:
                     next_stall[0] += 1.0
                     time.sleep(args.stall_ms / 1000)
-                return inner(max_samples)
+                    # what the FIFO saw: the time since the previous read, sleep and the
+                    # busy host's own delays together
+                    gap = time.monotonic() - last_read[0]
+                    overflows = board.diagnostics.extra["fifo_overflows"]
+                    block = inner(max_samples)
+                    stalls.append((gap, board.diagnostics.extra["fifo_overflows"] > overflows))
+                else:
+                    gap = time.monotonic() - last_read[0]
+                    overflows = board.diagnostics.extra["fifo_overflows"]
+                    block = inner(max_samples)
+                    if board.diagnostics.extra["fifo_overflows"] > overflows:
+                        others.append((gap, next_stall[0] - 1.0 - time.monotonic()))
+                last_read[0] = time.monotonic()
+                return block
 
             board.read_block = stalling
         # the source opens before the log and MAVLink: drain what the FIFO gathered meanwhile
@@ -194,6 +210,16 @@ def main(argv: list[str] | None = None) -> int:
           f"{produced} / {diag.samples - read0} / {estimated} |")
     print(f"| lost: FIFO overflow / bus error (overflow events: {lost[2]}) | {lost[0]} / {lost[1]} |")
     print(f"| part rate (true) / tracked, Hz | {real_rate:.2f} / {board.clock.rate_hz:.2f} |")
+    if stalls:
+        depth_ms = 2048 // 20 / real_rate * 1e3
+        gaps = sorted(g * 1e3 for g, _ in stalls)
+        print(f"| stalls: count / longest time without a FIFO read, ms (FIFO depth {depth_ms:.1f} ms) | "
+              f"{len(stalls)} / {gaps[-1]:.1f} |")
+        print(f"| overflowed stalls: longer / shorter than the FIFO depth | "
+              f"{sum(1 for g, o in stalls if o and g * 1e3 > depth_ms)} / "
+              f"{sum(1 for g, o in stalls if o and g * 1e3 <= depth_ms)} |")
+        print(f"| overflows found outside an injected stall (time without a read, ms; ms after the stall) | "
+              f"{', '.join(f'{g * 1e3:.1f}; {-a * 1e3:.0f}' for g, a in others) or 'none'} |")
     print(f"| ATTITUDE / ATTITUDE_QUATERNION received | {seen['ATTITUDE']} / {seen['ATTITUDE_QUATERNION']} |")
     return 0
 

@@ -110,6 +110,11 @@ class LossCounts:
         return f"{self.total} ({', '.join(causes)})" if causes else str(self.total)
 
 
+def _floats(x: Any) -> list[float]:
+    """A reading as a list of Python floats (an array's ``tolist``, the cheap common case)."""
+    return x.tolist() if type(x) is np.ndarray else [float(v) for v in x]
+
+
 @dataclass(slots=True)
 class SampleBlock:
     """Consecutive samples of one source as arrays, one row per sample, oldest first.
@@ -157,23 +162,36 @@ class SampleBlock:
         n = len(samples)
         if n == 0:
             return cls.empty(lost)
-        nan3 = (np.nan, np.nan, np.nan)
+        # one list of plain floats per field, then one array each: the polling path builds a
+        # block per sample, and per-element NumPy work there costs tens of microseconds
+        nan3 = [math.nan, math.nan, math.nan]
+        if n == 1:  # the polling path: one sample a tick, one array for its three readings
+            s = samples[0]
+            vec = np.array([_floats(s.gyr), _floats(s.acc), nan3 if s.mag is None else _floats(s.mag)], dtype=float)
+            return cls(
+                np.array([s.t_ns], dtype=np.int64), vec[0:1], vec[1:2], vec[2:3], np.array([s.flags], dtype=np.int64),
+                np.array([math.nan if s.temperature_c is None else s.temperature_c]),
+                None if s.raw is None else {k: np.array([s.raw[k]], dtype=np.int64) for k in sorted(s.raw)},
+                None if s.truth_q is None else np.array([_floats(s.truth_q)]), lost or LossCounts())
         raw = None
         if all(s.raw is not None for s in samples):
-            keys = set.intersection(*(set(s.raw) for s in samples))  # type: ignore[arg-type]
+            first = samples[0].raw
+            keys = set(first)  # type: ignore[arg-type]
+            if any(set(s.raw) != keys for s in samples):  # type: ignore[arg-type]
+                keys = set.intersection(*(set(s.raw) for s in samples))  # type: ignore[arg-type]
             # (n, 3) per vector reading, (n,) per scalar one (a temperature count)
             same_shape = [k for k in keys if len({np.ndim(s.raw[k]) for s in samples}) == 1]  # type: ignore[index]
             raw = {k: np.array([s.raw[k] for s in samples], dtype=np.int64)  # type: ignore[index]
                    for k in sorted(same_shape)}
-        truth = (np.array([s.truth_q for s in samples], dtype=float)
+        truth = (np.array([_floats(s.truth_q) for s in samples], dtype=float)
                  if all(s.truth_q is not None for s in samples) else None)
         return cls(
             np.array([s.t_ns for s in samples], dtype=np.int64),
-            np.array([s.gyr for s in samples], dtype=float).reshape(n, 3),
-            np.array([s.acc for s in samples], dtype=float).reshape(n, 3),
-            np.array([nan3 if s.mag is None else s.mag for s in samples], dtype=float).reshape(n, 3),
+            np.array([_floats(s.gyr) for s in samples], dtype=float).reshape(n, 3),
+            np.array([_floats(s.acc) for s in samples], dtype=float).reshape(n, 3),
+            np.array([nan3 if s.mag is None else _floats(s.mag) for s in samples], dtype=float).reshape(n, 3),
             np.array([s.flags for s in samples], dtype=np.int64),
-            np.array([np.nan if s.temperature_c is None else s.temperature_c for s in samples], dtype=float),
+            np.array([math.nan if s.temperature_c is None else s.temperature_c for s in samples], dtype=float),
             raw, truth, lost or LossCounts())
 
     def sample(self, i: int) -> ImuSample:
@@ -187,6 +205,37 @@ class SampleBlock:
             None if self.truth_q is None else self.truth_q[i].copy(),
             None if math.isnan(temp) else temp,
         )
+
+    @classmethod
+    def concat(cls, blocks: list["SampleBlock"]) -> "SampleBlock":
+        """Consecutive blocks of one source as one (the first's ``lost``; the others must
+        carry none: a block ends at a loss). ``raw`` keeps the keys all have, ``truth_q`` is
+        kept when all have it."""
+        if len(blocks) == 1:
+            return blocks[0]
+        if any(b.lost.total for b in blocks[1:]):
+            raise ValueError("SampleBlock.concat: only the first block may carry a loss")
+        raw = None
+        if all(b.raw is not None for b in blocks):
+            keys = set.intersection(*(set(b.raw) for b in blocks))  # type: ignore[arg-type]
+            raw = {k: np.concatenate([b.raw[k] for b in blocks]) for k in sorted(keys)}  # type: ignore[index]
+        truth = (np.concatenate([b.truth_q for b in blocks])  # type: ignore[misc]
+                 if all(b.truth_q is not None for b in blocks) else None)
+        return cls(np.concatenate([b.t_ns for b in blocks]), np.concatenate([b.gyr for b in blocks]),
+                   np.concatenate([b.acc for b in blocks]), np.concatenate([b.mag for b in blocks]),
+                   np.concatenate([b.flags for b in blocks]),
+                   np.concatenate([b.temperature_c for b in blocks]), raw, truth, blocks[0].lost)
+
+    def split(self, n: int) -> tuple["SampleBlock", "SampleBlock"]:
+        """(the first ``n`` rows, the rest): the first keeps ``lost`` (it is before row 0),
+        the rest has none (its row 0 follows the first part's last row without a gap)."""
+        def cut(sl: slice, lost: LossCounts) -> "SampleBlock":
+            return SampleBlock(
+                self.t_ns[sl], self.gyr[sl], self.acc[sl], self.mag[sl], self.flags[sl],
+                self.temperature_c[sl],
+                None if self.raw is None else {k: v[sl] for k, v in self.raw.items()},
+                None if self.truth_q is None else self.truth_q[sl], lost)
+        return cut(slice(0, n), self.lost), cut(slice(n, None), LossCounts())
 
     def samples(self) -> Iterator[ImuSample]:
         """The rows as :class:`ImuSample` objects, oldest first (for per-sample consumers)."""
@@ -231,6 +280,13 @@ class ImuSource(abc.ABC):
     #: whether several samples can be due at once (a FIFO, a replayed log): the service then
     #: reads until ``read`` returns None, a bounded number per tick, so a late tick loses nothing
     may_have_backlog: bool = False
+    #: whether ``t_ns`` is already each sample's instant on the sensor's clock (a FIFO timed
+    #: by its position in the burst, a flight log's recorded times); otherwise it is the
+    #: host's read time and the service recovers the sample times (ahrs_service.sample_clock)
+    times_on_sensor_clock: bool = False
+    #: bursts per second a source that reads blocks (a FIFO) is drained at: the service's
+    #: loop wakes at this rate (Hz); None: one sample per tick at the estimation rate
+    wakeup_rate_hz: float | None = None
 
     def __init__(self) -> None:
         self.diagnostics = SourceDiagnostics()

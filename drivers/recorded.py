@@ -79,6 +79,9 @@ class RecordedSource(ImuSource):
             self.rows, self.t_ns, self.truth, self.flags = log.rows, log.t_ns, log.truth, log.flags
             self.damage = log.damage
             self.calibrated = True
+        # a flight log's t_ns are the recovered sample times its dt came from: never recovered
+        # again; a BROAD recording's are its device's stamps
+        self.times_on_sensor_clock = self.calibrated
         self.has_mag = bool(np.isfinite(self.rows[:, _R.mag]).any())
         self._precompute()
         self._i = 0

@@ -30,7 +30,7 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from ahrs_service.drivers.base import SourceDiagnostics
-from ahrs_service.drivers.i2c.device import DeviceIdentityError, _hex
+from ahrs_service.drivers.i2c.device import DeviceIdentityError, _hex, run_retried
 
 if TYPE_CHECKING:  # pragma: no cover
     from ahrs_service.drivers.i2c.bus import I2CBus
@@ -210,19 +210,8 @@ class TransportDevice:
         self.retries = int(retries)
 
     def _transfer(self, fn: Callable[..., Any], reg: int, action: str, *args: Any) -> Any:
-        diag = self.diagnostics
-        attempt = 0
-        while True:
-            try:
-                return fn(reg, *args)
-            except OSError as exc:
-                diag.bus_errors += 1
-                err = TransportError(self.transport.where, self.PART, reg, action, exc)
-                diag.last_error = str(err)
-                if attempt >= self.retries:
-                    raise err from exc
-                attempt += 1
-                diag.retries += 1
+        return run_retried(lambda: fn(reg, *args), self.retries, self.diagnostics,
+                           lambda exc: TransportError(self.transport.where, self.PART, reg, action, exc))
 
     def read_u8(self, reg: int) -> int:
         return self._transfer(self.transport.read, reg, "reading", 1)[0]

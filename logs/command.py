@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ahrs_service import execution
-from ahrs_service.cli import add_offline_options
+from ahrs_service.cli import add_offline_options, lazy_command
 
 
 def _param(text: str) -> tuple[str, float]:
@@ -48,7 +48,7 @@ def add_subcommands(subparsers: Any) -> None:
     p = sub.add_parser("plot", help="quick-look figure of a log: attitude, sensors, loop timing, rejections")
     p.add_argument("log", type=Path)
     p.add_argument("--out", type=Path, required=True, help="figure file: .png, .pdf or .svg")
-    p.set_defaults(func=_plot)
+    p.set_defaults(func=lazy_command("ahrs_service.logs.plot:cmd_plot"))
 
     p = subparsers.add_parser(
         "replay",
@@ -71,12 +71,6 @@ def add_subcommands(subparsers: Any) -> None:
     p.add_argument("--json", action="store_true", help="print the comparison as JSON")
     execution.add_arguments(p)
     p.set_defaults(func=_replay)
-
-
-def _plot(args: argparse.Namespace) -> int:
-    from ahrs_service.logs.plot import cmd_plot
-
-    return cmd_plot(args)
 
 
 def _recover(args: argparse.Namespace) -> int:
@@ -162,7 +156,7 @@ def _is_fleet(specs: list[str]) -> bool:
 
 
 def _replay_fleet(args: argparse.Namespace) -> int:
-    from ahrs_service.execution import RunnerError, open_runner
+    from ahrs_service.execution import open_runner
     from ahrs_service.logs import fleet
 
     try:
@@ -196,12 +190,7 @@ def _replay_fleet(args: argparse.Namespace) -> int:
         )
         for p in paths
     ]
-    try:
-        runner = open_runner(args.workers, args.scheduler)
-    except RunnerError as exc:
-        print(f"ahrs-service replay: error: {exc}", file=sys.stderr)
-        return 2
-    with runner:
+    with open_runner(args.workers, args.scheduler) as runner:  # RunnerError: cli.main's one line
         rows = runner.map(fleet.replay_one, jobs, progress=sys.stderr.isatty() and not args.json, desc="replay")
     csv_path, pq_path = fleet.write_table(rows, args.out)
     text = fleet.summary(rows)

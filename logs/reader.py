@@ -114,6 +114,9 @@ class RecordedLog:
     damage: Damage | None = None
     indexed: bool = False
     initial_state: dict[str, Any] | None = None
+    #: (N,) int64 the source's own stamps (host read times of a polling source) beside
+    #: ``t_ns``, the recovered sample times ``dt`` came from; ``t_ns`` where not recorded
+    t_source_ns: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.t_ns.shape[0])
@@ -152,6 +155,7 @@ def read_log(path: str | os.PathLike) -> RecordedLog:
 def _read(source: MessageSource) -> RecordedLog:
     path = source.path
     t_ns: list[int] = []
+    t_src: list[int] = []
     rows: list[list[float]] = []
     flags: list[int] = []
     index: list[int] = []
@@ -172,6 +176,8 @@ def _read(source: MessageSource) -> RecordedLog:
         if topic == "/imu/raw":
             m = decode(data)
             t_ns.append(int(m["t_ns"]))
+            ts = m.get("t_source_ns")  # absent in logs before it was recorded
+            t_src.append(t_ns[-1] if ts is None else int(ts))
             rows.append(_vec(m["gyr"], 3) + _vec(m["acc"], 3) + _vec(m["mag"], 3) + _vec([m["dt"]], 1))
             flags.append(int(m["flags"]))
             i = m.get("index")  # null or absent (schema allows both): the row number in this file
@@ -232,4 +238,5 @@ def _read(source: MessageSource) -> RecordedLog:
         damage=source.damage,
         indexed=source.indexed,
         initial_state=initial_state,
+        t_source_ns=np.asarray(t_src, dtype=np.int64),
     )

@@ -64,7 +64,10 @@ IMU_RAW = {
     "description": "One IMU sample exactly as fed to the estimator (calibrated, body frame FRD).",
     "type": "object",
     "properties": {
-        "t_ns": _T_NS,
+        "t_ns": {"type": "integer", "description": "the sample's time, ns, monotonic clock of the host: "
+                 "its instant on the sensor's clock (recovered from the source's stamps), the times dt comes from"},
+        "t_source_ns": {"type": ["integer", "null"], "description": "the source's own stamp of the sample, ns "
+                        "(a polling source: the host's read time); null or absent: the same as t_ns"},
         "index": {"type": ["integer", "null"], "description": "sample number since the writer started"},
         "dt": {"type": ["number", "null"], "description": "time step fed to the estimator, s"},
         "gyr": _vec(3, _NUM_OR_NULL, "angular rate, rad/s, body FRD"),
@@ -386,14 +389,18 @@ def raw_message(
     raw: Any = None,
     temperature: float | None = None,
     index: int | None = None,
+    t_source_ns: int | None = None,
 ) -> dict[str, Any]:
     """The /imu/raw message of one sample row [gx, gy, gz, ax, ay, az, mx, my, mz, dt].
 
     index: the sample's number since the writer started (what /params sample_index counts).
+    t_source_ns: the source's own stamp when it differs in kind from ``t_ns`` (host read time
+    of a polling source, whose ``t_ns`` is the recovered time); None: the same as ``t_ns``.
     """
     mx, my, mz = mag = row[_R.mag]
     return {
         "t_ns": int(t_ns),
+        "t_source_ns": None if t_source_ns is None else int(t_source_ns),
         "index": index,
         "dt": row[SAMPLE_ROW.index.dt],
         "gyr": row[_R.gyr],

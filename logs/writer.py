@@ -110,6 +110,25 @@ class _Sample:
 
 
 @dataclass(slots=True)
+class _Block:
+    """/imu/raw + /attitude (+ /attitude/truth) of every row of one sample block: the
+    service's one entry per burst. Per-row values as lists (one ``tolist`` per array)."""
+
+    t_ns: list  # (n,) recovered sample times, ns
+    t_source_ns: list | None  # (n,) the source's own stamps, ns
+    rows: list  # (n, 10) sample rows as fed to the estimator
+    flags: list
+    raw: dict | None  # {name: (n, …) list} driver counts
+    temperature: list | None  # (n,) °C, None where unknown
+    first_index: int
+    q: list  # (n, 4)
+    estimator: str
+    bias: list | None  # after the last row, rad/s body FRD: written with the last row only
+    truth_q: list | None  # (n, 4)
+    diagnostics: dict | None  # the estimator's after the last row, at the diagnostics rate
+
+
+@dataclass(slots=True)
 class _Truth:
     t_ns: int
     q: list
@@ -205,6 +224,7 @@ class _Close:
 _CARRIES: dict[type, Callable[[Any], tuple[int, int]]] = {
     _Raw: lambda item: (1, 1),
     _Sample: lambda item: (1, 2 + (item.truth_q is not None)),
+    _Block: lambda item: (len(item.t_ns), len(item.t_ns) * (2 + (item.truth_q is not None))),
 }
 
 
@@ -453,6 +473,61 @@ class FlightLogWriter:
         self.samples += 1
         if state is not None:
             self._offer_state(t_ns, state, estimator)
+
+    def write_block(
+        self,
+        t_ns: np.ndarray,
+        rows: np.ndarray,
+        flags: np.ndarray,
+        *,
+        q: np.ndarray,
+        estimator: str,
+        t_source_ns: np.ndarray | None = None,
+        bias: np.ndarray | None = None,
+        state: np.ndarray | None = None,
+        raw: Mapping[str, np.ndarray] | None = None,
+        temperature: np.ndarray | None = None,
+        truth_q: np.ndarray | None = None,
+        diagnostics: Mapping[str, Any] | None = None,
+    ) -> None:
+        """A block of n samples as one queue entry; the file holds the same per-sample
+        messages as n ``write_sample`` calls (/imu/raw and /attitude per row, /attitude/truth
+        per row with ``truth_q``), so Foxglove plots and replay see every sample.
+
+        t_ns (n,) int64 each sample's time (ns, recovered onto the sensor's clock: the times
+        ``dt`` came from); t_source_ns (n,) the source's own stamps (host read times), stored
+        beside them (``t_source_ns`` in /imu/raw); rows (n, 10) exactly as fed to the
+        estimator; flags (n,); q (n, 4) q_earth←body after each row; raw {name: (n, …)}
+        counts; temperature (n,) °C (NaN unknown); truth_q (n, 4). ``bias`` (rad/s),
+        ``diagnostics`` and ``state`` are the estimator's after the **last** row: the bias and
+        diagnostics go into the last row's /attitude only (the batch kernel keeps no state per
+        row), the state is offered for a rotation's snapshot as in ``write_attitude``.
+        """
+        n = len(t_ns)
+        if n == 0:
+            return
+        temps = None
+        if temperature is not None:
+            temps = [None if v != v else v for v in np.asarray(temperature, dtype=float).tolist()]
+        self._put(
+            _Block(
+                np.asarray(t_ns).tolist(),
+                None if t_source_ns is None else np.asarray(t_source_ns).tolist(),
+                np.asarray(rows).tolist(),
+                np.asarray(flags).tolist(),
+                None if raw is None else {k: np.asarray(v).tolist() for k, v in raw.items()},
+                temps,
+                self.samples,
+                np.asarray(q).tolist(),
+                estimator,
+                None if bias is None else _tolist(bias),
+                None if truth_q is None else np.asarray(truth_q).tolist(),
+                None if diagnostics is None else dict(diagnostics),
+            )
+        )
+        self.samples += n
+        if state is not None:
+            self._offer_state(int(t_ns[-1]), state, estimator)
 
     def _offer_state(self, t_ns: int, state: np.ndarray, estimator: str) -> None:
         self._state_seen = True
@@ -823,6 +898,33 @@ class FlightLogWriter:
             else:
                 self._write("/attitude/truth", t_ns, truth_message(t_ns, item.truth_q))
 
+    def _on_block(self, item: _Block) -> None:
+        self._rotate_if_due()  # at the block's start: a rotation's snapshot is a block's end state
+        n = len(item.t_ns)
+        truth = item.truth_q
+        per_row = 2 + (truth is not None)
+        if not self._ensure_file(n * per_row, samples=n):
+            return
+        raw, temps, sources = item.raw, item.temperature, item.t_source_ns
+        last = n - 1
+        for i, t_ns in enumerate(item.t_ns):
+            if self._file is None:  # a write before failed: _fail counted what the file held
+                self._lose((n - i) * per_row, n - i)
+                return
+            self._write("/imu/raw", t_ns, raw_message(
+                t_ns, item.rows[i], item.flags[i], None if raw is None else {k: v[i] for k, v in raw.items()},
+                None if temps is None else temps[i], item.first_index + i,
+                t_source_ns=None if sources is None else sources[i]))
+            if i == last:
+                self._write_attitude(t_ns, item.q[i], item.estimator, item.bias, item.diagnostics)
+            else:  # no bias of its own: the key is left out (not zeros a plot would show)
+                self._write_attitude(t_ns, item.q[i], item.estimator, None, None, with_bias=False)
+            if truth is not None:
+                if self._file is None:
+                    self._lose(1)
+                else:
+                    self._write("/attitude/truth", t_ns, truth_message(t_ns, truth[i]))
+
     def _on_attitude(self, item: _Attitude) -> None:
         if self._ensure_file(1):
             self._write_attitude(item.t_ns, item.q, item.estimator, item.bias, item.diagnostics)
@@ -866,6 +968,7 @@ class FlightLogWriter:
         _StateSnapshot: _on_state_snapshot,
         _Raw: _on_raw,
         _Sample: _on_sample,
+        _Block: _on_block,
         _Attitude: _on_attitude,
         _Truth: _on_truth,
         _Loop: _on_loop,
@@ -875,11 +978,15 @@ class FlightLogWriter:
         _Log: _on_log,
     }
 
-    def _write_attitude(self, t_ns: int, q: list[float], estimator: str, bias: Any, diagnostics: Any) -> None:
+    def _write_attitude(self, t_ns: int, q: list[float], estimator: str, bias: Any, diagnostics: Any,
+                        with_bias: bool = True) -> None:
         if self._file is None:  # the write before this one failed: _fail counted it, retry later
             self._dropped_io += 1
             return
-        self._write("/attitude", t_ns, attitude_message(t_ns, q, estimator, bias, diagnostics))
+        message = attitude_message(t_ns, q, estimator, bias, diagnostics)
+        if not with_bias:
+            del message["gyro_bias"]
+        self._write("/attitude", t_ns, message)
         if (
             self._file is not None
             and (self._last_tf_ns is None or t_ns - self._last_tf_ns >= self.tf_period_ns)

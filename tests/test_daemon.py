@@ -89,8 +89,8 @@ class FakeSystemd:
         return sum(1 for _, m in self.messages if m.startswith(prefix))
 
 
-def start(cmd_args, tmp_path, notify: FakeSystemd, watchdog_usec: int = 400_000):
-    env = dict(os.environ, NOTIFY_SOCKET=notify.path, WATCHDOG_USEC=str(watchdog_usec))
+def start(cmd_args, tmp_path, notify: FakeSystemd, watchdog_usec: int = 400_000, env: dict | None = None):
+    env = dict(os.environ, **(env or {}), NOTIFY_SOCKET=notify.path, WATCHDOG_USEC=str(watchdog_usec))
     env.pop("WATCHDOG_PID", None)
     return subprocess.Popen(
         ahrs_service_command() + cmd_args, env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True

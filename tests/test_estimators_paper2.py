@@ -21,6 +21,12 @@ from ahrs_service.quaternion import (
 )
 from analytic import FIELD_NED, constant_rotation, error_deg, measure, static
 
+
+def _paper(name: str) -> str | None:
+    """The paper's values (the convergence and bias properties below are the paper's filters'
+    at its gains; the tuned defaults are slower by design): None for TRIAD and QUEST."""
+    return None if name in ("triad", "quest") else "paper"
+
 RATE = 200.0
 MAG = ["triad", "quest", "quaternion_kf", "mahony_direct", "mahony_passive"]
 IMU = ["kalman_roll_pitch", "immersion_invariance"]
@@ -73,7 +79,10 @@ def test_static_inclination_exact_without_magnetometer(name, attitude):
 @pytest.mark.parametrize("omega", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0.3, -0.5, 1.0]])
 def test_constant_rotation_with_magnetometer(name, omega):
     q, gyr, acc, mag = constant_rotation(omega, RATE, 20.0, start=(0.1, 0.2, 0.3))
-    est = estimators.run(name, gyr, acc, mag, rate_hz=RATE)
+    # the KF at the paper's σ's, which this bound was set for (its tuned σ_ξ trusts QUEST 6×
+    # less, so the first-order prediction error below builds up to about 1.1e-3°)
+    preset = "paper" if name == "quaternion_kf" else None
+    est = estimators.run(name, gyr, acc, mag, rate_hz=RATE, preset=preset)
     total, _, _ = error_deg(est, q)
     # algebraic fixes are exact; the KF's prediction A = I + (h/2)Ω is first order, and its
     # renormalised error stays below 2e-4°
@@ -86,7 +95,7 @@ def test_constant_rotation_without_magnetometer_yaw_from_gyro(name, omega):
     # start yaw 0 is what every estimator assumes without a field, so the total error is
     # what the gyro integration (yaw) and the gravity correction (roll, pitch) leave
     q, gyr, acc, _ = constant_rotation(omega, RATE, 20.0, start=(0.1, 0.2, 0.0))
-    est = estimators.run(name, gyr, acc, None, rate_hz=RATE)
+    est = estimators.run(name, gyr, acc, None, rate_hz=RATE, preset=_paper(name))
     total, _, incl = error_deg(est, q)
     if name == "kalman_roll_pitch":
         # Euler angles integrated with first-order steps (eq. 27–28 with eq. 7's rates): the
@@ -108,7 +117,7 @@ def test_constant_rotation_without_magnetometer_yaw_from_gyro(name, omega):
 @pytest.mark.parametrize("name", ALL)
 def test_jittering_time_steps(name):
     q, gyr, acc, mag, dt = jittered_rotation([0.4, -0.7, 0.9], 10.0, (0.3, -0.2, 0.0))
-    est = estimators.create(name).run(gyr, acc, mag, dt=dt)
+    est = estimators.create(name, preset=_paper(name)).run(gyr, acc, mag, dt=dt)
     total, _, incl = error_deg(est, q)
     # measured: 0.24° for the Euler-angle Kalman filter (first-order steps of up to 7 ms),
     # 2.5e-4° for the quaternion KF, float rounding for the others
@@ -121,7 +130,7 @@ def test_jittering_time_steps(name):
 def test_mahony_estimates_constant_gyro_bias(name, gains):
     bias = np.array([0.02, -0.03, 0.015])
     q, gyr, acc, mag = constant_rotation([0.3, -0.2, 0.5], RATE, 60.0, start=(0.2, 0.1, -0.4))
-    est = estimators.create(name, **gains)
+    est = estimators.create(name, preset="paper", **gains)
     out = est.run(gyr + bias, acc, mag, dt=1 / RATE)
     assert np.abs(est.gyro_bias - bias).max() < 1e-4
     # the paper's gains (kp 25, ki 10) converge within seconds, kp 1 / ki 0.3 within a minute
@@ -134,7 +143,7 @@ def test_mahony_imu_form_estimates_bias_across_gravity(name):
     # without a field the heading is unobservable, but the bias on the horizontal axes is not
     bias = np.array([0.02, -0.03, 0.01])
     q, gyr, acc, _ = static(0.2, -0.1, 0.0, n=int(60 * RATE))
-    est = estimators.create(name, kp=1.0, ki=0.3)
+    est = estimators.create(name, preset="paper", kp=1.0, ki=0.3)
     out = est.run(gyr + bias, acc, None, dt=1 / RATE)
     # only the bias about the gravity axis stays unobserved: compare the part across it
     down = quat_rotate_inv(q[0], (0.0, 0.0, 1.0))
@@ -148,7 +157,7 @@ def test_mahony_imu_form_estimates_bias_across_gravity(name):
 def test_converges_from_wrong_attitude(name):
     q, gyr, acc, mag = constant_rotation([0.2, 0.3, -0.4], RATE, 30.0, start=(0.3, 0.2, 0.0))
     m = mag if name in MAG else None
-    est = estimators.create(name)
+    est = estimators.create(name, preset=_paper(name))
     est.update(gyr[0], acc[0], None if m is None else m[0], dt=1 / RATE)
     est.state[:4] = quat_from_euler(0.3 + 0.5, 0.2 - 0.4, 0.0)  # 30° off in roll and pitch
     if name == "kalman_roll_pitch":
@@ -285,7 +294,8 @@ def _broad_rmse(path, name, **params):
     return rmse(total), rmse(incl)
 
 
-# measured RMSE (°) with the defaults on trial 02 (slow rotation) and 24 (tapping):
+# measured RMSE (°) with the paper's values (preset "paper"; the defaults until the tuned
+# presets, whose accuracy tests/test_tuned_accuracy.py checks) on trial 02 (slow rotation) and 24 (tapping):
 # total for estimators with a magnetometer, inclination for the others; bound = measured + ~10 %
 BROAD_BOUNDS = {
     "triad": {"02": 9.8, "24": 23.3},  # measured 8.92, 21.19
@@ -302,5 +312,5 @@ BROAD_BOUNDS = {
 def test_broad_accuracy(broad_dir, name):
     for trial, bound in BROAD_BOUNDS[name].items():
         path = next(broad_dir.glob(f"{trial}_*.hdf5"))
-        total, incl = _broad_rmse(path, name)
+        total, incl = _broad_rmse(path, name, **({} if name in ("triad", "quest") else {"preset": "paper"}))
         assert (total if name in MAG else incl) < bound, (name, trial, total, incl)

@@ -5,7 +5,6 @@ killed mid-run has its task retried; an unreachable scheduler is a one-line erro
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import socket
@@ -19,7 +18,8 @@ pytest.importorskip("distributed")
 
 import cloudpickle  # noqa: E402  (comes with distributed)
 
-from ahrs_service.evaluation import command, report  # noqa: E402
+from ahrs_service.cli import main as cli_main  # noqa: E402
+from ahrs_service.evaluation import report  # noqa: E402
 from ahrs_service.execution import Runner, RunnerError, open_runner  # noqa: E402
 
 TRIALS = ["02_undisturbed_slow_rotation_B", "32_disturbed_attached_magnet_1cm"]
@@ -85,14 +85,11 @@ def test_evaluate_through_a_scheduler_and_two_worker_subprocesses(broad_dir, ser
             ))
         with open_runner(scheduler=address, connect_timeout_s=60) as runner:
             runner.client.wait_for_workers(2, timeout=120)
-        parser = argparse.ArgumentParser()
-        command.add_subcommands(parser.add_subparsers(dest="command"))
         out = tmp_path / "out"
-        args = parser.parse_args([
+        assert cli_main([
             "evaluate", "--data", str(broad_dir), "--estimators", ",".join(ESTIMATORS),
             "--trials", "02_*", "--out", str(out), "--scheduler", address, "--quiet",
-        ])
-        assert args.func(args) == 0
+        ]) == 0
         got = json.loads((out / "results.json").read_text())
         report.to_json(serial, tmp_path / "serial.json")  # the same JSON writing (NaN → null)
         want_all = json.loads((tmp_path / "serial.json").read_text())
@@ -144,13 +141,28 @@ def test_unreachable_scheduler_is_an_error_naming_it():
 
 def test_evaluate_cli_reports_an_unreachable_scheduler_in_one_line(broad_dir, tmp_path, capsys):
     address = f"tcp://127.0.0.1:{_free_port()}"
-    parser = argparse.ArgumentParser()
-    command.add_subcommands(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["evaluate", "--data", str(broad_dir), "--estimators", "madgwick",
-                              "--trials", "02_*", "--out", str(tmp_path / "o"), "--scheduler", address])
-    assert args.func(args) == 2
+    assert cli_main(["evaluate", "--data", str(broad_dir), "--estimators", "madgwick",
+                     "--trials", "02_*", "--out", str(tmp_path / "o"), "--scheduler", address]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and address in err[0] and "Traceback" not in err[0]
+    assert err[0].startswith("ahrs-service evaluate: error: cannot reach the Dask scheduler")
+
+
+@pytest.mark.parametrize("command_name", ["evaluate", "tune", "replay"])
+def test_every_batch_command_refuses_a_bad_worker_count_in_one_line(command_name, broad_dir, tmp_path, capsys):
+    """The runner set-up is cli.main's: one message for every command of the execution layer."""
+    logs = Path(__file__).parent / "fixtures" / "logs"
+    argv = {
+        "evaluate": ["evaluate", "--data", str(broad_dir), "--estimators", "madgwick", "--trials", "02_*",
+                     "--out", str(tmp_path / "o")],
+        "tune": ["tune", "madgwick", "--data", str(broad_dir), "--trials", "02_*", "--budget", "1",
+                 "--out", str(tmp_path / "p.json")],
+        "replay": ["replay", str(logs / "analytic_madgwick.mcap"), str(logs / "broad_02_slice.mcap"),
+                   "--out", str(tmp_path / "fleet")],
+    }[command_name]
+    assert cli_main([*argv, "--workers", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"ahrs-service {command_name}: error: --workers must be at least 1, not 0"]
 
 
 def test_workers_below_one_is_an_error():

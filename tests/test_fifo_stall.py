@@ -21,17 +21,25 @@ from tests.test_daemon import FakeSystemd, start
 
 pytestmark = pytest.mark.timeout(180)
 
-PERIOD_NS = 5_000_000  # the part's output period at 200 Hz
+from ahrs_service.drivers.i2c.mpu9250 import SimulatedMPU9250
+
+# the part's output period at 200 Hz, on the simulated unit's own (off-nominal) oscillator
+PERIOD_NS = 5_000_000 / (1.0 + SimulatedMPU9250.CLOCK_ERROR)
 
 
-def _config(tmp_path, port):
+MPU9250 = ('type = "simulated_i2c"\nboard = "mpu9250"\n'
+           'board_options = { rate_hz = 200, fifo_read_hz = 50 }\n')
+# the ICM-42688-P at 1 kHz: its 102-sample FIFO holds 101.6 ms (the twin runs 0.42 % fast)
+ICM42688P = ('type = "simulated_spi"\nboard = "icm42688p"\n'
+             'board_options = { odr_hz = 1000, fifo_read_hz = 100 }\n')
+ICM_PERIOD_NS = 1e9 / 1004.2
+
+
+def _config(tmp_path, port, source=MPU9250):
     path = tmp_path / "config.toml"
     path.write_text(f"""
 [source]
-type = "simulated_i2c"
-board = "mpu9250"
-profile = "static"
-board_options = {{ rate_hz = 200, fifo_read_hz = 50 }}
+{source}profile = "static"
 
 [estimator]
 name = "madgwick"
@@ -48,9 +56,9 @@ directory = "{tmp_path / 'logs'}"
     return path
 
 
-def _run_with_stall(tmp_path, port, stall_s):
+def _run_with_stall(tmp_path, port, stall_s, source=MPU9250):
     notify = FakeSystemd(tmp_path)
-    proc = start(["run", "--config", str(_config(tmp_path, port))], tmp_path, notify)
+    proc = start(["run", "--config", str(_config(tmp_path, port, source))], tmp_path, notify)
     try:
         assert notify.wait_for("READY=1", 90)
         notify.wait_for("never", 1.0)
@@ -70,17 +78,18 @@ def _run_with_stall(tmp_path, port, stall_s):
     log = read_log(path)
     with open(path, "rb") as f:
         loops = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/loop"])]
-    return log, loops[-1]["source"]["lost"]
+    return log, loops[-1]["source"]
 
 
-def _periods(log) -> int:
+def _periods(log, period_ns=PERIOD_NS) -> int:
     """Sample periods the log spans, first to last sample inclusive."""
-    return int(round((log.t_ns[-1] - log.t_ns[0]) / PERIOD_NS)) + 1
+    return int(round((log.t_ns[-1] - log.t_ns[0]) / period_ns)) + 1
 
 
 def test_a_stop_shorter_than_the_fifo_loses_no_sample(tmp_path):
-    log, lost = _run_with_stall(tmp_path, 14981, 0.1)
-    assert lost["total"] == 0
+    log, source = _run_with_stall(tmp_path, 14981, 0.1)
+    lost = source["lost"]
+    assert lost["total"] == 0 and source["sim_fifo_dropped"] == 0
     assert np.array_equal(log.index, np.arange(len(log)))
     # each row's time is placed within one period of its true one, so the span in periods
     # can differ from the count by at most one at each end
@@ -89,13 +98,39 @@ def test_a_stop_shorter_than_the_fifo_loses_no_sample(tmp_path):
 
 
 def test_a_stop_longer_than_the_fifo_counts_every_lost_sample(tmp_path):
-    log, lost = _run_with_stall(tmp_path, 14982, 0.6)
+    log, source = _run_with_stall(tmp_path, 14982, 0.6)
+    lost = source["lost"]
     assert lost["fifo_overflow"] > 0 and lost["total"] == lost["fifo_overflow"]
+    # the count is the simulated part's own count of the samples it dropped or had emptied
+    # by the FIFO reset (to within one: the sensor clock places the reset within its read
+    # latency of a sample), however long a loaded machine made the stop
+    dropped = source["sim_fifo_dropped"]
+    assert abs(lost["fifo_overflow"] - dropped) <= 1
     # stopped for at least 0.6 s = 120 periods, of which the FIFO keeps 42 (less up to one
-    # 20 ms drain period, 4 samples, read just before the stop); a loaded machine may stop
-    # it longer, so there is no upper bound: the accounting below is the exact check
-    assert lost["fifo_overflow"] >= 120 - 42 - 4
-    # logged + counted = every period the part ran (±1 at each end, as above)
+    # 20 ms drain period, 4 samples, read just before the stop)
+    assert dropped >= 120 - 42 - 4
+    # logged + counted = every period the part ran (±1 at each end: each row is placed
+    # within one period of its true time)
     assert abs(_periods(log) - (len(log) + lost["total"])) <= 2
     # the gap is in the log as one long dt, not filled in
     assert np.sum(np.diff(log.t_ns) > 2 * PERIOD_NS) >= 1
+
+
+def test_icm42688p_at_1khz_a_stop_shorter_than_its_fifo_loses_no_sample(tmp_path):
+    # issue 15: stalls shorter than the ICM-42688-P's FIFO (about 100 ms at 1 kHz) lose nothing
+    log, source = _run_with_stall(tmp_path, 14983, 0.04, ICM42688P)
+    assert source["lost"]["total"] == 0 and source["sim_fifo_dropped"] == 0
+    assert np.array_equal(log.index, np.arange(len(log)))
+    assert abs(_periods(log, ICM_PERIOD_NS) - len(log)) <= 1
+    assert np.max(np.diff(log.t_ns)) < 2 * ICM_PERIOD_NS
+
+
+def test_icm42688p_at_1khz_a_longer_stop_counts_what_the_part_turned_away(tmp_path):
+    log, source = _run_with_stall(tmp_path, 14984, 0.5, ICM42688P)
+    lost = source["lost"]
+    assert lost["total"] == lost["fifo_overflow"] > 0
+    # the part's own count (stop-on-full: turned away, plus anything flushed unread)
+    assert abs(lost["fifo_overflow"] - source["sim_fifo_dropped"]) <= 1
+    assert source["sim_fifo_dropped"] >= 500 - 102 - 10
+    assert abs(_periods(log, ICM_PERIOD_NS) - (len(log) + lost["total"])) <= 2
+    assert np.sum(np.diff(log.t_ns) > 2 * ICM_PERIOD_NS) >= 1

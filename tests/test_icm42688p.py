@@ -194,7 +194,7 @@ def test_i2c_transport_reads_the_fifo_in_smbus_blocks():
     assert np.abs(blk.gyr - imu.gyr).max() <= D2R / 131 / 2 + 1e-12
 
 
-def test_read_block_takes_at_most_max_samples_and_keeps_the_rest_in_the_fifo():
+def test_read_block_takes_at_most_max_samples_and_empties_the_fifo_at_once():
     b, imu, twin = board(odr_hz=8000, watermark=8)
     b.open()
     for _ in range(300):
@@ -202,10 +202,39 @@ def test_read_block_takes_at_most_max_samples_and_keeps_the_rest_in_the_fifo():
         b.read_block()
     imu.clock.advance(0.03)  # overflowed
     a = b.read_block(max_samples=64)
-    assert len(a) == 64 and b.diagnostics.extra["fifo_overflows"] == 0  # not drained: no reset yet
+    # the whole FIFO is read (and reset) at once; the rows beyond 64 wait on the host
+    assert len(a) == 64 and b.diagnostics.extra["fifo_overflows"] == 1 and twin.fifo.level == 0
+    transfers = twin_transfers = b.transport.bus.transfers
     c = b.read_block(max_samples=64)
-    assert len(c) == 38 and b.diagnostics.extra["fifo_overflows"] == 1
+    assert len(c) == 38 and c.lost.total == 0
     assert c.t_ns[0] - a.t_ns[-1] == pytest.approx(1e9 / twin.rate_hz(), rel=1e-3)  # contiguous
+    after = b.read_block(max_samples=64)  # the rows after the gap, carrying the loss
+    assert after.lost.fifo_overflow == b.diagnostics.lost.fifo_overflow > 0
+    assert b.transport.bus.transfers > transfers
+
+
+def test_a_stop_shorter_than_the_fifo_loses_nothing_while_the_host_catches_up_slowly():
+    # 1 kHz: the FIFO holds 102 samples (101.6 ms at the twin's 1004.2 Hz). The host stops
+    # 95 ms, then takes 16 rows a call but spends 18 ms a call for a while (a busy loop):
+    # more samples arrive per call than it takes. Every call empties the FIFO, the backlog
+    # waits on the host, and nothing is lost (taking only 16 from the FIFO a call left it
+    # full two calls after the stop)
+    b, imu, twin = board(odr_hz=1000)
+    b.open()
+    rows = 0
+    for _ in range(1000):
+        imu.clock.advance(0.001)
+        rows += len(b.read_block(max_samples=16))
+    imu.clock.advance(0.095)
+    for _ in range(20):
+        rows += len(b.read_block(max_samples=16))
+        imu.clock.advance(0.018)
+    for _ in range(300):
+        imu.clock.advance(0.001)
+        rows += len(b.read_block(max_samples=16))
+    assert b.diagnostics.lost.total == 0 and twin.fifo.dropped == 0
+    assert rows + b.pending + twin.fifo.level // 20 == twin.samples_due
+    assert b.pending == 0  # caught up
 
 
 def test_rows_carry_the_truth_of_their_own_sample():

@@ -67,3 +67,30 @@ def test_a_command_without_its_extra_names_the_extra_in_one_line(tmp_path):
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "Traceback" not in proc.stderr
     assert "pip install 'ahrs-service[" in lines[0] and lines[0].startswith("ahrs-service evaluate: needs")
+
+
+def test_the_lower_bounds_ci_tests_are_the_ones_pyproject_declares():
+    """.ci/lower_bounds.sh runs the MCAP, MAVLink and config tests on .ci/lower-bounds.txt:
+    each pin there must be the lower bound of that dependency in pyproject.toml."""
+    import re
+    from pathlib import Path
+
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+
+    from packaging.version import Version
+
+    root = Path(__file__).resolve().parents[1]
+    deps = tomllib.loads((root / "pyproject.toml").read_text())["project"]["dependencies"]
+    lower = {}
+    for spec in deps:
+        m = re.match(r"([A-Za-z0-9_.-]+)\s*>=\s*([0-9.]+)", spec)
+        if m:
+            lower[m.group(1).lower()] = Version(m.group(2))
+    pins = [line.split("==") for line in (root / ".ci" / "lower-bounds.txt").read_text().splitlines()
+            if line.strip() and not line.startswith("#")]
+    assert {name for name, _ in pins} == {"mcap", "pymavlink", "tomlkit"}
+    for name, version in pins:
+        assert Version(version) == lower[name.lower()], name

@@ -19,6 +19,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
+from ahrs_service import estimators  # noqa: E402
 from ahrs_service import config as config_mod  # noqa: E402
 from ahrs_service.calibration import live as live_mod  # noqa: E402
 from ahrs_service.calibration.magnetometer import MagCalibrationResult  # noqa: E402
@@ -220,7 +221,9 @@ def test_parameters_change_the_running_estimator(tmp_path, gcs):
         assert {"EST_BETA", "MAG_DECL_DEG", "RATE_ATT_HZ", "LOOP_RATE_HZ"} <= names
 
         conn.mav.param_request_read_send(1, 1, b"EST_BETA", -1)
-        assert _param_value(conn, "EST_BETA").param_value == pytest.approx(0.1)
+        # the default (the tuned preset), as a float32 on the wire
+        beta0 = float(np.float32(estimators.create("madgwick").get_params()["beta"]))
+        assert _param_value(conn, "EST_BETA").param_value == pytest.approx(beta0)
 
         conn.mav.param_set_send(1, 1, b"EST_BETA", 0.033, mavlink2.MAV_PARAM_TYPE_REAL32)
         ack = _param_value(conn, "EST_BETA")
@@ -322,7 +325,7 @@ def test_signed_mode_rejects_unsigned_parameter_writes(tmp_path, gcs):
         collect(conn, 1.0)
         conn.mav.param_set_send(1, 1, b"EST_BETA", 0.5, mavlink2.MAV_PARAM_TYPE_REAL32)
         assert _wait_until(lambda: run.service.mavlink.stats()["unsigned_rejected"] >= 1)
-        assert run.service.estimator.get_params()["beta"] == pytest.approx(0.1)
+        assert run.service.estimator.get_params()["beta"] == estimators.create("madgwick").get_params()["beta"]  # the default kept
 
         conn.setup_signing(bytes.fromhex(KEY_HEX), sign_outgoing=True)
         conn.mav.param_set_send(1, 1, b"EST_BETA", 0.5, mavlink2.MAV_PARAM_TYPE_REAL32)

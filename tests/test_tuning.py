@@ -25,12 +25,16 @@ def test_tiny_tune_writes_a_loadable_preset(broad_dir, tmp_path, capsys):
     preset = json.loads(out.read_text())
     assert preset["estimator"] == "madgwick" and set(preset["params"]) == {"beta"}
     assert 0.005 <= preset["params"]["beta"] <= 1.0  # inside the declared space
-    assert preset["trials"] == 3 and preset["command"].startswith("ahrs-service tune madgwick")
+    assert preset["trials"] == 3 and preset["command"].startswith("ahrs-service tune madgwick --dataset broad")
+    assert preset["budget"] == 3 and preset["dataset"] == "broad" and len(preset["date"]) == 10
     # leave-one-recording-out: one validation score per recording, their mean reported
     assert set(preset["validation"]) == set(preset["recordings"]) and len(preset["recordings"]) >= 2
-    assert preset["validation_rmse_deg"] == pytest.approx(np.mean(list(preset["validation"].values())))
-    assert preset["train_rmse_deg"] <= max(preset["validation"].values()) + 1e3  # finite numbers
-    assert np.isfinite(preset["train_rmse_deg"])
+    assert all(r.startswith("broad/") for r in preset["recordings"])
+    assert preset["validation_by_dataset"]["broad"] == pytest.approx(np.mean(list(preset["validation"].values())))
+    assert preset["validation_objective"] == pytest.approx(preset["validation_by_dataset"]["broad"])
+    # one data set: the objective is the plain mean of the best trial's per-recording scores
+    assert preset["train_objective"] == pytest.approx(np.mean(list(preset["train"].values())))
+    assert preset["metrics"] == {"broad": "total rmse"}
     est = estimators.create("madgwick", preset=out)
     assert est.get_params()["beta"] == preset["params"]["beta"]
     # explicit parameters override the preset
@@ -74,3 +78,40 @@ def test_bad_presets_name_the_problem(tmp_path):
     p.write_text(json.dumps({"estimator": "madgwick", "params": {"beta": -1.0}}))
     with pytest.raises(ValueError, match="beta"):
         estimators.create("madgwick", preset=p)
+
+
+def test_objective_is_the_worse_data_set_against_its_target():
+    per = np.array([1.0, 3.0, 5.0, 10.0])
+    # BROAD mean 3 (target 6: 0.5), DIDO 10 (target 5: 2.0): the worse one counts
+    assert tuning.objective(per, ["broad", "broad", "broad", "dido"]) == pytest.approx(2.0)
+    # without heading BROAD is judged on inclination against 3 deg
+    assert tuning.objective(np.array([6.0, 1.0]), ["broad", "dido"], False) == pytest.approx(2.0)
+    assert tuning.objective(per, ["dido"] * 4) == pytest.approx(4.75)  # one data set: degrees
+    assert tuning.metric_of("broad", True) == "total_rmse"
+    assert tuning.metric_of("broad", False) == tuning.metric_of("dido", True) == "inclination_rmse"
+
+
+@pytest.mark.timeout(240)
+def test_tune_on_both_data_sets_scores_each_on_its_metric(broad_dir):
+    from ahrs_service.evaluation import dido
+    from ahrs_service.execution import open_runner
+
+    if dido.missing_reason(dido.default_dir()):
+        pytest.skip(dido.missing_reason(dido.default_dir()))
+    recs = [tuning.Recording("broad", str(broad_dir), tuning.recordings_of("broad", str(broad_dir), None)[0].name),
+            tuning.Recording("dido", str(dido.default_dir()), dido.list_trials(dido.default_dir())[-1])]
+    with open_runner(1, None) as runner:
+        result = tuning.tune("madgwick", recs, tuning.search_space("madgwick"), budget=2, runner=runner)
+    assert result.metrics == {"broad": "total rmse", "dido": "inclination rmse"}
+    assert set(result.train) == set(result.validation) == {r.label for r in recs}
+    b, d = (result.train[r.label] for r in recs)
+    assert result.train_objective == pytest.approx(max(b / 6.0, d / 5.0))
+    assert set(result.validation_by_dataset) == {"broad", "dido"}
+    vb, vd = (result.validation[r.label] for r in recs)
+    assert result.validation_objective == pytest.approx(max(vb / 6.0, vd / 5.0))
+
+
+def test_cli_both_with_one_data_folder_is_a_one_line_error(broad_dir, capsys):
+    assert cli_main(["tune", "madgwick", "--dataset", "both", "--data", str(broad_dir), "--workers", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--dataset both" in err[0]

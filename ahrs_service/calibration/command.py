@@ -13,7 +13,7 @@ INPUT is either
   (MAG_NEW) are used.
 
 The result is printed with the ``[calibration]`` section it gives; ``--config FILE --write``
-stores it in FILE (old file kept as FILE.bak). Exit code 0: accepted, 1: refused (the
+stores it in FILE (in place: its comments and layout are kept; old file kept as FILE.bak). Exit code 0: accepted, 1: refused (the
 reason is printed), 2: bad input.
 """
 

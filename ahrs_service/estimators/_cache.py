@@ -6,11 +6,17 @@ and sibling modules. After any of those changes (``git pull`` on an editable ins
 edit), the cached kernels of the files that did not change would run the old code. So the
 package stamps its cache folder with a digest of all those sources and empties it when the
 digest differs; the kernels are then compiled again once.
+
+The folder is numba's: ``__pycache__`` beside the sources, or, when ``$NUMBA_CACHE_DIR`` is
+set (the systemd unit sets it, see docs/systemd.md), the sub-folder numba derives from the
+sources' folder there (numba's rule for a user-provided cache directory: the folder's name,
+``_``, the SHA-1 of its absolute path; numba 0.59–0.68).
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
 from pathlib import Path
 
 _HERE = Path(__file__).resolve().parent
@@ -18,8 +24,14 @@ _HERE = Path(__file__).resolve().parent
 # them must not cost a recompilation of everything
 _NOT_KERNEL_SOURCES = {"_cache.py", "offline.py", "uncertainty.py"}
 _SOURCES = sorted(p for p in _HERE.glob("*.py") if p.name not in _NOT_KERNEL_SOURCES) + [_HERE.parent / "quaternion.py"]
-_CACHE = _HERE / "__pycache__"
-_STAMP = _CACHE / "kernel-sources.sha256"
+
+
+def cache_dir() -> Path:
+    """The folder numba keeps this package's cached kernels in (see the module's doc)."""
+    root = os.environ.get("NUMBA_CACHE_DIR")
+    if not root:
+        return _HERE / "__pycache__"
+    return Path(root) / f"{_HERE.name}_{hashlib.sha1(str(_HERE).encode()).hexdigest()}"
 
 
 def sources_digest() -> str:
@@ -37,16 +49,18 @@ def drop_stale_kernels() -> bool:
     Best effort: a read-only installation keeps its cache (it cannot have been edited).
     """
     digest = sources_digest()
+    cache = cache_dir()
+    stamp = cache / "kernel-sources.sha256"
     try:
-        if _STAMP.read_text() == digest:
+        if stamp.read_text() == digest:
             return False
     except OSError:
         pass
     try:
-        _CACHE.mkdir(exist_ok=True)
-        for f in list(_CACHE.glob("*.nbi")) + list(_CACHE.glob("*.nbc")):
+        cache.mkdir(parents=True, exist_ok=True)
+        for f in list(cache.glob("*.nbi")) + list(cache.glob("*.nbc")):
             f.unlink(missing_ok=True)
-        _STAMP.write_text(digest)
+        stamp.write_text(digest)
     except OSError:
         return False
     return True

@@ -50,6 +50,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.quaternion import quat_from_euler, quat_integrate, quat_to_euler
 
@@ -70,23 +71,30 @@ def _check_omega0(omega0: float) -> None:
         raise ValueError(f"omega0 must be > 0, got {omega0}")
 
 
+def _check_acc_gate(acc_gate: float) -> None:
+    if not acc_gate > 0:
+        raise ValueError(f"acc_gate must be > 0, got {acc_gate}")
+
+
 @dataclass
 class ComplementaryReducedParams:
     """Tuning of :class:`ComplementaryReduced`.
 
     omega0: cut-off of the low-pass, rad/s. Below it the attitude follows gravity, above it
-        the gyroscope. The paper gives no value; 0.2 rad/s scores best on the BROAD
-        development recordings (inclination RMSE, values 0.05–2 tried).
+        the gyroscope. The paper gives no value (``preset="paper"``: 0.2).
     acc_gate: largest relative error |‖f‖ − g|/g of a specific-force sample still used for
-        roll and pitch. The paper has no gate (use 1e9 for that); 0.1 scores best on BROAD
-        (0.05–0.4 tried).
+        roll and pitch. The paper has no gate (``preset="paper"``: 1e9).
+    Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+    are ``preset="paper"``.
     """
 
-    omega0: float = 0.2
-    acc_gate: float = 0.1
+    # paper: no ω0 given (0.2, the value used before tuning), no gate (1e9)
+    omega0: float = tunable(1.256369248913567, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
+    acc_gate: float = tunable(0.01323054450827564, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
 
     def __post_init__(self) -> None:
         _check_omega0(self.omega0)
+        _check_acc_gate(self.acc_gate)
 
 
 @dataclass
@@ -94,21 +102,23 @@ class ComplementaryFullParams:
     """Tuning of :class:`ComplementaryFull`.
 
     omega0: cut-off of the low-pass, rad/s, for all three angles (see the reduced form).
-        0.2 rad/s scores best on the BROAD development recordings.
     declination: magnetic declination, rad, positive when magnetic north lies east of true
         north (eq. 44). Default 0: heading against magnetic north. For runs outside the
         service only: the service turns every estimator's output to true north itself
         (``estimator.declination_deg`` or ``[location]``, MAVLink MAG_DECL_DEG), so a declination set
         here as well would count twice.
-    acc_gate: as for the reduced form; 0.1 scores best on BROAD.
+    acc_gate: as for the reduced form.
+    Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+    are ``preset="paper"``.
     """
 
-    omega0: float = 0.2
-    declination: float = 0.0
-    acc_gate: float = 0.1
+    omega0: float = tunable(0.11060220269330527, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
+    declination: float = tunable(0.0, paper=0.0)  # rad; a site constant, not tuned
+    acc_gate: float = tunable(0.1378805157568786, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
 
     def __post_init__(self) -> None:
         _check_omega0(self.omega0)
+        _check_acc_gate(self.acc_gate)
 
 
 _inline = njit(cache=True, inline="always")

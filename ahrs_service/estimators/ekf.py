@@ -40,6 +40,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.uncertainty import (
     AttitudeVariance,
@@ -75,8 +76,9 @@ MAG_REF_TAU = 10.0
 class QuaternionEKFParams:
     """Tuning of :class:`QuaternionEKF` (the paper leaves Q and R to the user).
 
-    Defaults are the values that score best on the BROAD development recordings (grid over
-    gyro_noise 0.003–0.03, acc_noise 0.05–0.5, mag_noise 0.2–2, bias_noise 1e-5–1e-3).
+    Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+    are ``preset="paper"``. The paper gives no Q
+    or R: ``paper`` holds the values used before tuning, with the gate off.
 
     gyro_noise: gyroscope white noise σ_g, rad/s (sets Q of the quaternion).
     bias_noise: bias random walk σ_b, rad/s/√s (sets Q of the bias).
@@ -92,13 +94,14 @@ class QuaternionEKFParams:
         scores 3.65° but leaves little room for magnetometer noise). 1e9 turns it off.
     """
 
-    gyro_noise: float = 0.01
-    bias_noise: float = 1e-5
-    acc_noise: float = 0.2
-    mag_noise: float = 0.3
-    init_attitude_std: float = 0.01
-    init_bias_std: float = 0.01
-    mag_gate: float = 0.1
+    # paper: Q and R left to the user (the values used before tuning), no gate (1e9)
+    gyro_noise: float = tunable(0.01307412846488109, paper=0.01, search=SearchRange(1e-3, 0.3, log=True))  # rad/s
+    bias_noise: float = tunable(8.51543990786931e-05, paper=1e-5, search=SearchRange(1e-7, 1e-3, log=True))  # rad/s/√s
+    acc_noise: float = tunable(0.15957174291329135, paper=0.2, search=SearchRange(0.02, 2.0, log=True))
+    mag_noise: float = tunable(0.30724152088240236, paper=0.3, search=SearchRange(0.05, 5.0, log=True))
+    init_attitude_std: float = tunable(0.01, paper=0.01)
+    init_bias_std: float = tunable(0.01, paper=0.01)  # rad/s
+    mag_gate: float = tunable(0.061570629232089474, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
         for name in ("gyro_noise", "acc_noise", "mag_noise", "init_attitude_std", "mag_gate"):

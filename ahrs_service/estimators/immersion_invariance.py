@@ -36,6 +36,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.triad import align_down, down_direction
 from ahrs_service.quaternion import quat_from_rotvec, quat_mul, quat_normalize, quat_rotate_inv
@@ -58,20 +59,20 @@ class ImmersionInvarianceParams:
     """Tuning of :class:`ImmersionInvariance` (eq. 37; all in units of the normalised gravity
     direction, so |r₃| = 1).
 
-    gamma1: γ₁, gain of the output error on r̂₃, 1/s. Default 0.5 (the paper).
-    gamma2: γ₂, gain of the drift estimate ξ̂, 1/s. Default 0.7 (the paper).
-    gamma3: γ₃, gain of the accelerometer-deviation estimate μ̂_a, 1/s. Default 0.9 (the paper).
-    xi_bar: ξ̄, saturation (and sign) of the drift term, 1/s. Default −30 (the paper; the sign
+    gamma1: γ₁, gain of the output error on r̂₃, 1/s. Paper: 0.5.
+    gamma2: γ₂, gain of the drift estimate ξ̂, 1/s. Paper: 0.7.
+    gamma3: γ₃, gain of the accelerometer-deviation estimate μ̂_a, 1/s. Paper: 0.9.
+    xi_bar: ξ̄, saturation (and sign) of the drift term, 1/s. Paper: −30 (the sign
         makes the ξ loop a negative feedback). −3 scores far better on BROAD (4.9° mean
         inclination RMSE against 14.5°): the paper's value lets fast translations tilt it.
-    mu_bar: μ̄_a, saturation of the accelerometer-deviation term. Default 10 (the paper).
+    mu_bar: μ̄_a, saturation of the accelerometer-deviation term. Paper: 10.
     """
 
-    gamma1: float = 0.5
-    gamma2: float = 0.7
-    gamma3: float = 0.9
-    xi_bar: float = -30.0
-    mu_bar: float = 10.0
+    gamma1: float = tunable(0.3195622329848435, paper=0.5, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    gamma2: float = tunable(0.08263080669913137, paper=0.7, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    gamma3: float = tunable(1.2405959628063916, paper=0.9, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    xi_bar: float = tunable(-36.48106260208669, paper=-30.0, search=SearchRange(-50.0, -0.1))  # 1/s, negative
+    mu_bar: float = tunable(13.87743600281825, paper=10.0, search=SearchRange(0.0, 30.0))
 
     def __post_init__(self) -> None:
         for key in ("gamma1", "gamma2", "gamma3"):

@@ -25,6 +25,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.uncertainty import AttitudeVariance
 from ahrs_service.quaternion import quat_from_euler, quat_to_euler
@@ -55,19 +56,27 @@ class KalmanRollPitchParams:
     """Tuning of :class:`KalmanRollPitch` (σ values of eq. 31–32; only their ratio and the
     sample time set the gain, so the paper's degree units carry over unchanged).
 
-    sigma_zeta: process noise σ_ζ, the gyro rate noise, rad/s. Default 5 (the paper); 1 scores
-        best on BROAD (8.1° mean inclination RMSE against 12.4°).
-    sigma_xi: measurement noise σ_ξ, the accelerometer-angle noise, rad. Default 3 (the paper).
+    sigma_zeta: process noise σ_ζ, the gyro rate noise, rad/s. Paper: 5.
+    sigma_xi: measurement noise σ_ξ, the accelerometer-angle noise, rad. Paper: 3.
+    acc_gate: not in the paper (as the complementary filter's gate): no measurement update
+        from a sample whose specific-force magnitude is off g by more than acc_gate·g, which
+        linear acceleration then dominates; 1e9 (the paper) never gates.
+    Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+    are ``preset="paper"``.
     """
 
-    sigma_zeta: float = 5.0
-    sigma_xi: float = 3.0
+    # only σ_ζ/σ_ξ sets the gain: σ_ξ stays at the paper's value and σ_ζ alone is searched
+    sigma_zeta: float = tunable(1.0363149748633103, paper=5.0, search=SearchRange(0.005, 20.0, log=True))  # rad/s
+    sigma_xi: float = tunable(3.0, paper=3.0)  # rad
+    acc_gate: float = tunable(0.028051961277792185, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
         if not self.sigma_zeta >= 0:
             raise ValueError(f"sigma_zeta must be >= 0, got {self.sigma_zeta}")
         if not self.sigma_xi > 0:
             raise ValueError(f"sigma_xi must be > 0, got {self.sigma_xi}")
+        if not self.acc_gate > 0:
+            raise ValueError(f"acc_gate must be > 0, got {self.acc_gate}")
 
 
 _P = param_index(KalmanRollPitchParams)  # indices of the packed parameter vector, by field name
@@ -113,8 +122,9 @@ def kalman_roll_pitch_step(s, p, x):
         qn = h * h * sigma_zeta * sigma_zeta
         s[P_ROLL] += qn
         s[P_ROLL + 1] += qn
-    if acc_ok:
-        fx, fy, fz = x[3], x[4], x[5]
+    fx, fy, fz = x[3], x[4], x[5]
+    # the gate (not the paper's): a specific force far from g is mostly linear acceleration
+    if acc_ok and abs(math.sqrt(fx * fx + fy * fy + fz * fz) - K.GRAVITY) <= p[_P.acc_gate] * K.GRAVITY:
         # eq. 29–30 in FRD specific force
         y_roll = math.atan2(-fy, -fz)
         y_pitch = math.atan2(fx, math.sqrt(fy * fy + fz * fz))

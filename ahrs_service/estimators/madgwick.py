@@ -13,14 +13,14 @@ bad one) the IMU form.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.layout import param_index
-from ahrs_service.estimators.presets import SearchRange
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.quaternion import quat_mul, quat_normalize, quat_rotate
 
 
@@ -29,11 +29,13 @@ class MadgwickParams:
     """Tuning of :class:`Madgwick`.
 
     beta: gain of the gradient step, rad/s — the assumed gyroscope measurement error
-        (eq. 45). Default 0.1; BROAD's authors found 0.12 best over their whole benchmark,
-        0.1 scores best on the development recordings of ``../shared/data/broad``.
+        (eq. 45). Paper (Madgwick's own value): 0.1; BROAD's authors found 0.12 best over their
+        whole benchmark. Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+        are ``preset="paper"``.
     """
 
-    beta: float = field(default=0.1, metadata={"search": SearchRange(0.005, 1.0, log=True)})  # rad/s
+    # paper: Madgwick's own value 0.1 (his reference implementation's betaDef)
+    beta: float = tunable(0.07710439415510881, paper=0.1, search=SearchRange(0.005, 1.0, log=True))  # rad/s
 
     def __post_init__(self) -> None:
         if self.beta < 0:

@@ -19,6 +19,13 @@ on its own sensor. Gravity's reference is NED down; the field's is the measured 
 into the earth frame by R̂ with its horizontal part laid on north, b = (|h_xy|, 0, h_z),
 so no dip has to be configured. For the direct filter R_y is taken, to the same order, as
 R̂ exp(S(ϱ)), so the measured rate is turned by the rotation vector ϱ.
+Heading-only field correction (the default; ``mag_heading_only = 1``): the field term is
+projected onto the estimated vertical, ϱ = λ₁ v_a × v̂_a + λ₂ (v̂_a v̂_aᵀ)(v_m × v̂_m), so the
+magnetometer turns the estimate about earth's down axis only and a disturbed field cannot
+tilt it. This is the form of the filters' authors' later work: M.-D. Hua, G. Ducard,
+T. Hamel, R. Mahony, K. Rudin, "Implementation of a Nonlinear Attitude Estimator for Aerial
+Robotic Vehicles", IEEE Trans. Control Systems Technology 22(1), 2014 (eq. 12). The paper's
+form, where the field corrects all three axes, is ``mag_heading_only = 0`` (``preset="paper"``).
 Without a usable magnetometer sample only the gravity term acts (IMU form: roll and pitch
 corrected, yaw from the gyro); without a usable accelerometer sample ϱ = 0.
 """
@@ -33,6 +40,7 @@ from numba import njit
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.layout import param_index
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.triad import down_direction
 from ahrs_service.quaternion import quat_from_rotvec, quat_integrate, quat_rotate, quat_rotate_inv, vec_cross
 
@@ -41,27 +49,68 @@ from ahrs_service.quaternion import quat_from_rotvec, quat_integrate, quat_rotat
 class MahonyParams:
     """Tuning of :class:`MahonyDirect` and :class:`MahonyPassive`.
 
-    kp: proportional gain k_p of eq. 33/34, 1/s. Default 25 (the paper).
-    ki: bias gain k_i of eq. 33/34, 1/s². Default 10 (the paper).
-    w_acc, w_mag: weights λ₁, λ₂ of gravity and field in eq. 35. Default 1 and 1 (Mahony et
-        al. 2008; the paper gives none).
+    Defaults: the preset tuned on BROAD and DIDO together (ahrs_service/estimators/tuned/,
+    docs/tuning.md); ``preset="paper"`` gives the paper's values (in brackets).
+
+    kp: proportional gain k_p of eq. 33/34, 1/s (paper 25).
+    ki: bias gain k_i of eq. 33/34, 1/s² (paper 10).
+    w_acc, w_mag: weights λ₁, λ₂ of gravity and field in eq. 35 (1 and 1: Mahony et al. 2008;
+        the paper gives none).
+    mag_heading_only: 1 (default) projects the field term onto the estimated vertical, as in
+        Hua et al. 2014, so the magnetometer corrects heading only; 0 is the paper's term,
+        which lets a disturbed field tilt the estimate (paper 0).
+    acc_gate: not in the paper: a sample whose specific-force magnitude is off g by more than
+        acc_gate·g gives no gravity term (as the complementary filter's gate; paper 1e9, off).
     The paper's gains suit its 565 Hz robot-arm runs and follow BROAD's accelerations (mean
-    total RMSE about 40°); the passive filter scores best on BROAD near kp = 0.4, ki = 0.001
-    (10.9°). The direct filter turns the gyro rate by the noisy R̃ and gets worse, not better,
-    with small kp (docs/estimators-paper2.md).
+    total RMSE about 40°). The direct filter also turns the gyro rate by the noisy R̃, which
+    only small weights λ keep quiet (docs/estimators-paper2.md).
     """
 
-    kp: float = 25.0
-    ki: float = 10.0
-    w_acc: float = 1.0
-    w_mag: float = 1.0
+    # the passive filter sees λ₁ only through k_p λ₁, but the direct one also turns the measured
+    # rate by ϱ (eq. 33), which λ₁ and λ₂ scale alone: both weights are searched
+    kp: float = tunable(25.0, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
+    ki: float = tunable(10.0, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
+    w_acc: float = tunable(1.0, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
+    w_mag: float = tunable(1.0, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
+    mag_heading_only: float = tunable(1.0, paper=0.0)  # 1: Hua et al. 2014 heading-only field term; 0: the paper's
+    # not in the paper (as the complementary filter's acc_gate): no gravity term from a sample
+    # with |‖f‖ − g| > acc_gate·g; 1e9 (the paper) never gates
+    acc_gate: float = tunable(1e9, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
+        if self.mag_heading_only not in (0.0, 1.0):
+            raise ValueError(f"mag_heading_only must be 0 (the paper's field term) or 1 (heading only), got {self.mag_heading_only}")
         if not self.kp >= 0:
             raise ValueError(f"kp must be >= 0, got {self.kp}")
+        if not self.acc_gate > 0:
+            raise ValueError(f"acc_gate must be > 0, got {self.acc_gate}")
         for key in ("ki", "w_acc", "w_mag"):
             if not getattr(self, key) >= 0:
                 raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
+
+
+@dataclass
+class MahonyDirectParams(MahonyParams):
+    """:class:`MahonyParams` at the direct filter's own tuned defaults (same fields, same order)."""
+
+    kp: float = tunable(25.281570545804, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
+    ki: float = tunable(4.209355054011459e-05, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
+    w_acc: float = tunable(0.015578192138000827, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
+    w_mag: float = tunable(0.016407770891012818, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
+    mag_heading_only: float = tunable(1.0, paper=0.0)
+    acc_gate: float = tunable(0.0660808053772176, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+
+
+@dataclass
+class MahonyPassiveParams(MahonyParams):
+    """:class:`MahonyParams` at the passive filter's own tuned defaults (same fields, same order)."""
+
+    kp: float = tunable(3.9829087937635066, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
+    ki: float = tunable(3.647554896509165e-05, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
+    w_acc: float = tunable(0.07733754823380287, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
+    w_mag: float = tunable(0.09234330643498717, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
+    mag_heading_only: float = tunable(1.0, paper=0.0)
+    acc_gate: float = tunable(0.0907772200483565, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
 
 _P = param_index(MahonyParams)  # indices of the packed parameter vector, by field name
@@ -70,6 +119,8 @@ _P = param_index(MahonyParams)  # indices of the packed parameter vector, by fie
 @njit(cache=True, inline="always")
 def _mahony_step(s, p, x, direct):
     kp, ki, w_acc, w_mag = p[_P.kp], p[_P.ki], p[_P.w_acc], p[_P.w_mag]
+    heading_only = p[_P.mag_heading_only] != 0.0
+    acc_gate = p[_P.acc_gate]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
         return
@@ -83,12 +134,19 @@ def _mahony_step(s, p, x, direct):
     if acc_ok:
         # eq. 35, first order: ϱ = λ₁ v_a × v̂_a (+ λ₂ v_m × v̂_m)
         ca = vec_cross(down_direction(x), quat_rotate_inv(qp, (0.0, 0.0, 1.0)))
-        rx, ry, rz = w_acc * ca[0], w_acc * ca[1], w_acc * ca[2]
+        fn = math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
+        wa = w_acc if abs(fn - K.GRAVITY) <= acc_gate * K.GRAVITY else 0.0  # gate: not the paper's
+        rx, ry, rz = wa * ca[0], wa * ca[1], wa * ca[2]
         if mag_ok:
             nm = math.sqrt(x[6] * x[6] + x[7] * x[7] + x[8] * x[8])
             vm = (x[6] / nm, x[7] / nm, x[8] / nm)
             h = quat_rotate(qp, vm)
             cm = vec_cross(vm, quat_rotate_inv(qp, (math.sqrt(h[0] * h[0] + h[1] * h[1]), 0.0, h[2])))
+            if heading_only:
+                # Hua et al. 2014, eq. 12: (v̂_a v̂_aᵀ) v_m × v̂_m, only the part about the vertical
+                d = quat_rotate_inv(qp, (0.0, 0.0, 1.0))
+                c = cm[0] * d[0] + cm[1] * d[1] + cm[2] * d[2]
+                cm = (c * d[0], c * d[1], c * d[2])
             rx, ry, rz = rx + w_mag * cm[0], ry + w_mag * cm[1], rz + w_mag * cm[2]
         if direct:
             # eq. 33: the measured rate carried through R_y = R̂ exp(S(ϱ)): R̃ (Ω_y − b̂)
@@ -129,7 +187,7 @@ class MahonyDirect(Estimator):
     """Mahony's direct complementary filter with gyro-bias estimation (eq. 33, R_y by eq. 35)."""
 
     name = "mahony_direct"
-    Params = MahonyParams
+    Params = MahonyDirectParams
     uses_mag = True
     observes_heading = True
     step = staticmethod(mahony_direct_step)
@@ -140,7 +198,7 @@ class MahonyPassive(Estimator):
     """Mahony's passive complementary filter with gyro-bias estimation (eq. 34, R_y by eq. 35)."""
 
     name = "mahony_passive"
-    Params = MahonyParams
+    Params = MahonyPassiveParams
     uses_mag = True
     observes_heading = True
     step = staticmethod(mahony_passive_step)

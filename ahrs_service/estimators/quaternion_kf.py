@@ -26,6 +26,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.uncertainty import (
     AttitudeVariance,
@@ -55,19 +56,24 @@ STATE_SIZE = STATE.end
 class QuaternionKFParams:
     """Tuning of :class:`QuaternionKF`.
 
-    sigma_zeta: process noise σ_ζ of eq. 25, 1/s (quaternion rate). Default 0.1 (the paper);
-        0.01 scores best on BROAD (11.0° mean total RMSE against 22.2°).
-    sigma_xi: measurement noise σ_ξ of eq. 26 on each QUEST quaternion component. Default 0.1
-        (the paper).
-    p0: initial variance of each quaternion component (P₀ = p0 I₄). Default 1 (the paper).
-    w_acc, w_mag: QUEST weights ρ₁, ρ₂ (eq. 17). Default 2 and 2 (the paper).
+    sigma_zeta: process noise σ_ζ of eq. 25, 1/s (quaternion rate). Paper: 0.1.
+    sigma_xi: measurement noise σ_ξ of eq. 26 on each QUEST quaternion component. Paper: 0.1.
+    p0: initial variance of each quaternion component (P₀ = p0 I₄). Paper: 1.
+    w_acc, w_mag: QUEST weights ρ₁, ρ₂ (eq. 17). Paper: 2 and 2.
+    acc_gate: not in the paper (as the complementary filter's gate): no measurement update
+        from a sample whose specific-force magnitude is off g by more than acc_gate·g;
+        1e9 (the paper) never gates.
+    Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+    are ``preset="paper"``.
     """
 
-    sigma_zeta: float = 0.1
-    sigma_xi: float = 0.1
-    p0: float = 1.0
-    w_acc: float = 2.0
-    w_mag: float = 2.0
+    # QUEST's weights act through their ratio: w_acc stays, w_mag is searched
+    sigma_zeta: float = tunable(0.10094164493325111, paper=0.1, search=SearchRange(1e-4, 1.0, log=True))  # 1/s
+    sigma_xi: float = tunable(0.6257141649842257, paper=0.1, search=SearchRange(1e-3, 10.0, log=True))
+    p0: float = tunable(1.0, paper=1.0)
+    w_acc: float = tunable(2.0, paper=2.0)
+    w_mag: float = tunable(3.532682259000227, paper=2.0, search=SearchRange(0.01, 20.0, log=True))
+    acc_gate: float = tunable(0.043018582363782934, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
         for key in ("sigma_zeta", "p0"):
@@ -76,6 +82,8 @@ class QuaternionKFParams:
         for key in ("sigma_xi", "w_acc", "w_mag"):
             if not getattr(self, key) > 0:
                 raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
+        if not self.acc_gate > 0:
+            raise ValueError(f"acc_gate must be > 0, got {self.acc_gate}")
 
 
 _P = param_index(QuaternionKFParams)  # indices of the packed parameter vector, by field name
@@ -119,7 +127,9 @@ def quaternion_kf_step(s, p, x):
                 v = s[L + 4 * i] * A[j][0] + s[L + 4 * i + 1] * A[j][1] + s[L + 4 * i + 2] * A[j][2]
                 v += s[L + 4 * i + 3] * A[j][3]
                 s[P + 4 * i + j] = v + (qn if i == j else 0.0)
-    if acc_ok:
+    fn = math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
+    # the gate (not the paper's): a specific force far from g is mostly linear acceleration
+    if acc_ok and abs(fn - K.GRAVITY) <= p[_P.acc_gate] * K.GRAVITY:
         pred = quat_normalize((q0, q1, q2, q3))
         d = down_direction(x)
         ok = False

@@ -44,6 +44,7 @@ from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import param_index
 from ahrs_service.quaternion import quat_mul, quat_normalize, quat_rotate
 
@@ -57,22 +58,24 @@ class ValentiParams:
     """Tuning of :class:`Valenti`.
 
     alpha: accelerometer gain, the fraction of the tilt delta applied per sample at
-        ``gain_rate_hz`` (eq. 54). Default 0.002, best on the BROAD development recordings;
-        the third paper's annex 3 uses 0.03, which on BROAD follows linear acceleration far
-        too closely (30° mean total RMSE against 8°).
-    beta: magnetometer gain, the same for the heading delta (eq. 60–61). Default 0.001,
-        best on BROAD; the annex's 0.3 makes heading as noisy as the magnetometer.
+        ``gain_rate_hz`` (eq. 54). The third paper's annex 3 (``preset="paper"``) uses 0.03,
+        which on BROAD follows linear acceleration far too closely (30° mean total RMSE).
+    beta: magnetometer gain, the same for the heading delta (eq. 60–61). The annex's 0.3
+        makes heading as noisy as the magnetometer.
     gain_rate_hz: the sample rate at which alpha and beta are per-sample fractions, Hz.
-        Default 100, the rate of the third paper's data.
+        100, the rate of the third paper's data.
     adaptive_low, adaptive_high: relative specific-force magnitude errors |‖f‖ − g|/g
         between which the accelerometer gain falls from alpha to zero (annex 3: 0.1, 0.2).
+    Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+    are ``preset="paper"``.
     """
 
-    alpha: float = 0.002
-    beta: float = 0.001
-    gain_rate_hz: float = 100.0
-    adaptive_low: float = 0.1
-    adaptive_high: float = 0.2
+    # paper: annex 3's gains; the two thresholds' ranges are disjoint, so low < high holds
+    alpha: float = tunable(0.002306161017305611, paper=0.03, search=SearchRange(1e-4, 0.1, log=True))
+    beta: float = tunable(0.0008378618072402205, paper=0.3, search=SearchRange(1e-5, 0.3, log=True))
+    gain_rate_hz: float = tunable(100.0, paper=100.0)  # Hz; a unit of alpha and beta, not tuned
+    adaptive_low: float = tunable(0.030377944941125664, paper=0.1, search=SearchRange(0.01, 0.15))
+    adaptive_high: float = tunable(0.16031685415305122, paper=0.2, search=SearchRange(0.16, 1.0))
 
     def __post_init__(self) -> None:
         for name in ("alpha", "beta"):

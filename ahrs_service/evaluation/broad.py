@@ -10,13 +10,14 @@ accelerometer reads about +9.81 m/s² on z — still specific force). The refere
 
 from __future__ import annotations
 
-import fnmatch
 import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from ahrs_service.evaluation.hdf5_folder import RecordingFolder
 
 #: The citation every document, plot or table made from the data must carry.
 CITATION = (
@@ -26,6 +27,9 @@ CITATION = (
 
 #: Environment variable that points at the recordings folder.
 ENV_VAR = "AHRS_BROAD_DIR"
+
+#: The recordings folder: where it is, the files in it, opening one (shared with DIDO's loader).
+FOLDER = RecordingFolder("BROAD", ENV_VAR, "broad", "recording")
 
 
 @dataclass
@@ -57,20 +61,12 @@ class Trial:
 
 def default_dir() -> Path:
     """``$AHRS_BROAD_DIR`` when set, else ``../shared/data/broad`` relative to the working directory."""
-    env = os.environ.get(ENV_VAR)
-    return Path(env) if env else Path("..") / "shared" / "data" / "broad"
+    return FOLDER.default_dir()
 
 
 def check_dir(data_dir: str | os.PathLike) -> Path:
     """The folder as a Path; FileNotFoundError with a clear message when it holds no recordings."""
-    path = Path(data_dir)
-    if not path.is_dir():
-        raise FileNotFoundError(
-            f"BROAD data folder {str(path)!r} does not exist; pass --data DIR or set {ENV_VAR}"
-        )
-    if not any(path.glob("*.hdf5")):
-        raise FileNotFoundError(f"BROAD data folder {str(path)!r} holds no *.hdf5 recordings")
-    return path
+    return FOLDER.check_dir(data_dir)
 
 
 def load_index(data_dir: str | os.PathLike) -> dict:
@@ -92,16 +88,7 @@ def list_trials(data_dir: str | os.PathLike, pattern: str | None = None) -> list
 
     ``pattern`` (a substring, or a shell glob such as ``magnet_?cm``) may match anywhere in the name.
     """
-    return recording_names(check_dir(data_dir), pattern)
-
-
-def recording_names(path: Path, pattern: str | None = None) -> list[str]:
-    """Stems of the ``*.hdf5`` files in the folder ``path``, sorted; ``pattern`` (a substring
-    or shell glob) may match anywhere in the name. Shared by the BROAD and DIDO loaders."""
-    names = sorted(p.stem for p in path.glob("*.hdf5"))
-    if pattern:
-        names = [n for n in names if fnmatch.fnmatchcase(n, f"*{pattern}*")]
-    return names
+    return FOLDER.names(data_dir, pattern)
 
 
 def list_groups(data_dir: str | os.PathLike, trials: list[str] | None = None) -> dict[str, list[str]]:
@@ -122,19 +109,10 @@ def list_groups(data_dir: str | os.PathLike, trials: list[str] | None = None) ->
 
 def load_trial(data_dir: str | os.PathLike, name: str) -> Trial:
     """Reads one recording (all of it into memory)."""
-    import h5py
-
-    path = check_dir(data_dir)
-    file = path / f"{name}.hdf5"
-    if not file.is_file():
-        raise FileNotFoundError(f"no recording {name!r} in {str(path)!r}")
-    info = load_index(path)["trials"].get(name, {})
-    with h5py.File(file, "r") as f:
-        missing = [k for k in ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "movement") if k not in f]
-        if missing:
-            raise ValueError(f"{file}: missing dataset(s) {', '.join(missing)}")
+    info = load_index(data_dir)["trials"].get(name, {})
+    with FOLDER.open(data_dir, name, ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "movement")) as f:
         if "sampling_rate" not in f.attrs:
-            raise ValueError(f"{file}: missing attribute 'sampling_rate'")
+            raise ValueError(f"{f.filename}: missing attribute 'sampling_rate'")
         return Trial(
             name=name,
             gyr=np.asarray(f["imu_gyr"][:], dtype=np.float64),

@@ -6,7 +6,7 @@ import argparse
 
 from ahrs_service import execution
 from ahrs_service.evaluation.broad import ENV_VAR
-from ahrs_service.cli import add_offline_options
+from ahrs_service.cli import add_offline_options, lazy_command
 from ahrs_service.evaluation.dido import ENV_VAR as DIDO_ENV_VAR
 
 
@@ -51,27 +51,39 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         metavar="NAME.KEY=VALUE",
         help="tuning parameter for one column, e.g. madgwick.beta=0.05 (repeatable)",
     )
+    p.add_argument(
+        "--preset",
+        action="append",
+        default=[],
+        metavar="paper|FILE",
+        help="paper: every selected paper filter at its source paper's values instead of the tuned defaults; "
+        "FILE: a preset file (ahrs-service tune) for its estimator (repeatable; --param overrides)",
+    )
     add_offline_options(p, "also score the offline (forward-backward, non-causal) mode of every column, as '<name>+offline'")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     execution.add_arguments(p)
-    p.set_defaults(func=_run)
+    p.set_defaults(func=lazy_command("ahrs_service.evaluation.report:main"))
 
 
     t = subparsers.add_parser(
         "tune",
-        help="search an estimator's parameters with Optuna on BROAD and write a preset file",
+        help="search an estimator's parameters with Optuna on BROAD and/or DIDO and write a preset file",
         description=(
             "Optuna (TPE) over the search space declared on the estimator's Params fields (or --space); "
             "every (trial x recording) is one task of the execution layer; objective: mean RMSE over the "
-            "recordings (total, or inclination without heading); leave-one-recording-out validation and "
+            "recordings (BROAD total, or inclination without heading; DIDO inclination); with --dataset both "
+            "the worse data set relative to its target; leave-one-recording-out validation and "
             "parameter importances reported; the best parameters written as a preset file that "
             "estimators.create(name, preset=PATH) accepts."
         ),
     )
     t.add_argument("estimator", metavar="ESTIMATOR")
-    t.add_argument("--dataset", choices=["broad"], default="broad",
-                   help="recordings to tune on (broad; DIDO flights are not wired in yet)")
-    t.add_argument("--data", metavar="DIR", default=None, help=f"BROAD folder (default: ${ENV_VAR}, else ../shared/data/broad)")
+    t.add_argument("--dataset", choices=["broad", "dido", "both"], default="broad",
+                   help="recordings to tune on: broad (default), dido, or both (objective: the worse data set's "
+                   "mean RMSE over its target, BROAD 6 deg / 3 deg inclination, DIDO 5 deg)")
+    t.add_argument("--data", metavar="DIR", default=None,
+                   help=f"folder of the one data set (default: ${ENV_VAR} / ${DIDO_ENV_VAR}, else ../shared/data/...); "
+                   "not with --dataset both")
     t.add_argument("--trials", default=None, metavar="PATTERN", help="only recordings whose name matches")
     t.add_argument("--budget", type=int, default=50, metavar="N", help="Optuna trials (default 50)")
     t.add_argument("--space", action="append", default=[], metavar="NAME=LOW:HIGH[:log]",
@@ -80,17 +92,5 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
     t.add_argument("--out", default=None, metavar="FILE", help="preset file to write (default ./ESTIMATOR.preset.json)")
     t.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     execution.add_arguments(t)
-    t.set_defaults(func=_tune)
+    t.set_defaults(func=lazy_command("ahrs_service.evaluation.tuning:main"))
 
-
-def _tune(args: argparse.Namespace) -> int:
-    from ahrs_service.evaluation.tuning import main
-
-    return main(args)
-
-
-def _run(args: argparse.Namespace) -> int:
-    # imported here so that `ahrs-service --help` stays fast
-    from ahrs_service.evaluation.report import main
-
-    return main(args)

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ahrs_service.evaluation.hdf5_folder import RecordingFolder
+
 #: The citation every document, plot or table made from the data must carry.
 CITATION = (
     'K. Zhang, C. Jiang, J. Li, S. Yang, T. Ma, C. Xu, F. Gao, "DIDO: Deep Inertial Quadrotor '
@@ -43,6 +45,9 @@ SKIP_FRACTION = 0.10
 GROUP = "all_flights"
 
 _KEYS = ("ts", "gyr", "acc", "gt_q")
+
+#: The flights folder: where it is, the files in it, opening one (shared with BROAD's loader).
+FOLDER = RecordingFolder("DIDO", ENV_VAR, "dido", "flight")
 
 
 @dataclass
@@ -77,17 +82,14 @@ class Flight:
 
 def default_dir() -> Path:
     """``$AHRS_DIDO_DIR`` when set, else ``../shared/data/dido`` relative to the working directory."""
-    env = os.environ.get(ENV_VAR)
-    return Path(env) if env else Path("..") / "shared" / "data" / "dido"
+    return FOLDER.default_dir()
 
 
 def missing_reason(data_dir: str | os.PathLike) -> str | None:
     """Why the flights cannot be read from ``data_dir`` (None when they can): for test skips."""
-    path = Path(data_dir)
-    if not path.is_dir():
-        return f"DIDO data folder {str(path)!r} does not exist; pass --data DIR or set {ENV_VAR}"
-    if not any(path.glob("*.hdf5")):
-        return f"DIDO data folder {str(path)!r} holds no *.hdf5 flights"
+    problem = FOLDER.problem(data_dir)
+    if problem is not None:
+        return problem
     try:
         import h5py  # noqa: F401
     except ImportError:
@@ -97,19 +99,12 @@ def missing_reason(data_dir: str | os.PathLike) -> str | None:
 
 def check_dir(data_dir: str | os.PathLike) -> Path:
     """The folder as a Path; FileNotFoundError with a clear message when it holds no flights."""
-    path = Path(data_dir)
-    if not path.is_dir():
-        raise FileNotFoundError(f"DIDO data folder {str(path)!r} does not exist; pass --data DIR or set {ENV_VAR}")
-    if not any(path.glob("*.hdf5")):
-        raise FileNotFoundError(f"DIDO data folder {str(path)!r} holds no *.hdf5 flights")
-    return path
+    return FOLDER.check_dir(data_dir)
 
 
 def list_trials(data_dir: str | os.PathLike, pattern: str | None = None) -> list[str]:
     """Names of the flights present, sorted; ``pattern`` a substring or shell glob."""
-    from ahrs_service.evaluation.broad import recording_names
-
-    return recording_names(check_dir(data_dir), pattern)
+    return FOLDER.names(data_dir, pattern)
 
 
 def list_groups(data_dir: str | os.PathLike, trials: list[str] | None = None) -> dict[str, list[str]]:
@@ -127,16 +122,8 @@ def fitted_rate_hz(t: np.ndarray) -> float:
 
 def load_trial(data_dir: str | os.PathLike, name: str) -> Flight:
     """Reads one flight (all of it into memory)."""
-    import h5py
-
-    path = check_dir(data_dir)
-    file = path / f"{name}.hdf5"
-    if not file.is_file():
-        raise FileNotFoundError(f"no flight {name!r} in {str(path)!r}")
-    with h5py.File(file, "r") as f:
-        missing = [k for k in _KEYS if k not in f]
-        if missing:
-            raise ValueError(f"{file}: missing dataset(s) {', '.join(missing)}")
+    with FOLDER.open(data_dir, name, _KEYS) as f:
+        file = f.filename
         t = np.asarray(f["ts"][:], dtype=np.float64)
         gyr = np.asarray(f["gyr"][:], dtype=np.float64)
         acc = np.asarray(f["acc"][:], dtype=np.float64)

@@ -15,6 +15,7 @@ With ``--offline`` every selected column X gets a twin column "X+offline": the s
 from __future__ import annotations
 
 import datetime as _dt
+import dataclasses
 import json
 import math
 import os
@@ -30,7 +31,7 @@ from ahrs_service import estimators
 from ahrs_service.estimators import offline as offline_mode
 from ahrs_service.estimators.base import stack_rows, time_steps
 from ahrs_service.evaluation import broad, dido, metrics, peers, stats
-from ahrs_service.execution import Runner, RunnerError, open_runner, worker_cache
+from ahrs_service.execution import Runner, open_runner, worker_cache
 
 #: ``--dataset`` name → the module that reads it (same functions: default_dir, check_dir,
 #: list_trials, list_groups, load_trial, CITATION).
@@ -210,7 +211,10 @@ def _run_column(col: Column, trial: broad.Trial) -> tuple[np.ndarray, float]:
         # (the fitted rate is a whole-flight figure: not given to a causal run as its nominal)
         stamps = stamps_of(trial)
         rate = trial.rate_hz if stamps is None else None
-        q = estimators.run(col.name, trial.gyr, trial.acc, mag, rate_hz=rate, timestamps=stamps, **col.params)
+        # the steps (clock recovery included) as estimators.run makes them, once per recording
+        key = ("steps", trial.name, len(trial), trial.rate_hz if stamps is None else (float(stamps[0]), float(stamps[-1])))
+        steps = worker_cache(key, lambda: time_steps(len(trial), rate, stamps))
+        q = estimators.create(col.name, **col.params).run(trial.gyr, trial.acc, mag, dt=steps)
         return q, time.perf_counter() - t0
     t0 = time.perf_counter()
     q = peers.run(col.name, trial.gyr, trial.acc, trial.mag, rate_hz=trial.rate_hz, **col.params)
@@ -504,6 +508,33 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
 # ------------------------------------------------------------------------------ command
 
 
+def with_presets(items: list[str], names: list[str], params: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """``--preset`` items under the ``--param`` values: ``paper`` gives every selected estimator
+    that declares paper values (``presets.paper_params``; not robust, triad, quest) its source
+    paper's values; a preset file gives its own estimator (which must be selected) its params."""
+    import json
+
+    from ahrs_service.estimators.presets import PAPER, load_preset
+
+    out = {k: dict(v) for k, v in params.items()}
+    for item in items:
+        if item == PAPER:
+            targets = [n for n in names if any("paper" in f.metadata for f in dataclasses.fields(estimators.get(n).Params))]
+        else:
+            try:
+                target = json.loads(Path(item).read_text(encoding="utf-8")).get("estimator")
+            except (OSError, ValueError, AttributeError):
+                target = None
+            if target is None:
+                raise ValueError(f"--preset {item!r}: not a preset file naming its estimator (or 'paper')")
+            if target not in names:
+                raise ValueError(f"--preset {item!r} is for {target!r}, which is not among the selected estimators")
+            targets = [target]
+        for name in targets:
+            out[name] = {**load_preset(name, item), **out.get(name, {})}
+    return out
+
+
 def main(args: Any) -> int:
     """Entry of ``ahrs-service evaluate`` (arguments from ``command.add_subcommands``)."""
     dataset = getattr(args, "dataset", "broad") or "broad"
@@ -518,6 +549,7 @@ def main(args: Any) -> int:
         est_names, skipped = select_estimators(args.estimators)
         peer_names = peers.select(args.peers)
         params = parse_params(args.param, est_names + peer_names)
+        params = with_presets(getattr(args, "preset", []) or [], est_names, params)
         columns = make_columns(
             est_names,
             peer_names,
@@ -541,12 +573,8 @@ def main(args: Any) -> int:
         plot_files.append(plots.error_over_time(trial, errors, columns, out_dir, source.CITATION))
 
     progress = not args.quiet and sys.stderr.isatty()
-    try:
-        runner = open_runner(getattr(args, "workers", 1), getattr(args, "scheduler", None))
-    except RunnerError as exc:
-        print(f"ahrs-service evaluate: error: {exc}", file=sys.stderr)
-        return 2
-    with runner:
+    # a RunnerError (scheduler out of reach, bad --workers) is cli.main's one line
+    with open_runner(getattr(args, "workers", 1), getattr(args, "scheduler", None)) as runner:
         results = evaluate(
             data_dir, columns, trial_names, progress=progress, on_trial=on_trial, dataset=dataset, runner=runner
         )

@@ -9,7 +9,20 @@ Register map used (datasheet Rev. E):
 0x30   INT_SOURCE    bit 7 DATA_READY (set on new data, cleared when the data are read)
 0x31   DATA_FORMAT   bit 3 FULL_RES, bit 2 Justify, bits 1:0 range ±2/4/8/16 g
 0x32…  DATAX0…DATAZ1 X, Y, Z; little-endian two's complement, right-justified
+0x38   FIFO_CTL      FIFO_MODE 7:6 (00 bypass, 01 FIFO: stops when full, 10 stream: a full
+                     FIFO overwrites its oldest entry, 11 trigger), bit 5 Trigger, Samples
+                     4:0 the watermark (entries) ("Register 0x38—FIFO_CTL", "FIFO")
+0x39   FIFO_STATUS   bit 7 FIFO_TRIG, Entries 5:0: entries stored (0…32) ("Register 0x39")
+0x30   INT_SOURCE    with the FIFO on: bit 1 Watermark (Entries ≥ Samples), bit 0 Overrun
+                     (the FIFO is filled; cleared as its contents are read)
 =====  ============  ==========================================================
+
+FIFO ("FIFO" and "Retrieving Data from FIFO" in the datasheet): 32 entries of X, Y, Z.
+With it on, DATAX0…DATAZ1 hold the oldest entry, and a read of the data registers pops it
+when it ends: one entry per transfer (the address does not roll back to DATAX0), so n
+entries take n 6-byte reads. The driver runs stream mode; an overrun is flagged only as
+"filled", so the loss is estimated from the sensor clock
+(:class:`~ahrs_service.drivers.fifo.FifoTimeline`). Bypass mode empties the FIFO.
 
 In I2C mode multi-byte reads auto-increment (no sub-address flag). The driver uses
 FULL_RES, so the scale is 3.9 mg/LSB (256 LSB/g) in every range and the register width is
@@ -24,9 +37,12 @@ import struct
 
 import numpy as np
 
+from ahrs_service.drivers.fifo import SimulatedFrameFifo
 from ahrs_service.drivers.i2c.bus import I2CBus
 from ahrs_service.drivers.i2c.device import (
     STANDARD_GRAVITY,
+    FifoLayout,
+    FifoStatus,
     I2CDevice,
     SimulatedRegisterDevice,
     i16_bytes,
@@ -34,6 +50,13 @@ from ahrs_service.drivers.i2c.device import (
 )
 
 DEVID, BW_RATE, POWER_CTL, INT_SOURCE, DATA_FORMAT, DATAX0 = 0x00, 0x2C, 0x2D, 0x30, 0x31, 0x32
+FIFO_CTL, FIFO_STATUS = 0x38, 0x39
+FIFO_BYPASS, FIFO_FIFO, FIFO_STREAM = 0b00, 0b01, 0b10
+WATERMARK = 0x02  # INT_SOURCE bit 1
+FIFO_ENTRIES = 32
+#: one entry per 6-byte read of DATAX0…DATAZ1
+FIFO_LAYOUT = FifoLayout(depth_frames=FIFO_ENTRIES, frame_bytes=6, data_register=DATAX0,
+                         frames_per_transfer=1)
 DEVID_VALUE = 0xE5
 MEASURE = 0x08
 DATA_READY = 0x80
@@ -51,14 +74,20 @@ class ADXL345(I2CDevice):
     """ADXL345 driver: specific force in m/s², sensor axes.
 
     range_g: 2, 4, 8 or 16 (full resolution). rate_hz: 6.25 … 3200 (powers of two × 6.25).
+    fifo: run the 32-entry FIFO in stream mode with the ``watermark`` (entries).
     """
 
     PART = "ADXL345"
     DEFAULT_ADDRESS = 0x53
+    fifo_layout = FIFO_LAYOUT
 
     def __init__(self, bus: I2CBus, address: int | None = None, *, range_g: int = 8,
-                 rate_hz: float = 800, **kw: Any) -> None:
+                 rate_hz: float = 800, fifo: bool = False, watermark: int = 8, **kw: Any) -> None:
         super().__init__(bus, address, **kw)
+        self.fifo = bool(fifo)
+        if not 1 <= watermark < FIFO_ENTRIES:
+            raise ValueError(f"ADXL345 FIFO watermark must be 1…{FIFO_ENTRIES - 1}, got {watermark}")
+        self.fifo_watermark = int(watermark)
         if range_g not in RANGES_G:
             raise ValueError(f"ADXL345 range_g must be one of {sorted(RANGES_G)}, got {range_g}")
         if rate_hz not in RATES_HZ:
@@ -74,7 +103,27 @@ class ADXL345(I2CDevice):
         self.write_u8(POWER_CTL, 0x00)  # standby while reconfiguring, as the datasheet advises
         self.write_u8(BW_RATE, RATES_HZ[self.rate_hz])
         self.write_u8(DATA_FORMAT, FULL_RES | RANGES_G[self.range_g])
+        if self.fifo:
+            self.fifo_reset()
         self.write_u8(POWER_CTL, MEASURE)
+
+    # ---------------------------------------------------------------- FIFO
+    def fifo_reset(self) -> None:
+        """Empties the FIFO (bypass mode) and restarts it in stream mode with the watermark."""
+        self.write_u8(FIFO_CTL, FIFO_BYPASS << 6)
+        self.write_u8(FIFO_CTL, FIFO_STREAM << 6 | self.fifo_watermark)
+
+    def fifo_status(self) -> FifoStatus:
+        """Stored entries (FIFO_STATUS) and whether the FIFO had filled (INT_SOURCE.Overrun)."""
+        overrun = bool(self.read_u8(INT_SOURCE) & OVERRUN)
+        t = self.bus.now_ns()
+        entries = self.read_u8(FIFO_STATUS) & 0x3F
+        return FifoStatus(entries, overrun or entries >= FIFO_ENTRIES, t)
+
+    def read_fifo(self, frames: int) -> np.ndarray:
+        """``frames`` entries, oldest first: (frames, 3) int64 counts, one 6-byte read each."""
+        data = self.read_fifo_frames(FIFO_LAYOUT, frames)
+        return np.frombuffer(data, dtype="<i2").reshape(frames, 3).astype(np.int64)
 
     def data_ready(self) -> bool:
         """INT_SOURCE.DATA_READY: a sample not read yet."""
@@ -90,16 +139,66 @@ class ADXL345(I2CDevice):
 
 
 class SimulatedADXL345(SimulatedRegisterDevice):
-    """Simulated ADXL345: latches physics "acc" at BW_RATE while POWER_CTL.Measure is set."""
+    """Simulated ADXL345: latches physics "acc" at BW_RATE while POWER_CTL.Measure is set;
+    with FIFO_CTL in FIFO or stream mode every sample also enters the 32-entry FIFO, whose
+    oldest entry the data registers show (popped when a read of them ends). Counters for
+    tests: ``fifo_overflowed`` (entries overwritten or turned away), ``fifo_discarded``
+    (entries emptied unread by bypass mode)."""
 
+    CLOCK_ERROR = +0.0090  # this simulated unit runs 0.9 % fast
     PART = "ADXL345"
     DEFAULT_ADDRESS = 0x53
     POWER_ON = {DEVID: DEVID_VALUE, BW_RATE: 0x0A, INT_SOURCE: 0x02}
     WRITABLE = frozenset({BW_RATE, POWER_CTL, DATA_FORMAT} | set(range(0x1D, 0x2B))
-                         | {0x2E, 0x2F, 0x38})
+                         | {0x2E, 0x2F, FIFO_CTL})
 
     def rate_hz(self) -> float:
         return 3200.0 / 2 ** (15 - (self.regs[BW_RATE] & 0x0F))
+
+    def reset_state(self, now: float) -> None:
+        self.fifo = SimulatedFrameFifo(FIFO_ENTRIES)
+
+    # the twin's counters for tests (entries overwritten/turned away, emptied unread)
+    fifo_overflowed = property(lambda self: self.fifo.overflowed)
+    fifo_discarded = property(lambda self: self.fifo.discarded)
+    fifo_frames = property(lambda self: len(self.fifo))
+
+    # ---------------------------------------------------------------- FIFO
+    def fifo_mode(self) -> int:
+        return self.regs[FIFO_CTL] >> 6
+
+    def fifo_room(self) -> int | None:
+        if self.fifo_mode() not in (FIFO_FIFO, FIFO_STREAM):
+            return None
+        return FIFO_ENTRIES - len(self.fifo)
+
+    def fifo_keeps_oldest(self) -> bool:
+        return self.fifo_mode() == FIFO_FIFO
+
+    def fifo_dropped(self, n: int) -> None:
+        self.fifo.overflowed += n
+
+    def _fifo_flags(self) -> None:
+        """INT_SOURCE Watermark / Overrun and FIFO_STATUS Entries from the FIFO's level."""
+        level = len(self.fifo)
+        status = self.regs[INT_SOURCE] & ~(WATERMARK | OVERRUN)
+        wm = self.regs[FIFO_CTL] & 0x1F
+        if wm and level >= wm:
+            status |= WATERMARK
+        if level >= FIFO_ENTRIES:
+            status |= OVERRUN
+        self.regs[INT_SOURCE] = status
+        self.regs[FIFO_STATUS] = level
+
+    def take_popped_truth(self) -> list[Any]:
+        """The truth of the entries read since the last call, oldest first."""
+        return self.fifo.take_popped_truth()
+
+    def read_register(self, reg: int) -> int:
+        head = self.fifo.head()
+        if head is not None and DATAX0 <= reg <= DATAX0 + 5 and self.fifo_mode() != FIFO_BYPASS:
+            return head[reg - DATAX0]
+        return self.regs[reg]
 
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
         if reg == POWER_CTL:
@@ -109,6 +208,9 @@ class SimulatedADXL345(SimulatedRegisterDevice):
                 self.stop_measurement()
         elif reg == BW_RATE and self._t0 is not None:
             self.restart_measurement(now)
+        elif reg == FIFO_CTL and self.fifo_mode() == FIFO_BYPASS:
+            self.fifo.reset()
+            self._fifo_flags()
 
     def latch(self, phys: dict, t: float, skipped: int) -> None:
         fmt = self.regs[DATA_FORMAT]
@@ -128,7 +230,18 @@ class SimulatedADXL345(SimulatedRegisterDevice):
             if fmt & 0x04:  # left-justified (MSB) mode
                 c <<= 16 - bits
             self.regs[DATAX0 + 2 * i: DATAX0 + 2 * i + 2] = bytes(i16_bytes(c, False))
+        if self.fifo_mode() in (FIFO_FIFO, FIFO_STREAM):
+            self.fifo.push(bytes(self.regs[DATAX0:DATAX0 + 6]), phys.get("truth"), self.fifo_keeps_oldest())
+            self._fifo_flags()
 
     def on_read(self, regs: list[int], now: float) -> None:
-        if any(DATAX0 <= r <= DATAX0 + 5 for r in regs):
-            self.regs[INT_SOURCE] &= ~(DATA_READY | OVERRUN) & 0xFF
+        if not any(DATAX0 <= r <= DATAX0 + 5 for r in regs):
+            return
+        if self.fifo_mode() != FIFO_BYPASS:
+            if len(self.fifo):  # the read of the data registers has ended: the entry is popped
+                self.fifo.pop()
+            self._fifo_flags()
+            if not len(self.fifo):
+                self.regs[INT_SOURCE] &= ~DATA_READY & 0xFF
+            return
+        self.regs[INT_SOURCE] &= ~(DATA_READY | OVERRUN) & 0xFF

@@ -23,6 +23,8 @@ import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
+from ahrs_service.drivers.sim_bus import SimulatedBusBase, SimulatedSlot
+
 if TYPE_CHECKING:  # pragma: no cover
     from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice
 
@@ -132,20 +134,7 @@ class SMBusI2C(I2CBus):
         self._smbus.close()
 
 
-class _Slot:
-    """A device attached to the simulated bus, with its fault-injection state."""
-
-    __slots__ = ("device", "present", "visible_if", "pending_errors", "error_errno")
-
-    def __init__(self, device: "SimulatedRegisterDevice", visible_if: Callable[[], bool] | None):
-        self.device = device
-        self.present = True
-        self.visible_if = visible_if
-        self.pending_errors = 0
-        self.error_errno = errno.EIO
-
-
-class SimulatedI2CBus(I2CBus):
+class SimulatedI2CBus(SimulatedBusBase, I2CBus):
     """A bus of simulated register devices on a simulation clock.
 
     clock: any object with ``now() -> float`` seconds (``ManualClock`` in tests, a
@@ -160,13 +149,10 @@ class SimulatedI2CBus(I2CBus):
     simulated = True
 
     def __init__(self, clock: Any, name: str = "sim-i2c", nack_errno: int = errno.ENXIO) -> None:
-        if not callable(getattr(clock, "now", None)):
-            raise TypeError(f"SimulatedI2CBus needs a clock with now() -> seconds, got {clock!r}")
-        self.clock = clock
+        self._init_clock(clock, "SimulatedI2CBus")
         self.name = name
         self.nack_errno = nack_errno
         self.transfers = 0
-        self._slots: dict[int, _Slot] = {}
 
     # ----------------------------------------------------------------- devices
     def attach(self, device: "SimulatedRegisterDevice",
@@ -180,7 +166,7 @@ class SimulatedI2CBus(I2CBus):
             other = self._slots[device.address].device
             raise ValueError(f"{self.name}: address 0x{device.address:02X} is already taken "
                              f"by {type(other).__name__}")
-        self._slots[device.address] = _Slot(device, visible_if)
+        self._slots[device.address] = SimulatedSlot(device, visible_if)
         device.power_on_reset(self.clock.now())
         return device
 
@@ -199,27 +185,11 @@ class SimulatedI2CBus(I2CBus):
         """Addresses that currently answer (like ``i2cdetect``)."""
         return sorted(a for a, s in self._slots.items() if self._answers(s))
 
-    # ----------------------------------------------------------------- faults
-    def inject_errors(self, address: int, count: int = 1, err: int = errno.EIO) -> None:
-        """The next ``count`` transfers to ``address`` raise ``OSError(err)`` (a bus glitch)."""
-        slot = self._slots[address]
-        slot.pending_errors += int(count)
-        slot.error_errno = err
-
-    def set_present(self, address: int, present: bool, power_cycle: bool = True) -> None:
-        """Makes the device at ``address`` vanish (it NACKs) or come back.
-
-        Coming back with ``power_cycle=True`` resets its registers to power-on values, as a
-        device that lost power or was re-plugged: the driver has to configure it again.
-        """
-        slot = self._slots[address]
-        if present and not slot.present and power_cycle:
-            slot.device.power_on_reset(self.clock.now())
-        slot.present = bool(present)
+    # faults: inject_errors(address, …) and set_present(address, …) (SimulatedBusBase)
 
     # ----------------------------------------------------------------- transfers
     @staticmethod
-    def _answers(slot: _Slot) -> bool:
+    def _answers(slot: SimulatedSlot) -> bool:
         return slot.present and (slot.visible_if is None or slot.visible_if())
 
     def _target(self, addr: int) -> "SimulatedRegisterDevice":
@@ -227,10 +197,9 @@ class SimulatedI2CBus(I2CBus):
         slot = self._slots.get(addr)
         if slot is None or not self._answers(slot):
             raise OSError(self.nack_errno, f"{self.name}: no ACK from address 0x{addr:02X}")
-        if slot.pending_errors > 0:
-            slot.pending_errors -= 1
-            raise OSError(slot.error_errno,
-                          f"{self.name}: injected transfer error at 0x{addr:02X}")
+        err = slot.injected_error(f"{self.name} at 0x{addr:02X}")
+        if err is not None:
+            raise err
         return slot.device
 
     def read_byte_data(self, addr: int, reg: int) -> int:
@@ -250,13 +219,3 @@ class SimulatedI2CBus(I2CBus):
     def write_i2c_block_data(self, addr: int, reg: int, data: Sequence[int]) -> None:
         _check_transfer(addr, reg, len(data))
         self._target(addr).bus_write(reg, list(data), self.clock.now())
-
-    def now_ns(self) -> int:
-        """The simulation clock's now, mapped to ns (``clock.to_ns`` when the clock has it)."""
-        t = self.clock.now()
-        to_ns = getattr(self.clock, "to_ns", None)
-        return to_ns(t) if to_ns is not None else int(round(t * 1e9))
-
-    def sleep(self, seconds: float) -> None:
-        # Simulated parts settle instantly; tests advance the clock themselves.
-        return None

@@ -59,6 +59,26 @@ class DeviceIdentityError(RuntimeError):
         )
 
 
+def run_retried(call: Callable[[], Any], retries: int, diagnostics: SourceDiagnostics,
+                error: Callable[[OSError], OSError]) -> Any:
+    """The one retry policy of every register transfer (I2C parts and the I2C/SPI transports):
+    ``call()`` is repeated on a transient ``OSError`` up to ``retries`` times; every failure is
+    counted in ``diagnostics.bus_errors`` (and each repeat in ``retries``), ``last_error`` holds
+    ``error(exc)``'s message, which is raised (from the cause) when the retries are spent."""
+    attempt = 0
+    while True:
+        try:
+            return call()
+        except OSError as exc:
+            diagnostics.bus_errors += 1
+            err = error(exc)
+            diagnostics.last_error = str(err)
+            if attempt >= retries:
+                raise err from exc
+            attempt += 1
+            diagnostics.retries += 1
+
+
 def _hex(b: bytes) -> str:
     return " ".join(f"0x{x:02X}" for x in b)
 
@@ -109,21 +129,10 @@ class I2CDevice:
     # ---------------------------------------------------------------- transfers
     def _transfer(self, fn: Callable[..., Any], reg: int, action: str, *args: Any) -> Any:
         """Runs one bus call, retrying transient OSErrors; all failures are counted."""
-        diag = self.diagnostics
-        attempt = 0
-        while True:
-            try:
-                return fn(self.address, reg, *args)
-            except OSError as exc:
-                diag.bus_errors += 1
-                # messages name the register as in the datasheet, without ST's increment flag
-                err = I2CDeviceError(self.bus.name, self.address, self.PART,
-                                     reg & ~self.AUTO_INCREMENT_FLAG, action, exc)
-                diag.last_error = str(err)
-                if attempt >= self.retries:
-                    raise err from exc
-                attempt += 1
-                diag.retries += 1
+        # messages name the register as in the datasheet, without ST's increment flag
+        return run_retried(lambda: fn(self.address, reg, *args), self.retries, self.diagnostics,
+                           lambda exc: I2CDeviceError(self.bus.name, self.address, self.PART,
+                                                      reg & ~self.AUTO_INCREMENT_FLAG, action, exc))
 
     def read_u8(self, reg: int) -> int:
         """One register byte (retried)."""
@@ -230,19 +239,14 @@ class FifoLayout:
 @dataclass(frozen=True, slots=True)
 class FifoStatus:
     """One read of a FIFO's status: ``level`` frames waiting, ``overflow`` (the part has
-    overwritten or dropped samples since the last reset)."""
+    overwritten or dropped samples since the last reset), ``level_read_ns``: the host time
+    (ns) at which the transfer that read the level began — the part latches its level while
+    that transfer runs, so the newest counted sample is at most its address phase younger:
+    the sensor clock's anchor (None where the caller takes it)."""
 
     level: int
     overflow: bool
-
-
-def overflow_loss(elapsed_ns: int, rate_hz: float, kept: int) -> int:
-    """Samples lost in an overflow, estimated from the sensor clock: the part produced about
-    ``elapsed_ns × rate_hz`` samples since the FIFO was last emptied and ``kept`` of them are
-    in it (parts that only flag an overrun do not count what they dropped). Never negative,
-    and at least 1: the part did report an overflow."""
-    produced = int(round(elapsed_ns * 1e-9 * rate_hz))
-    return max(1, produced - kept)
+    level_read_ns: int | None = None
 
 
 def watermark_frames(rate_hz: float, wakeup_hz: float, depth_frames: int) -> int:
@@ -287,6 +291,9 @@ class SimulatedRegisterDevice:
 
     PART = "simulated device"
     DEFAULT_ADDRESS = 0x00
+    #: the simulated unit's oscillator error (+0.007 = 0.7 % fast); 0 for parts polled on
+    #: the host's clock, a documented 0.5–2 % on every part read through its FIFO
+    CLOCK_ERROR = 0.0
     POWER_ON: dict[int, int] = {}
     WRITABLE: frozenset[int] = frozenset()
     ST_SUBADDRESS = False
@@ -307,8 +314,9 @@ class SimulatedRegisterDevice:
         self._t0: float | None = None  # start of the measurement schedule
         self._k = 0  # index of the last latched (or skipped) sample
         #: the part's oscillator error: it samples at (1 + clock_error) × its nominal rate
-        #: (real parts run 0.5–2 % off; the sensor clock recovery must find the true rate)
-        self.clock_error = 0.0
+        #: (real parts run 0.5–2 % off; the sensor clock recovery must find the true rate).
+        #: Each FIFO twin's default is its class's CLOCK_ERROR (a documented unit's error)
+        self.clock_error = float(self.CLOCK_ERROR)
         self.power_on_reset(0.0)
 
     # ----------------------------------------------------------------- state
@@ -334,6 +342,12 @@ class SimulatedRegisterDevice:
         self._t0 = None
 
     @property
+    def samples_due(self) -> int:
+        """Samples the part has produced since its measurement last (re)started: latched,
+        overrun or dropped by a full FIFO alike (the twin's own count, for tests)."""
+        return self._k
+
+    @property
     def measuring(self) -> bool:
         """True while the part produces samples (configured and powered up)."""
         return self._t0 is not None and bool(self.rate_hz())
@@ -341,6 +355,11 @@ class SimulatedRegisterDevice:
     def rate_hz(self) -> float | None:
         """Output data rate from the current configuration, or None when not measuring."""
         return None
+
+    def sampling_rate_hz(self) -> float | None:
+        """The rate the part really samples at: the configured one off by ``clock_error``."""
+        rate = self.rate_hz()
+        return rate * (1.0 + self.clock_error) if rate else None
 
     def locked(self) -> bool:
         """True while the part holds its output registers (no new data placed)."""
@@ -350,10 +369,9 @@ class SimulatedRegisterDevice:
         """Latches the newest sample due by ``now`` (older due samples are overrun/skipped)."""
         if self._t0 is None:
             return
-        rate = self.rate_hz()
+        rate = self.sampling_rate_hz()
         if not rate:
             return
-        rate *= 1.0 + self.clock_error
         # the tiny epsilon keeps a clock stepped exactly on the sample grid on the right side
         k = math.floor((now - self._t0) * rate + 1e-7)
         if k <= self._k or self.locked():
@@ -373,7 +391,8 @@ class SimulatedRegisterDevice:
     def _update_fifo(self, k: int, rate: float, room: int) -> None:
         """A part with its FIFO on takes every due sample in order: the ones that fit (plus
         one, so the part sees its own overflow) are latched; the rest are overflowed, the
-        oldest or the newest ones as the part's FIFO mode keeps (:meth:`fifo_keeps_oldest`)."""
+        oldest or the newest ones as the part's FIFO mode keeps (:meth:`fifo_keeps_oldest`),
+        without computing them. The one FIFO latching of every twin (I2C and SPI parts)."""
         due = k - self._k
         push = min(due, room + 1)
         first = self._k + 1 if self.fifo_keeps_oldest() else k - push + 1

@@ -7,7 +7,10 @@ Register map used (datasheet Doc ID 17116):
 0x20   CTRL_REG1    DR1 DR0 BW1 BW0 PD Zen Yen Xen; DR 00/01/10/11 = 100/200/400/800 Hz
 0x23   CTRL_REG4    BDU BLE FS1 FS0 – ST1 ST0 SIM; FS 00/01/10 = ±250/500/2000 °/s
 0x27   STATUS_REG   ZYXOR ZOR YOR XOR ZYXDA ZDA YDA XDA
+0x24   CTRL_REG5    bit 6 FIFO_EN (§7.6)
 0x28…  OUT_X_L…     X, Y, Z; little-endian (BLE = 0) two's complement
+0x2E   FIFO_CTRL    FM2:0, WTM4:0; 0x2F FIFO_SRC: WTM, OVRN, EMPTY, FSS4:0 — the 32-level
+                    FIFO, shared with the L3GD20 and LSM303DLHC: :mod:`.st_fifo` (§5.2, 7.16, 7.17)
 =====  ===========  ===========================================================
 
 ST sub-address rule: a multi-byte transfer auto-increments only when the MSB of the
@@ -32,6 +35,7 @@ from ahrs_service.drivers.i2c.device import (
     i16_bytes,
     to_counts,
 )
+from ahrs_service.drivers.i2c.st_fifo import SimulatedSTFifo, STFifoDriver
 
 WHO_AM_I, CTRL_REG1, CTRL_REG2, CTRL_REG3, CTRL_REG4, CTRL_REG5 = 0x0F, 0x20, 0x21, 0x22, 0x23, 0x24
 OUT_TEMP, STATUS_REG, OUT_X_L = 0x26, 0x27, 0x28
@@ -43,11 +47,12 @@ ZYXDA, ZYXOR = 0x08, 0x80
 _UNPACK = struct.Struct("<3h").unpack
 
 
-class L3G4200D(I2CDevice):
+class L3G4200D(STFifoDriver, I2CDevice):
     """L3G4200D driver: angular rate in rad/s, sensor axes.
 
     range_dps: 250, 500 or 2000. rate_hz: 100, 200, 400 or 800 (bandwidth code 0, the
-    narrowest filter of each rate).
+    narrowest filter of each rate). fifo: run the 32-level FIFO in stream mode with the
+    ``watermark`` (samples); off, the output registers are polled.
     """
 
     PART = "L3G4200D"
@@ -61,8 +66,9 @@ class L3G4200D(I2CDevice):
                                                 2000: (0b10, 70e-3)}
 
     def __init__(self, bus: I2CBus, address: int | None = None, *, range_dps: int = 2000,
-                 rate_hz: float = 800, **kw: Any) -> None:
+                 rate_hz: float = 800, fifo: bool = False, watermark: int = 8, **kw: Any) -> None:
         super().__init__(bus, address, **kw)
+        self.fifo, self.fifo_watermark = bool(fifo), int(watermark)
         if range_dps not in self.RANGES_DPS:
             raise ValueError(f"{self.PART} range_dps must be one of {sorted(self.RANGES_DPS)}, "
                              f"got {range_dps}")
@@ -81,6 +87,8 @@ class L3G4200D(I2CDevice):
         # BDU keeps the low and high byte of one axis from two different samples
         self.write_u8(CTRL_REG4, BDU | (self.RANGES_DPS[self.range_dps][0] << 4))
         self.write_u8(CTRL_REG1, (self.RATES_HZ[self.rate_hz] << 6) | PD_XYZ)
+        if self.fifo:
+            self.configure_fifo(self.fifo_watermark)
 
     def data_ready(self) -> bool:
         """STATUS_REG.ZYXDA: a new X/Y/Z set not read yet (overruns are counted, also in the
@@ -105,9 +113,11 @@ class L3G4200D(I2CDevice):
         return self.read_counts() if self.data_ready() else None
 
 
-class SimulatedL3G4200D(SimulatedRegisterDevice):
-    """Simulated L3G4200D: latches physics "gyr" at the DR rate while CTRL_REG1.PD is set."""
+class SimulatedL3G4200D(SimulatedSTFifo, SimulatedRegisterDevice):
+    """Simulated L3G4200D: latches physics "gyr" at the DR rate while CTRL_REG1.PD is set;
+    with CTRL_REG5.FIFO_EN every sample also enters the 32-level FIFO (:mod:`.st_fifo`)."""
 
+    CLOCK_ERROR = -0.0060  # this simulated unit runs 0.6 % slow
     PART = "L3G4200D"
     DEFAULT_ADDRESS = 0x69
     ST_SUBADDRESS = True
@@ -119,12 +129,14 @@ class SimulatedL3G4200D(SimulatedRegisterDevice):
                           0x25, 0x2E, 0x30, 0x32, 0x33, 0x34, 0x35, 0x36, 0x37, 0x38})
 
     def reset_state(self, now: float) -> None:
+        super().reset_state(now)
         self.regs[WHO_AM_I] = self.WHO_AM_I_VALUE
 
     def rate_hz(self) -> float:
         return self.RATES[self.regs[CTRL_REG1] >> 6]
 
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
+        super().on_write(reg, value, old, now)  # the FIFO's registers
         if reg == CTRL_REG1:
             if value & 0x08 and (not old & 0x08 or (value ^ old) & 0xC0):
                 self.restart_measurement(now)
@@ -146,6 +158,7 @@ class SimulatedL3G4200D(SimulatedRegisterDevice):
         temp = phys.get("temperature_c")
         if temp is not None:  # 8-bit, −1 LSB/°C; the offset is not specified, 25 °C reads 0 here
             self.regs[OUT_TEMP] = to_counts(25.0 - temp, 1.0, -128, 127) & 0xFF
+        self._fifo_push(phys.get("truth"))
 
     def on_read(self, regs: list[int], now: float) -> None:
         status = self.regs[STATUS_REG]

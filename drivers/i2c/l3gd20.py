@@ -1,7 +1,9 @@
 """ST L3GD20 3-axis gyroscope (the MinIMU-9 v2's gyro), and its twin.
 
 Same register map as the L3G4200D (see :mod:`ahrs_service.drivers.i2c.l3g4200d`) except:
-WHO_AM_I (0x0F) reads 0xD4, and the DR bits give 95 / 190 / 380 / 760 Hz. Sensitivity
+WHO_AM_I (0x0F) reads 0xD4, and the DR bits give 95 / 190 / 380 / 760 Hz. Its 32-level FIFO
+(datasheet Doc ID 022116 §4.2, FIFO_CTRL_REG 0x2E, FIFO_SRC_REG 0x2F) is the L3G4200D's:
+:mod:`ahrs_service.drivers.i2c.st_fifo`. Sensitivity
 8.75 / 17.50 / 70 m°/s per digit at ±250 / 500 / 2000 °/s. I2C address 0x6B (SA0 high, the
 MinIMU-9 v2) or 0x6A. The L3GD20H (0xD7, MinIMU-9 v3) is a different part and is refused.
 """
@@ -33,6 +35,7 @@ class L3GD20(L3G4200D):
 class SimulatedL3GD20(SimulatedL3G4200D):
     """Simulated L3GD20 (WHO_AM_I 0xD4, 95…760 Hz)."""
 
+    CLOCK_ERROR = +0.0050  # this simulated unit runs 0.5 % fast
     PART = "L3GD20"
     DEFAULT_ADDRESS = 0x6B
     WHO_AM_I_VALUE = 0xD4

@@ -8,7 +8,10 @@ Accelerometer, 0x19 (register map of datasheet Doc ID 018771):
 0x20   CTRL_REG1_A   ODR3:0 LPen Zen Yen Xen; ODR 1/10/25/50/100/200/400 Hz, 1344 Hz (code 9)
 0x23   CTRL_REG4_A   BDU BLE FS1 FS0 HR 0 0 SIM; FS ±2/4/8/16 g; HR = 12-bit output
 0x27   STATUS_REG_A  ZYXOR … ZYXDA ZDA YDA XDA (DA bits clear when the high bytes are read)
+0x24   CTRL_REG5_A   bit 6 FIFO_EN
 0x28…  OUT_X_L_A…    X, Y, Z little-endian, left-justified 12-bit (shift right by 4)
+0x2E   FIFO_CTRL_A   FM1:0 (bits 7:6), TR, FTH4:0; 0x2F FIFO_SRC_REG_A — the 32-level FIFO
+                     (§3.3), the same block as the ST gyroscopes': :mod:`.st_fifo`
 =====  ============  ========================================================
 
 Sensitivity in high-resolution mode: 1, 2, 4, 12 mg/LSB at ±2, 4, 8, 16 g (the datasheet's
@@ -44,6 +47,7 @@ from ahrs_service.drivers.i2c.device import (
     i16_bytes,
     to_counts,
 )
+from ahrs_service.drivers.i2c.st_fifo import SimulatedSTFifo, STFifoDriver
 from ahrs_service.drivers.i2c.hmc5883l import (
     HoneywellStyleMagnetometer,
     SimulatedHoneywellStyleMagnetometer,
@@ -64,19 +68,23 @@ _ACC_MG_PER_LSB = (1.0, 2.0, 4.0, 12.0)
 _UNPACK = struct.Struct("<3h").unpack
 
 
-class LSM303DLHCAcc(I2CDevice):
+class LSM303DLHCAcc(STFifoDriver, I2CDevice):
     """LSM303DLHC accelerometer driver (high-resolution 12-bit): specific force in m/s².
 
-    range_g: 2, 4, 8 or 16. rate_hz: 1, 10, 25, 50, 100, 200, 400 or 1344.
+    range_g: 2, 4, 8 or 16. rate_hz: 1, 10, 25, 50, 100, 200, 400 or 1344. fifo: run the
+    32-level FIFO in stream mode with the ``watermark`` (samples).
     """
+
+    FM_SHIFT = 6
 
     PART = "LSM303DLHC accelerometer"
     DEFAULT_ADDRESS = 0x19
     AUTO_INCREMENT_FLAG = AUTO_INCREMENT
 
     def __init__(self, bus: I2CBus, address: int | None = None, *, range_g: int = 8,
-                 rate_hz: float = 1344, **kw: Any) -> None:
+                 rate_hz: float = 1344, fifo: bool = False, watermark: int = 8, **kw: Any) -> None:
         super().__init__(bus, address, **kw)
+        self.fifo, self.fifo_watermark = bool(fifo), int(watermark)
         if range_g not in ACC_RANGES_G:
             raise ValueError(f"{self.PART} range_g must be one of {sorted(ACC_RANGES_G)}, got {range_g}")
         if rate_hz not in ACC_RATES_HZ:
@@ -98,6 +106,8 @@ class LSM303DLHCAcc(I2CDevice):
                             "CTRL_REG4_A")
         self.write_verified(CTRL_REG1_A, (ACC_RATES_HZ[self.rate_hz] << 4) | XYZ_EN,
                             "CTRL_REG1_A")
+        if self.fifo:
+            self.configure_fifo(self.fifo_watermark)
 
     def data_ready(self) -> bool:
         """STATUS_REG_A.ZYXDA: a new X/Y/Z set not read yet."""
@@ -129,9 +139,13 @@ class LSM303DLHCMag(HoneywellStyleMagnetometer):
         super().__init__(bus, address, range_ga=range_ga, rate_hz=rate_hz, **kw)
 
 
-class SimulatedLSM303DLHCAcc(SimulatedRegisterDevice):
-    """Simulated LSM303DLHC accelerometer: latches physics "acc" at the CTRL_REG1_A rate."""
+class SimulatedLSM303DLHCAcc(SimulatedSTFifo, SimulatedRegisterDevice):
+    """Simulated LSM303DLHC accelerometer: latches physics "acc" at the CTRL_REG1_A rate;
+    with CTRL_REG5_A.FIFO_EN every sample also enters the 32-level FIFO (:mod:`.st_fifo`)."""
 
+    FM_SHIFT = 6
+
+    CLOCK_ERROR = -0.0110  # this simulated unit runs 1.1 % slow
     PART = "LSM303DLHC accelerometer"
     DEFAULT_ADDRESS = 0x19
     ST_SUBADDRESS = True
@@ -144,6 +158,7 @@ class SimulatedLSM303DLHCAcc(SimulatedRegisterDevice):
         return ACC_RATES_BY_CODE[code] if code < len(ACC_RATES_BY_CODE) else None
 
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
+        super().on_write(reg, value, old, now)  # the FIFO's registers
         if reg == CTRL_REG1_A and (value ^ old) & 0xF0:
             if value >> 4:
                 self.restart_measurement(now)
@@ -163,6 +178,7 @@ class SimulatedLSM303DLHCAcc(SimulatedRegisterDevice):
         for i, a in enumerate(phys["acc"]):
             c = to_counts(a, lsb, lo, hi) << (16 - bits)
             self.regs[OUT_X_L_A + 2 * i: OUT_X_L_A + 2 * i + 2] = bytes(i16_bytes(c, big))
+        self._fifo_push(phys.get("truth"))
 
     def on_read(self, regs: list[int], now: float) -> None:
         status = self.regs[STATUS_REG_A]

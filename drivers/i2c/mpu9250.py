@@ -147,15 +147,19 @@ class MPU9250(I2CDevice):
 
     # ---------------------------------------------------------------- FIFO
     def fifo_reset(self) -> None:
-        """Empties the FIFO and (re)starts filling it (USER_CTRL FIFO_RST + FIFO_EN)."""
+        """Empties the FIFO and (re)starts filling it (USER_CTRL FIFO_RST + FIFO_EN), then
+        reads INT_STATUS: an overflow flagged before the reset must not show at the next
+        drain as a new one."""
         self.write_u8(USER_CTRL, USER_FIFO_EN | USER_FIFO_RST)
+        self.read_u8(INT_STATUS)
 
     def fifo_status(self) -> FifoStatus:
         """Whole samples waiting and the overflow flag (INT_STATUS, then FIFO_COUNT: reading
         the status first means a sample arriving in between is counted, never lost)."""
         overflow = bool(self.read_u8(INT_STATUS) & FIFO_OFLOW)
+        t = self.bus.now_ns()
         hi, lo = self.read_block(FIFO_COUNTH, 2)
-        return FifoStatus(((hi & 0x1F) << 8 | lo) // FIFO_FRAME_BYTES, overflow)
+        return FifoStatus(((hi & 0x1F) << 8 | lo) // FIFO_FRAME_BYTES, overflow, t)
 
     def read_fifo(self, frames: int) -> tuple[np.ndarray, np.ndarray]:
         """``frames`` samples from the FIFO, oldest first: (accel counts, gyro counts), each
@@ -213,6 +217,7 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
     ``bypass_enabled()`` tells the bus whether the attached AK8963 is reachable.
     """
 
+    CLOCK_ERROR = +0.0070  # this simulated unit runs 0.7 % fast
     PART = "MPU-9250"
     DEFAULT_ADDRESS = 0x68
     POWER_ON = {PWR_MGMT_1: CLKSEL_PLL, WHO_AM_I: 0x71}
@@ -227,6 +232,7 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
         self.regs[WHO_AM_I] = self.who_am_i
         self.fifo = bytearray()
         self.fifo_overflowed = 0  # samples that did not fit, since power-on (for tests)
+        self.fifo_discarded = 0  # samples a FIFO_RST emptied unread, since power-on (for tests)
         # (sample time s, physics "truth") of each sample in the FIFO, oldest first: what a
         # test or the simulated board compares the driver's rows with (not a register)
         self.fifo_samples: deque[tuple[float, Any]] = deque()
@@ -251,6 +257,11 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
         """Bytes one sample writes: 6 for the accelerometer, 2 for TEMP, 2 per gyro axis."""
         en = self.regs[FIFO_EN_REG]
         return 2 * bin(en & 0x70).count("1") + (6 if en & 0x08 else 0) + (2 if en & 0x80 else 0)
+
+    @property
+    def fifo_frames(self) -> int:
+        """Whole samples in the FIFO now (for tests)."""
+        return len(self.fifo) // max(1, self.frame_bytes())
 
     def fifo_room(self) -> int | None:
         if not self.fifo_enabled():
@@ -308,6 +319,7 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
 
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
         if reg == USER_CTRL and value & USER_FIFO_RST:
+            self.fifo_discarded += len(self.fifo) // max(1, self.frame_bytes())
             self.fifo.clear()
             self.fifo_samples.clear()
             self.regs[USER_CTRL] = value & ~USER_FIFO_RST  # self-clearing

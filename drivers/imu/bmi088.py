@@ -194,6 +194,7 @@ class BMI088Gyro(TransportDevice):
 
     def flush(self) -> None:
         self.write_u8(GYRO_FIFO_CONFIG_1, 0x40)
+        self.read_status()  # an overrun flagged before the flush must not show as a new one
 
     def read_status(self) -> tuple[int, bool]:
         """(frames waiting, overrun) from FIFO_STATUS."""
@@ -272,7 +273,7 @@ class SimulatedBMI088Accel(_BMI088Die):
 
     def reset_state(self, now: float) -> None:
         super().reset_state(now)
-        self.fifo = SimulatedFifo(ACC_FIFO_BYTES, stop_on_full=True)
+        self.fifo = SimulatedFifo(ACC_FIFO_BYTES, stop_on_full=True, frame=ACC_FRAME)
         self.spi_mode = False
         self.restart_measurement(now)
 
@@ -341,7 +342,7 @@ class SimulatedBMI088Gyro(_BMI088Die):
 
     def reset_state(self, now: float) -> None:
         super().reset_state(now)
-        self.fifo = SimulatedFifo(GYRO_FIFO_FRAMES * GYRO_FRAME, stop_on_full=True)
+        self.fifo = SimulatedFifo(GYRO_FIFO_FRAMES * GYRO_FRAME, stop_on_full=True, frame=GYRO_FRAME)
         self.restart_measurement(now)
 
     def nominal_rate_hz(self) -> float | None:

@@ -24,16 +24,12 @@ from typing import Any
 import numpy as np
 
 from ahrs_service.drivers.base import (
-    ACC_SATURATED,
-    ACC_VALID,
-    GYR_SATURATED,
-    GYR_VALID,
     ImuSample,
     ImuSource,
     LossCounts,
     SampleBlock,
 )
-from ahrs_service.drivers.fifo import SensorClock
+from ahrs_service.drivers.fifo import FifoTimeline, SensorClock, burst_flags, hold_pairing
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, watermark_frames
 from ahrs_service.drivers.imu import icm42688p
 from ahrs_service.drivers.transport import RegisterTransport, check_bus_rate
@@ -45,12 +41,15 @@ class FifoBoard(ImuSource):
     NAME = ""
     has_mag = False
     may_have_backlog = True
+    times_on_sensor_clock = True  # each row timed by its position in the burst
     #: the FIFO watermark line, when wired (``source.drdy_gpio``); the service then waits on it
     data_ready_line = None
     #: bursts per second the watermark is set for (the data-ready line's edge rate), Hz
     wakeup_rate_hz = 1000.0
     #: whether the part raises a FIFO watermark interrupt a data-ready line can wait for
     HAS_WATERMARK_LINE = True
+    #: samples the part's FIFO holds (a burst reads at most this many)
+    FIFO_FRAMES = 128
 
     def __init__(self, transport: RegisterTransport, *, retries: int = 2,
                  reinit_period_s: float = 0.05, own_bus: Any = None) -> None:
@@ -64,11 +63,16 @@ class FifoBoard(ImuSource):
         self._last_attempt_ns = 0
         self._opened = False
         self._rows: deque[ImuSample] = deque()
-        self.clock: SensorClock | None = None
-        self._next_index = 0
-        self._lost_pending = LossCounts()
+        self._drained: deque[SampleBlock] = deque()  # rows drained, not handed out yet
+        #: the part's samples on its own clock: indices, times, losses (drivers/fifo.py)
+        self.timeline: FifoTimeline | None = None
         self._overflow_pending = False
         self.diagnostics.extra["fifo_overflows"] = 0
+
+    @property
+    def clock(self) -> SensorClock | None:
+        """The row part's sensor clock (its tracked rate: ``clock.rate_hz``)."""
+        return None if self.timeline is None else self.timeline.clock
 
     def _kw(self) -> dict[str, Any]:
         return {"diagnostics": self.diagnostics, "retries": self.retries}
@@ -77,6 +81,7 @@ class FifoBoard(ImuSource):
     def open(self) -> None:
         self._configure()
         self._opened = True
+        self._sim_base = self._sim_fifo_dropped() if self.transport.simulated else 0
 
     def _configure(self) -> None:
         raise NotImplementedError
@@ -107,30 +112,58 @@ class FifoBoard(ImuSource):
             self.diagnostics.last_error = f"{self.NAME} still lost: {exc}"
             return False
         # the samples the part would have produced meanwhile are lost (bus error)
-        if self.clock is not None and self.clock._idx:
-            idx = self.clock.index_at(self.transport.now_ns())
-            lost = max(0, idx + 1 - self._next_index)
-            self.diagnostics.lost.bus_error += lost
-            self._next_index += lost
-            self._lost_pending.bus_error += lost
+        self.timeline.missed(self.transport.now_ns())
         self.lost = False
         self.diagnostics.device_lost = False
         self.diagnostics.reinitialisations += 1
         return True
 
     # ------------------------------------------------------------------ samples
+    #: rows the host may hold drained but not handed out, in FIFO depths: beyond that (a
+    #: consumer slower than the part) the FIFO is left to fill and its overflow is counted
+    HOST_QUEUE_DEPTHS = 4
+
     def read_block(self, max_samples: int = 128) -> SampleBlock:
-        """The rows read from the FIFO now, at most ``max_samples`` (empty: nothing new, or
-        the part is lost); a FIFO holding more keeps the rest for the next call."""
+        """At most ``max_samples`` rows, oldest first (empty: nothing new, or the part is lost).
+
+        Every call empties the part's FIFO (all whole packets, in as few transfers as the
+        transport carries) and keeps the rows beyond ``max_samples`` on the host for the next
+        calls: a consumer that takes a few rows a tick after a stall must not leave the FIFO
+        near full while it catches up (at 1 kHz an 80 ms stop on a busy host left the 102-
+        sample FIFO 2–3 samples short of full, and taking 16 rows a tick filled it). A block
+        ends at a loss: the rows after a gap come in the next call."""
         if not self._opened:
             raise RuntimeError(f"{self.NAME} on {self.transport.where}: read before open()")
-        if self.lost and not self._recover():
-            return SampleBlock.empty()
-        try:
-            return self._burst(max_samples)
-        except OSError as exc:
-            self._mark_lost(exc)
-            return SampleBlock.empty()
+        if (not self.lost or self._recover()) and \
+                self.pending < self.HOST_QUEUE_DEPTHS * self.FIFO_FRAMES:
+            try:
+                block = self._burst(self.FIFO_FRAMES)
+            except OSError as exc:
+                self._mark_lost(exc)
+            else:
+                if len(block) or block.lost.total:
+                    self._drained.append(block)
+            if self.transport.simulated:
+                # the twin's own count of the samples its FIFO turned away or had flushed
+                # unread since the first read, beside the driver's estimate (the stall tests)
+                self.diagnostics.extra["sim_fifo_dropped"] = self._sim_fifo_dropped() - self._sim_base
+        # the queued rows, oldest first, up to max_samples and up to the next loss
+        taken: list[SampleBlock] = []
+        room = max_samples
+        while self._drained and room > 0 and (not taken or not self._drained[0].lost.total):
+            first = self._drained[0]
+            if len(first) <= room:
+                taken.append(self._drained.popleft())
+            else:
+                head, self._drained[0] = first.split(room)
+                taken.append(head)
+            room -= len(taken[-1])
+        return SampleBlock.concat(taken) if taken else SampleBlock.empty()
+
+    @property
+    def pending(self) -> int:
+        """Rows drained from the FIFO that have not been handed out yet."""
+        return sum(len(b) for b in self._drained) + len(self._rows)
 
     def read(self) -> ImuSample | None:
         """The oldest row not yet handed out (a burst is read when none is left)."""
@@ -144,16 +177,33 @@ class FifoBoard(ImuSource):
     def _burst(self, max_samples: int) -> SampleBlock:
         raise NotImplementedError
 
+    def _stale_start(self, part: Any) -> bool:
+        """An overflow found before the first read was timed (the FIFO filled between
+        ``open`` and the consumer's first read: the service sets up its log and links in
+        between): those samples predate the consumer, not a loss — the FIFO is flushed and
+        nothing counted (as on the I2C boards). True when that was the case."""
+        if self.timeline.anchored:
+            return False
+        part.flush()
+        self._overflow_pending = False
+        if self.transport.simulated:
+            _twin(self.transport).take_popped_truth()
+            self._sim_base = self._sim_fifo_dropped()
+        return True
+
+    def _sim_fifo_dropped(self) -> int:
+        fifo = _twin(self.transport).fifo
+        return fifo.dropped + fifo.discarded
+
     def _take_loss(self) -> LossCounts:
-        lost, self._lost_pending = self._lost_pending, LossCounts()
-        return lost
+        return self.timeline.take_loss()
+
+    def _empty(self) -> SampleBlock:
+        """No rows: an empty block, carrying a loss found meanwhile."""
+        return SampleBlock.empty(self._take_loss()) if self.timeline.loss_pending else SampleBlock.empty()
 
     def _flags(self, gyr_counts: np.ndarray, acc_counts: np.ndarray, gfs: int, afs: int) -> np.ndarray:
-        gsat = (np.abs(gyr_counts) >= gfs).any(axis=1)
-        asat = (np.abs(acc_counts) >= afs).any(axis=1)
-        flags = np.where(gsat, GYR_SATURATED, GYR_VALID) | np.where(asat, ACC_SATURATED, ACC_VALID)
-        self.diagnostics.saturated += int(gsat.sum() + asat.sum())
-        return flags
+        return burst_flags(gyr_counts, acc_counts, gfs, afs, self.diagnostics)
 
 
 class ICM42688PBoard(FifoBoard):
@@ -165,6 +215,7 @@ class ICM42688PBoard(FifoBoard):
 
     NAME = "icm42688p"
     PART = icm42688p.ICM42688P
+    FIFO_FRAMES = icm42688p.FIFO_BYTES // icm42688p.PACKET
 
     def __init__(self, transport: RegisterTransport, *, odr_hz: float = 1000,
                  fifo_read_hz: float = 1000, watermark: int | None = None, **kw: Any) -> None:
@@ -182,12 +233,16 @@ class ICM42688PBoard(FifoBoard):
 
     def _configure(self) -> None:
         self.part.configure()
-        if self.clock is None:
-            self.clock = SensorClock(self.odr_hz)
+        if self.timeline is None:
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics)
 
     def _burst(self, max_samples: int) -> SampleBlock:
         part = self.part
+        # the anchor: the part latches its level during this transfer, the newest sample
+        # counted is at most its command phase younger than the transfer's start
+        host = self.transport.now_ns()
         status, count = part.read_status()
+        host_done = self.transport.now_ns()
         if count > icm42688p.FIFO_BYTES:
             # a count the part cannot hold: a garbled transfer or no part (SPI reads 0xFF)
             raise OSError(5, f"FIFO count {count} > {icm42688p.FIFO_BYTES}: bad transfer or part gone")
@@ -195,29 +250,23 @@ class ICM42688PBoard(FifoBoard):
         self._overflow_pending |= bool(status & icm42688p.FIFO_FULL_INT)
         packets = min(count // icm42688p.PACKET, max_samples)
         if packets == 0:
-            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+            return self._empty()
         pk = part.read_packets(packets * icm42688p.PACKET)
-        host = self.transport.now_ns()
         drained = packets * icm42688p.PACKET > count - icm42688p.PACKET
         overflow = self._overflow_pending
+        if overflow and self._stale_start(part):
+            return SampleBlock.empty()
         header = pk["header"]
         ok = ((header & 0xFC) == icm42688p.HIRES_HEADER) & \
             (pk["acc20"] != icm42688p.INVALID_20BIT).all(axis=1) & \
             (pk["gyr20"] != icm42688p.INVALID_20BIT).all(axis=1)
-        first = self._next_index
-        self._next_index += len(header)
         lost = self._take_loss()
-        # a full FIFO's newest sample is older than the read: not a clock anchor
-        t = self.clock.stamp(host, first, len(header), anchor=not overflow)[ok]
+        # a full FIFO's newest sample is older than the read: timed from the clock's fit
+        t = self.timeline.stamp(host, len(header), full=overflow, read_end_ns=host_done)[ok]
         if overflow and drained:
             part.flush()
             self._overflow_pending = False
-            self.diagnostics.extra["fifo_overflows"] += 1
-            produced = self.clock.index_at(self.transport.now_ns())
-            n_lost = max(1, produced + 1 - self._next_index)  # the part did report one
-            self.diagnostics.lost.fifo_overflow += n_lost
-            self._next_index += n_lost
-            self._lost_pending.fifo_overflow += n_lost
+            self.timeline.overflowed(self.transport.now_ns())  # stop-on-full: the rest after
         n = int(ok.sum())
         self.diagnostics.samples += n
         gyr_c, acc_c = pk["gyr"][ok].astype(np.int64), pk["acc"][ok].astype(np.int64)
@@ -244,10 +293,11 @@ class BMI088Board(FifoBoard):
     """Bosch BMI088 on SPI: the gyroscope die (``transport``, drives the rows) and the
     accelerometer die (``acc_transport``, one dummy byte per read), each with its FIFO.
 
-    **Pairing rule** (two dies, two oscillators): every gyroscope sample is one row; its
-    accelerometer value is the newest accelerometer sample whose own sensor-clock time is at
-    or before the row's time (zero-order hold, never a sample from the row's future). Rows
-    before the first accelerometer sample after start are not emitted. The accelerometer's
+    **Pairing rule** (two dies, two oscillators; :func:`~ahrs_service.drivers.fifo.hold_pairing`,
+    shared with the I2C boards): every gyroscope sample is one row; its accelerometer value
+    is the newest accelerometer sample whose own sensor-clock time is at or before the row's
+    time (zero-order hold, never a sample from the row's future). Rows before the first
+    accelerometer sample after start are not emitted. The accelerometer's
     overflows are counted in ``diagnostics.extra["acc_fifo_overflows"]`` (they cost no rows:
     the held value bridges them) and do not count as lost samples.
 
@@ -256,6 +306,7 @@ class BMI088Board(FifoBoard):
     """
 
     NAME = "bmi088"
+    FIFO_FRAMES = 100  # the gyroscope die's FIFO (bmi088.GYRO_FIFO_FRAMES)
 
     def __init__(self, transport: RegisterTransport, *, acc_transport: RegisterTransport,
                  odr_hz: float = 2000, acc_odr_hz: float = 1600, gyro_range_dps: int = 2000,
@@ -290,53 +341,53 @@ class BMI088Board(FifoBoard):
     def _configure(self) -> None:
         self.acc.configure()
         self.gyro.configure()
-        if self.clock is None:
-            self.clock = SensorClock(self.odr_hz)
-            self.acc_clock = SensorClock(self.acc.odr_hz)
-            self._acc_next = 0
+        if self.timeline is None:
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics)
+            # the accelerometer's samples are held by the pairing rule: its overflows cost
+            # no rows, they are counted as events
+            self.acc_timeline = FifoTimeline(self.acc.odr_hz, self.diagnostics,
+                                             events_key="acc_fifo_overflows", rows=False)
             self._acc_t = np.empty(0, np.int64)
             self._acc_c = np.empty((0, 3), np.int64)
 
     def _read_acc(self) -> None:
         bmi = self._bmi
+        host = self.acc_transport.now_ns()  # the level read's start: the anchor
         level = self.acc.read_level()
+        host_done = self.acc_transport.now_ns()
         counts, full = self.acc.read_frames(level // bmi.ACC_FRAME * bmi.ACC_FRAME)
-        host = self.acc_transport.now_ns()
         if len(counts):
-            t = self.acc_clock.stamp(host, self._acc_next, len(counts), anchor=not full)
-            self._acc_next += len(counts)
+            t = self.acc_timeline.stamp(host, len(counts), full=full, read_end_ns=host_done)
             self._acc_t = np.concatenate([self._acc_t[-1:], t])
             self._acc_c = np.concatenate([self._acc_c[-1:], counts])
         if full:
             self.acc.flush()
-            self.diagnostics.extra["acc_fifo_overflows"] += 1
-            self._acc_next = self.acc_clock.index_at(self.acc_transport.now_ns()) + 1
+            self.acc_timeline.overflowed(self.acc_transport.now_ns())
 
     def _burst(self, max_samples: int) -> SampleBlock:
         gyro = self.gyro
+        # the anchor: the part latches its level during this transfer, the newest sample
+        # counted is at most its command phase younger than the transfer's start
+        host = self.transport.now_ns()
         frames, overrun = gyro.read_status()
+        host_done = self.transport.now_ns()
         self._overflow_pending |= overrun
         take = min(frames, max_samples)
         g = gyro.read_frames(take) if take else np.empty((0, 3), np.int64)
-        host = self.transport.now_ns()
         self._read_acc()
         if take == 0:
-            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+            return self._empty()
         overflow = self._overflow_pending
-        first = self._next_index
-        self._next_index += take
+        if overflow and self._stale_start(gyro):
+            _twin(self.transport).take_popped_truth()
+            return SampleBlock.empty()
         lost = self._take_loss()
-        t = self.clock.stamp(host, first, take, anchor=not overflow)
+        t = self.timeline.stamp(host, take, full=overflow, read_end_ns=host_done)
         if overflow and take == frames:
             gyro.flush()
             self._overflow_pending = False
-            self.diagnostics.extra["fifo_overflows"] += 1
-            n_lost = max(1, self.clock.index_at(self.transport.now_ns()) + 1 - self._next_index)
-            self.diagnostics.lost.fifo_overflow += n_lost
-            self._next_index += n_lost
-            self._lost_pending.fifo_overflow += n_lost
-        # pairing: the newest accelerometer sample at or before each gyro row
-        idx = np.searchsorted(self._acc_t, t, side="right") - 1
+            self.timeline.overflowed(self.transport.now_ns())
+        idx = hold_pairing(t, self._acc_t)  # the rule of drivers/fifo.py
         ok = idx >= 0
         truth = None
         if self.transport.simulated:
@@ -365,6 +416,7 @@ class ICM20948Board(FifoBoard):
     """
 
     NAME = "icm20948"
+    FIFO_FRAMES = 512 // 21 + 4  # icm20948.FIFO_BYTES // PACKET, and the count's slack (FIFO_BYTES + 64)
     has_mag = True
     HAS_WATERMARK_LINE = False
 
@@ -383,36 +435,35 @@ class ICM20948Board(FifoBoard):
 
     def _configure(self) -> None:
         self.part.configure()
-        if self.clock is None:
-            self.clock = SensorClock(self.odr_hz)
+        if self.timeline is None:
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics)
 
     def _burst(self, max_samples: int) -> SampleBlock:
         from ahrs_service.drivers.base import MAG_NEW, MAG_SATURATED, MAG_VALID
 
         icm, part = self._icm, self.part
+        # the anchor: the part latches its level during this transfer, the newest sample
+        # counted is at most its command phase younger than the transfer's start
+        host = self.transport.now_ns()
         overflow, count = part.read_status()
+        host_done = self.transport.now_ns()
         if count > icm.FIFO_BYTES + 64:
             raise OSError(5, f"FIFO count {count} > {icm.FIFO_BYTES}: bad transfer or part gone")
         self._overflow_pending |= overflow
         packets = min(count // icm.PACKET, max_samples)
         if packets == 0:
-            return SampleBlock.empty(self._take_loss()) if self._lost_pending.total else SampleBlock.empty()
+            return self._empty()
         p = part.read_packets(packets)
-        host = self.transport.now_ns()
         drained = packets * icm.PACKET > count - icm.PACKET
         overflow = self._overflow_pending
-        first = self._next_index
-        self._next_index += packets
+        if overflow and self._stale_start(part):
+            return SampleBlock.empty()
         lost = self._take_loss()
-        t = self.clock.stamp(host, first, packets, anchor=not overflow)
+        t = self.timeline.stamp(host, packets, full=overflow, read_end_ns=host_done)
         if overflow and drained:
             part.flush()
             self._overflow_pending = False
-            self.diagnostics.extra["fifo_overflows"] += 1
-            n_lost = max(1, self.clock.index_at(self.transport.now_ns()) + 1 - self._next_index)
-            self.diagnostics.lost.fifo_overflow += n_lost
-            self._next_index += n_lost
-            self._lost_pending.fifo_overflow += n_lost
+            self.timeline.overflowed(self.transport.now_ns())
         acc_c, gyr_c = p[:, 0:3], p[:, 3:6]
         st1, mag_c, st2 = p[:, 6], p[:, 7:10], p[:, 11]
         new = (st1 & 0x01) != 0

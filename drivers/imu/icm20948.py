@@ -178,6 +178,7 @@ class ICM20948(TransportDevice):
         self.bank(0)
         self.write_u8(FIFO_RST, 0x1F)
         self.write_u8(FIFO_RST, 0x00)
+        self.read_status()  # clears an overflow flag raised before the reset
 
     def read_status(self) -> tuple[bool, int]:
         """(overflow, FIFO count in bytes)."""
@@ -231,7 +232,7 @@ class SimulatedICM20948(SimulatedFifoDevice):
         self.banks[0][PWR_MGMT_1] = SLEEP | CLKSEL_AUTO
         self.banks[2][GYRO_CONFIG_1] = 0x01
         self.banks[2][ACCEL_CONFIG] = 0x01
-        self.fifo = SimulatedFifo(FIFO_BYTES, stop_on_full=True)
+        self.fifo = SimulatedFifo(FIFO_BYTES, stop_on_full=True, frame=PACKET)
         self.truth: deque = deque()
         self.popped_truth: list = []
         if self.aux is not None:

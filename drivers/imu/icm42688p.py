@@ -148,8 +148,11 @@ class ICM42688P(TransportDevice):
         self.flush()
 
     def flush(self) -> None:
-        """Empties the FIFO (after an overflow)."""
+        """Empties the FIFO (after an overflow), then reads INT_STATUS: a FIFO_FULL raised
+        before the flush (by samples turned away while the full FIFO was being read) must not
+        show at the next read as a new overflow."""
         self.write_u8(SIGNAL_PATH_RESET, FIFO_FLUSH)
+        self.read_status()
 
     def read_status(self) -> tuple[int, int]:
         """(INT_STATUS, FIFO count in bytes) in one 3-byte read (reading clears INT_STATUS)."""
@@ -190,7 +193,7 @@ class SimulatedICM42688P(SimulatedFifoDevice):
         super().__init__(source, address, clock_error)
 
     def reset_state(self, now: float) -> None:
-        self.fifo = SimulatedFifo(FIFO_BYTES, stop_on_full=True)
+        self.fifo = SimulatedFifo(FIFO_BYTES, stop_on_full=True, frame=PACKET)
         self.truth: deque = deque()  # the true attitude of each packet in the FIFO (simulation only)
         self.popped_truth: list = []  # … of the packets read out since take_popped_truth()
         self._above_wm = False

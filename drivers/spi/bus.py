@@ -24,6 +24,8 @@ import os
 import time
 from typing import TYPE_CHECKING, Any
 
+from ahrs_service.drivers.sim_bus import SimulatedBusBase, SimulatedSlot
+
 if TYPE_CHECKING:  # pragma: no cover
     from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice
 
@@ -124,16 +126,7 @@ class SpidevSPI(SPIBus):
         self._dev.clear()
 
 
-class _Slot:
-    __slots__ = ("device", "present", "pending_errors")
-
-    def __init__(self, device: "SimulatedRegisterDevice") -> None:
-        self.device = device
-        self.present = True
-        self.pending_errors = 0
-
-
-class SimulatedSPIBus(SPIBus):
+class SimulatedSPIBus(SimulatedBusBase, SPIBus):
     """Simulated register devices on chip selects, on ``clock`` (``now()`` in s, ``to_ns``).
 
     ``transfers`` counts transfers, ``bytes_moved`` the bytes clocked.
@@ -142,19 +135,17 @@ class SimulatedSPIBus(SPIBus):
     simulated = True
 
     def __init__(self, clock: Any, name: str = "sim-spi0", speed_hz: float = 8_000_000) -> None:
-        if not callable(getattr(clock, "now", None)):
-            raise TypeError(f"SimulatedSPIBus needs a clock with now() -> seconds, got {clock!r}")
-        self.clock, self.name, self._speed = clock, name, float(speed_hz)
+        self._init_clock(clock, "SimulatedSPIBus")
+        self.name, self._speed = name, float(speed_hz)
         self.transfers = 0
         self.bytes_moved = 0
-        self._slots: dict[int, _Slot] = {}
 
     def attach(self, device: "SimulatedRegisterDevice", cs: int) -> "SimulatedRegisterDevice":
         """Wires ``device`` to chip select ``cs`` (powered on now)."""
         if cs in self._slots:
             raise ValueError(f"{self.name}: chip select {cs} is already wired to "
                              f"{type(self._slots[cs].device).__name__}")
-        self._slots[cs] = _Slot(device)
+        self._slots[cs] = SimulatedSlot(device)
         device.power_on_reset(self.clock.now())
         return device
 
@@ -167,35 +158,20 @@ class SimulatedSPIBus(SPIBus):
     def speed_hz(self, cs: int) -> float:
         return self._speed
 
-    def inject_errors(self, cs: int, count: int = 1, err: int = errno.EIO) -> None:
-        """The next ``count`` transfers on ``cs`` fail with ``OSError`` (the controller's error)."""
-        self._slots[cs].pending_errors += int(count)
-
-    def set_present(self, cs: int, present: bool, power_cycle: bool = True) -> None:
-        """The device on ``cs`` vanishes (MISO floats: reads 0xFF) or comes back power-cycled."""
-        slot = self._slots[cs]
-        if present and not slot.present and power_cycle:
-            slot.device.power_on_reset(self.clock.now())
-        slot.present = bool(present)
+    # faults: inject_errors(cs, …) and set_present(cs, …) (SimulatedBusBase; a vanished
+    # device leaves MISO floating: reads 0xFF)
 
     def transfer(self, cs: int, data: bytes) -> bytes:
         self.transfers += 1
         self.bytes_moved += len(data)
         slot = self._slots.get(cs)
-        if slot is not None and slot.pending_errors > 0:
-            slot.pending_errors -= 1
-            raise OSError(errno.EIO, f"{self.device_name(cs)}: injected transfer error")
+        err = None if slot is None else slot.injected_error(self.device_name(cs))
+        if err is not None:
+            raise err
         if slot is None or not slot.present or not data:
             return b"\xff" * len(data)
         return spi_answer(slot.device, data, self.clock.now())
 
-    def now_ns(self) -> int:
-        t = self.clock.now()
-        to_ns = getattr(self.clock, "to_ns", None)
-        return to_ns(t) if to_ns is not None else int(round(t * 1e9))
-
-    def sleep(self, seconds: float) -> None:
-        return None
 
 
 def spi_answer(device: "SimulatedRegisterDevice", data: bytes, now: float) -> bytes:

@@ -1,0 +1,166 @@
+"""The 32-level FIFO of ST's L3G4200D, L3GD20 and LSM303DLHC accelerometer: driver and twin side.
+
+The three parts share the FIFO block and its registers (L3G4200D datasheet Doc ID 17116
+§5.2 "FIFO" and §7.6, 7.16, 7.17; L3GD20 Doc ID 022116 §4.2 and the same registers;
+LSM303DLHC Doc ID 018771 §3.3 "FIFO" and CTRL_REG5_A, FIFO_CTRL_REG_A, FIFO_SRC_REG_A):
+
+=====  =============  ====================================================================
+0x24   CTRL_REG5      bit 6 FIFO_EN: the FIFO is on (off: the output registers hold the
+                      newest sample, as in polling)
+0x2E   FIFO_CTRL_REG  FM2:0 in bits 7:5 on the gyroscopes, FM1:0 in bits 7:6 (bit 5 TR)
+                      on the LSM303DLHC, the same numbers: 0 bypass (FIFO empty and
+                      off), 1 FIFO (stops when full), 2 stream (a full FIFO overwrites its
+                      oldest sample); WTM4:0 / FTH4:0 in bits 4:0, the watermark level
+0x2F   FIFO_SRC_REG   bit 7 WTM (level ≥ watermark), bit 6 OVRN (the FIFO is completely
+                      filled: 32 samples), bit 5 EMPTY, FSS4:0 the stored level (31 with
+                      OVRN set: the driver takes OVRN as 32 samples, whichever the part
+                      reports)
+0x28…  OUT_X_L…       each sample is X, Y, Z (6 bytes); with the FIFO on they read the
+0x2D   OUT_Z_H        oldest stored sample, and an auto-increment read that passes OUT_Z_H
+                      rolls back to OUT_X_L with the next sample: one transfer reads as many
+                      whole samples as it has bytes for (5 in a 32-byte SMBus block)
+=====  =============  ====================================================================
+
+The driver runs the FIFO in stream mode: a host that stops longer than 32 samples finds the
+newest 32, the oldest ones overwritten; the overrun is flagged only as "filled", so the loss
+is estimated from the sensor clock (:class:`~ahrs_service.drivers.fifo.FifoTimeline`).
+The FIFO is emptied by switching to bypass mode and back (§5.2.1: bypass resets it).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ahrs_service.drivers.fifo import SimulatedFrameFifo
+from ahrs_service.drivers.i2c.device import SMBUS_BLOCK_MAX, FifoLayout, FifoStatus
+
+CTRL_REG5, FIFO_CTRL_REG, FIFO_SRC_REG, OUT_X_L = 0x24, 0x2E, 0x2F, 0x28
+OUT_Z_H = OUT_X_L + 5
+FIFO_EN = 0x40
+FM_BYPASS, FM_FIFO, FM_STREAM = 0b000, 0b001, 0b010
+WTM_MASK = 0x1F
+SRC_WTM, SRC_OVRN, SRC_EMPTY = 0x80, 0x40, 0x20
+FIFO_FRAMES = 32
+FRAME_BYTES = 6
+#: how a driver reads the FIFO: auto-increment bursts from OUT_X_L, 5 whole samples a block
+FIFO_LAYOUT = FifoLayout(depth_frames=FIFO_FRAMES, frame_bytes=FRAME_BYTES,
+                         data_register=0x80 | OUT_X_L,
+                         frames_per_transfer=SMBUS_BLOCK_MAX // FRAME_BYTES)
+
+
+class STFifoDriver:
+    """Driver side, mixed into the ST parts' :class:`~ahrs_service.drivers.i2c.device.I2CDevice`
+    drivers (they provide ``write_u8``, ``read_u8``, ``read_fifo_frames``)."""
+
+    #: where FM sits in FIFO_CTRL_REG: bits 7:5 on the gyroscopes, 7:6 on the LSM303DLHC
+    FM_SHIFT = 5
+    fifo_layout = FIFO_LAYOUT
+
+    def configure_fifo(self, watermark: int) -> None:
+        """FIFO on in stream mode with the watermark (1 … 31 samples), emptied."""
+        if not 1 <= watermark < FIFO_FRAMES:
+            raise ValueError(f"{self.PART}: FIFO watermark must be 1…{FIFO_FRAMES - 1}, got {watermark}")  # type: ignore[attr-defined]
+        self.fifo_watermark = int(watermark)
+        self.write_u8(CTRL_REG5, FIFO_EN)  # type: ignore[attr-defined]
+        self.fifo_reset()
+
+    def fifo_reset(self) -> None:
+        """Empties the FIFO: bypass mode, then stream mode again (§5.2.1)."""
+        self.write_u8(FIFO_CTRL_REG, FM_BYPASS << self.FM_SHIFT)  # type: ignore[attr-defined]
+        self.write_u8(FIFO_CTRL_REG, FM_STREAM << self.FM_SHIFT | self.fifo_watermark)  # type: ignore[attr-defined]
+
+    def fifo_status(self) -> FifoStatus:
+        """Stored samples and whether the FIFO had filled (FIFO_SRC_REG, one byte)."""
+        t = self.bus.now_ns()  # type: ignore[attr-defined]
+        src = self.read_u8(FIFO_SRC_REG)  # type: ignore[attr-defined]
+        if src & SRC_OVRN:
+            return FifoStatus(FIFO_FRAMES, True, t)
+        return FifoStatus(0 if src & SRC_EMPTY else src & 0x1F, False, t)
+
+    def read_fifo(self, frames: int) -> np.ndarray:
+        """``frames`` samples, oldest first: (frames, 3) int64 counts, little-endian (BLE 0)."""
+        data = self.read_fifo_frames(FIFO_LAYOUT, frames)  # type: ignore[attr-defined]
+        return np.frombuffer(data, dtype="<i2").reshape(frames, 3).astype(np.int64)
+
+
+class SimulatedSTFifo:
+    """Twin side, mixed into the ST twins (before :class:`SimulatedRegisterDevice`, whose
+    ``read_register``, ``next_pointer`` and ``on_write`` it extends): the 32-sample FIFO of
+    the registers above, filled by every due sample (the base's FIFO latching), the
+    stream/FIFO mode rules, the watermark and OVRN, the OUT_X_L … OUT_Z_H roll-over. The twin
+    calls :meth:`_fifo_push` at the end of its ``latch``."""
+
+    regs: bytearray
+    #: where FM sits in FIFO_CTRL_REG: bits 7:5 on the gyroscopes, 7:6 (bit 5: TR) on the
+    #: LSM303DLHC — the same mode numbers either way
+    FM_SHIFT = 5
+
+    def reset_state(self, now: float) -> None:
+        super().reset_state(now)  # type: ignore[misc]
+        self.fifo = SimulatedFrameFifo(FIFO_FRAMES)
+
+    # the twin's counters for tests (samples overwritten/turned away, emptied unread)
+    fifo_overflowed = property(lambda self: self.fifo.overflowed)
+    fifo_discarded = property(lambda self: self.fifo.discarded)
+    fifo_frames = property(lambda self: len(self.fifo))
+
+    def fifo_mode(self) -> int | None:
+        """FM of FIFO_CTRL_REG, or None while CTRL_REG5.FIFO_EN is clear."""
+        if not self.regs[CTRL_REG5] & FIFO_EN:
+            return None
+        return self.regs[FIFO_CTRL_REG] >> self.FM_SHIFT
+
+    def fifo_room(self) -> int | None:
+        if self.fifo_mode() not in (FM_FIFO, FM_STREAM):
+            return None
+        return FIFO_FRAMES - len(self.fifo)
+
+    def fifo_keeps_oldest(self) -> bool:
+        return self.fifo_mode() == FM_FIFO
+
+    def fifo_dropped(self, n: int) -> None:
+        self.fifo.overflowed += n
+
+    def _fifo_push(self, truth: Any) -> None:
+        """The sample just latched into OUT_X_L … OUT_Z_H, into the FIFO (§5.2)."""
+        if self.fifo_mode() in (FM_FIFO, FM_STREAM):
+            self.fifo.push(bytes(self.regs[OUT_X_L:OUT_X_L + FRAME_BYTES]), truth, self.fifo_keeps_oldest())
+
+    def _fifo_src(self) -> int:
+        level = len(self.fifo)
+        src = min(level, FIFO_FRAMES - 1)
+        if level >= FIFO_FRAMES:
+            src |= SRC_OVRN
+        if level == 0:
+            src |= SRC_EMPTY
+        wtm = self.regs[FIFO_CTRL_REG] & WTM_MASK
+        if wtm and level >= wtm:
+            src |= SRC_WTM
+        return src
+
+    def on_write(self, reg: int, value: int, old: int, now: float) -> None:
+        """FIFO_CTRL_REG: bypass mode empties the FIFO (§5.2.1). The twins call this first."""
+        if reg == FIFO_CTRL_REG and value >> self.FM_SHIFT == FM_BYPASS:
+            self.fifo.reset()
+
+    def read_register(self, reg: int) -> int:
+        if reg == FIFO_SRC_REG:
+            return self._fifo_src()
+        head = self.fifo.head()
+        if self.fifo_mode() is None or not OUT_X_L <= reg <= OUT_Z_H or head is None:
+            return self.regs[reg]
+        if reg == OUT_Z_H:  # the sample is read: the next one moves up (§5.2.6)
+            self.fifo.pop()
+        return head[reg - OUT_X_L]
+
+    def next_pointer(self, reg: int) -> int:
+        # with the FIFO on, an auto-increment read rolls OUT_Z_H over to OUT_X_L
+        if self.fifo_mode() is not None and reg == OUT_Z_H:
+            return OUT_X_L
+        return super().next_pointer(reg)  # type: ignore[misc]
+
+    def take_popped_truth(self) -> list[Any]:
+        """The truth of the samples read from the FIFO since the last call, oldest first."""
+        return self.fifo.take_popped_truth()

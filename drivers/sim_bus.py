@@ -1,0 +1,75 @@
+"""What the simulated buses share (:class:`~ahrs_service.drivers.i2c.bus.SimulatedI2CBus`,
+:class:`~ahrs_service.drivers.spi.bus.SimulatedSPIBus`): simulated register devices in slots
+(an I2C address, an SPI chip select), the simulation clock, and fault injection — transfer
+errors and a device that vanishes and comes back power-cycled.
+"""
+
+from __future__ import annotations
+
+import errno
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice
+
+
+class SimulatedSlot:
+    """A device on a simulated bus, with its fault-injection state."""
+
+    __slots__ = ("device", "present", "visible_if", "pending_errors", "error_errno")
+
+    def __init__(self, device: "SimulatedRegisterDevice",
+                 visible_if: Callable[[], bool] | None = None) -> None:
+        self.device = device
+        self.present = True
+        self.visible_if = visible_if
+        self.pending_errors = 0
+        self.error_errno = errno.EIO
+
+    def injected_error(self, where: str) -> OSError | None:
+        """The error of the next transfer when one was injected (counted down), else None."""
+        if self.pending_errors <= 0:
+            return None
+        self.pending_errors -= 1
+        return OSError(self.error_errno, f"{where}: injected transfer error")
+
+
+class SimulatedBusBase:
+    """The slots, clock and fault injection of a simulated bus (``clock.now()`` in s)."""
+
+    clock: Any
+    name: str
+    _slots: dict[int, SimulatedSlot]
+
+    def _init_clock(self, clock: Any, bus_kind: str) -> None:
+        if not callable(getattr(clock, "now", None)):
+            raise TypeError(f"{bus_kind} needs a clock with now() -> seconds, got {clock!r}")
+        self.clock = clock
+        self._slots = {}
+
+    def inject_errors(self, key: int, count: int = 1, err: int = errno.EIO) -> None:
+        """The next ``count`` transfers to the device at ``key`` (address or chip select)
+        raise ``OSError(err)`` (a glitch on the wires)."""
+        slot = self._slots[key]
+        slot.pending_errors += int(count)
+        slot.error_errno = err
+
+    def set_present(self, key: int, present: bool, power_cycle: bool = True) -> None:
+        """Makes the device at ``key`` vanish or come back; coming back with ``power_cycle``
+        resets its registers to power-on values (it lost power): the driver must configure
+        it again."""
+        slot = self._slots[key]
+        if present and not slot.present and power_cycle:
+            slot.device.power_on_reset(self.clock.now())
+        slot.present = bool(present)
+
+    def now_ns(self) -> int:
+        """The simulation clock's now, mapped to ns (``clock.to_ns`` when the clock has it)."""
+        t = self.clock.now()
+        to_ns = getattr(self.clock, "to_ns", None)
+        return to_ns(t) if to_ns is not None else int(round(t * 1e9))
+
+    def sleep(self, seconds: float) -> None:
+        # simulated parts settle at once; tests move the clock themselves
+        return None
