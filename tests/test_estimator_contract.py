@@ -65,8 +65,7 @@ def test_changed_kernel_sources_drop_the_cached_kernels(tmp_path, monkeypatch):
     src = tmp_path / "inlined.py"
     src.write_text("x = 1\n")
     monkeypatch.setattr(_cache, "_SOURCES", [src])
-    monkeypatch.setattr(_cache, "_CACHE", cache)
-    monkeypatch.setattr(_cache, "_STAMP", cache / "kernel-sources.sha256")
+    monkeypatch.setattr(_cache, "cache_dir", lambda: cache)
     (cache / "k.step-1.py311.nbi").write_bytes(b"index")
     (cache / "k.step-1.py311.1.nbc").write_bytes(b"code")
     assert _cache.drop_stale_kernels()  # no stamp yet: the cache cannot be trusted
