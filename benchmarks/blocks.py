@@ -67,33 +67,22 @@ def main(argv: list[str] | None = None) -> int:
         p.warm_up()
         return p
 
-    def old_per_sample():
-        p = fresh(old)
+    def timed(module, method: str, feed: list):
+        """Seconds to hand every item of ``feed`` to ``method`` of a fresh pipeline, and its final state."""
+        p = fresh(module)
+        step = getattr(p, method)
         t = time.perf_counter()
-        for s in samples:
-            p.process(s)
+        for item in feed:
+            step(item)
         return time.perf_counter() - t, p.estimator.state.copy()
 
-    def block_of_1():
-        p = fresh(new_pipeline)
-        t = time.perf_counter()
-        for s in samples:
-            p.process(s)
-        return time.perf_counter() - t, p.estimator.state.copy()
-
-    def block_of_10():
-        p = fresh(new_pipeline)
-        t = time.perf_counter()
-        for b in blocks10:
-            p.process_block(b)
-        return time.perf_counter() - t, p.estimator.state.copy()
-
-    kinds = {"old per-sample": old_per_sample, "block of 1 (polling)": block_of_1, "block of 10 (FIFO)": block_of_10}
+    kinds = {"old per-sample": (old, "process", samples), "block of 1 (polling)": (new_pipeline, "process", samples),
+             "block of 10 (FIFO)": (new_pipeline, "process_block", blocks10)}
     times: dict[str, list[float]] = {k: [] for k in kinds}
     states: dict[str, np.ndarray] = {}
     for _ in range(args.runs):
-        for name, run in kinds.items():
-            seconds, state = run()
+        for name, kind in kinds.items():
+            seconds, state = timed(*kind)
             times[name].append(seconds / n * 1e6)
             states[name] = state
     ref = float(np.median(times["old per-sample"]))
