@@ -23,6 +23,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from ahrs_service.drivers.sim.clock import ManualClock
+
 #: (board name, bus, board options, what it is)
 BOARDS = (
     ("mpu9250", "i2c", {"rate_hz": 1000, "fifo_read_hz": 100}, "MPU-9250 1 kHz, FIFO drained at 100 Hz"),
@@ -36,11 +38,8 @@ class TruthClockImu:
     """Readings whose truth is the time they were taken; a clock the host moves."""
 
     def __init__(self) -> None:
-        self.clock = SimpleNamespace(t=0.0)
-        self.clock.now = lambda: self.clock.t
-
-    def advance(self, dt: float) -> None:
-        self.clock.t += dt
+        self.clock = ManualClock()
+        self.advance = self.clock.advance
 
     def physics(self, t: float) -> dict:
         return {"gyr": (0.01, -0.02, 0.03), "acc": (0.1, 0.2, -9.8), "mag": (20.0, -5.0, 40.0),
@@ -88,7 +87,7 @@ def run(board_name: str, bus_kind: str, options: dict, clock_error: float, secon
             twin.clock_error = clock_error
     board.open()
     sensor, host = [], []
-    while src.clock.t < seconds:
+    while src.clock.now() < seconds:
         delay = abs(rng.gauss(0.0, 150e-6))
         if rng.random() < 0.01:
             delay += rng.uniform(0.5e-3, 3e-3)

@@ -24,6 +24,7 @@ from ahrs_service.drivers.i2c.bus import SimulatedI2CBus
 from ahrs_service.drivers.i2c.l3g4200d import L3G4200D, SimulatedL3G4200D
 from ahrs_service.drivers.i2c.l3gd20 import L3GD20, SimulatedL3GD20
 from ahrs_service.drivers.i2c.lsm303dlhc import LSM303DLHCAcc, SimulatedLSM303DLHCAcc
+from ahrs_service.drivers.sim.clock import ManualClock
 
 GYR_SLOPE, ACC_SLOPE = 20.0, 100.0
 
@@ -32,11 +33,8 @@ class RampImu:
     """Readings that say when they were taken; a clock the test moves."""
 
     def __init__(self) -> None:
-        self.clock = SimpleNamespace(t=0.0)
-        self.clock.now = lambda: self.clock.t
-
-    def advance(self, dt: float) -> None:
-        self.clock.t += dt
+        self.clock = ManualClock()
+        self.advance = self.clock.advance
 
     def physics(self, t: float) -> dict:
         return {"gyr": (GYR_SLOPE * t, 0.1, -0.1), "acc": (ACC_SLOPE * t, 0.5, -9.8),
@@ -127,7 +125,7 @@ def test_watermark_flag(name):
         return bool(bus.read_byte_data(twin.address, st.FIFO_SRC_REG) & st.SRC_WTM)
 
     src.advance(9.5 * period)
-    assert twin.fifo_frames == 9 or (twin.update(src.clock.t) or twin.fifo_frames == 9)
+    assert twin.fifo_frames == 9 or (twin.update(src.clock.now()) or twin.fifo_frames == 9)
     assert not wtm()
     src.advance(period)
     assert wtm()  # 10 stored: at the watermark
