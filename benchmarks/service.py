@@ -126,6 +126,12 @@ def startup_to_ready(repeats: int = 3) -> list[float]:
     return times
 
 
+def run_python(code: str) -> dict:
+    """Runs ``code`` in a fresh interpreter; returns the JSON its last output line printed."""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def bare_loop(seconds: float, rate_hz: float) -> dict[str, float]:
     """The machine's floor: the service's scheduler pacing an empty loop, in its own process."""
     code = (
@@ -148,8 +154,7 @@ def bare_loop(seconds: float, rate_hz: float) -> dict[str, float]:
         "d['cpu'] = 100 * (time.process_time() - c0) / (time.monotonic() - w0)\n"
         "print(json.dumps(d))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    return json.loads(out.strip().splitlines()[-1])
+    return run_python(code)
 
 
 def source_only(cfg: Path, seconds: float) -> dict[str, float]:
@@ -178,8 +183,7 @@ def source_only(cfg: Path, seconds: float) -> dict[str, float]:
         "print(json.dumps({'cpu': 100 * (time.process_time() - c0) / (time.monotonic() - w0),\n"
         "                  'samples_per_s': n / (time.monotonic() - w0)}))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    return json.loads(out.strip().splitlines()[-1])
+    return run_python(code)
 
 
 def start_service(cfg: Path, tmp: Path) -> tuple[subprocess.Popen, float]:
@@ -207,6 +211,15 @@ def start_service(cfg: Path, tmp: Path) -> tuple[subprocess.Popen, float]:
         notify.close()
 
 
+def stop_service(proc: subprocess.Popen) -> None:
+    """SIGTERM, then SIGKILL if it has not ended within 30 s."""
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
 def service_cpu(cfg: Path, tmp: Path, seconds: float) -> float:
     """CPU (one core = 100 %) of the service run with ``cfg``, over ``seconds`` after a 5 s warm-up."""
     proc, _ = start_service(cfg, tmp)
@@ -216,11 +229,7 @@ def service_cpu(cfg: Path, tmp: Path, seconds: float) -> float:
         time.sleep(seconds)
         return 100.0 * (cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - wall0)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_service(proc)
 
 
 def measured_run(cfg: Path, tmp: Path, logs: Path, gcs, seconds: float,
@@ -256,11 +265,7 @@ def measured_run(cfg: Path, tmp: Path, logs: Path, gcs, seconds: float,
                 received.append((time.monotonic_ns(), [m.q1, m.q2, m.q3, m.q4]))
         cpu = 100.0 * (cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - wall0)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_service(proc)
     log = read_log(next(logs.glob("flight-*.mcap")))
     from mcap.reader import make_reader
 
