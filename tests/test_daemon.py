@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -22,18 +23,22 @@ def ahrs_service_command() -> list[str]:
     return [exe] if exe else [sys.executable, "-m", "ahrs_service.cli"]
 
 
-def write_config(path: Path, log_dir: Path, port: int, beta: float = 0.1) -> None:
+SIMULATED_GY80 = 'type = "simulated_i2c"\n'
+
+
+def write_config(path: Path, log_dir: Path, port: int, beta: float | None = 0.1, source: str = SIMULATED_GY80) -> None:
+    """Madgwick at 200 Hz on ``source`` (TOML lines of [source] before its profile, default the
+    simulated GY-80) at rest, ``beta`` (``None``: the estimator's default), publishing to
+    udpout ``port``, logging to ``log_dir``."""
+    params = "" if beta is None else f"[estimator.params]\nbeta = {beta}\n"
     path.write_text(
         f"""
 [source]
-type = "simulated_i2c"
-profile = "static"
+{source}profile = "static"
 
 [estimator]
 name = "madgwick"
-[estimator.params]
-beta = {beta}
-
+{params}
 [rates]
 estimation_hz = 200
 
@@ -97,12 +102,24 @@ def start(cmd_args, tmp_path, notify: FakeSystemd, watchdog_usec: int = 400_000,
     )
 
 
+@contextmanager
+def running(cmd_args, tmp_path, notify: FakeSystemd, **kwargs):
+    """``start``, and on leaving kill the process if it is still running (a failed assertion
+    must not leave it behind)."""
+    proc = start(cmd_args, tmp_path, notify, **kwargs)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
 def test_ready_watchdog_status_and_clean_sigterm(tmp_path):
     notify = FakeSystemd(tmp_path)
     cfg = tmp_path / "config.toml"
     write_config(cfg, tmp_path / "logs", 14999)
-    proc = start(["run", "--config", str(cfg)], tmp_path, notify)
-    try:
+    with running(["run", "--config", str(cfg)], tmp_path, notify) as proc:
         assert notify.wait_for("READY=1", 90), proc.stdout.read() if proc.poll() is not None else "no READY"
         ready_at = notify.messages[-1][0]
         # WATCHDOG_USEC = 0.4 s: the loop keeps pinging after READY (every 0.2 s; the rate is
@@ -116,10 +133,6 @@ def test_ready_watchdog_status_and_clean_sigterm(tmp_path):
         assert code == 0
         notify.wait_for("STOPPING=1", 1.0)
         assert notify.count("STOPPING=1") == 1
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     logs = list((tmp_path / "logs").glob("flight-*.mcap"))
     assert len(logs) == 1
     from ahrs_service.logs.reader import read_log
@@ -135,8 +148,7 @@ def test_sighup_reloads_configuration(tmp_path):
     notify = FakeSystemd(tmp_path)
     cfg = tmp_path / "config.toml"
     write_config(cfg, tmp_path / "logs", 14998, beta=0.1)
-    proc = start(["run", "--config", str(cfg)], tmp_path, notify)
-    try:
+    with running(["run", "--config", str(cfg)], tmp_path, notify) as proc:
         assert notify.wait_for("READY=1", 90)
         # a broken file is refused and the service keeps running on the old one
         cfg.write_text("[estimator]\nname = 'nope'\n")
@@ -148,10 +160,6 @@ def test_sighup_reloads_configuration(tmp_path):
         assert notify.wait_for("RELOADING=1", 5) and notify.wait_for("READY=1", 5)
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=20.0) == 0  # a clean stop; its speed is benchmarks/service.py's
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     output = proc.stdout.read()
     assert "reload refused: estimator.name: 'nope' is not one of" in output
     assert "configuration reloaded" in output
@@ -194,17 +202,12 @@ def test_kill_9_then_recover_keeps_all_but_the_last_second(tmp_path):
     notify = FakeSystemd(tmp_path)
     cfg = tmp_path / "config.toml"
     write_config(cfg, tmp_path / "logs", 14997)
-    proc = start(["run", "--config", str(cfg)], tmp_path, notify)
-    try:
+    with running(["run", "--config", str(cfg)], tmp_path, notify) as proc:
         assert notify.wait_for("READY=1", 90)
         notify.wait_for("never", 3.0)
         killed_ns = time.monotonic_ns()  # CLOCK_MONOTONIC: the clock of the samples' t_ns
         proc.kill()
         proc.wait(5)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     crashed = next((tmp_path / "logs").glob("flight-*.mcap"))
     damaged = read_log(crashed)
     assert damaged.damage is not None and not damaged.indexed  # no summary, no footer

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from tests.test_daemon import FakeSystemd, start
+from tests.test_daemon import FakeSystemd, running, write_config
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -37,29 +37,13 @@ ICM_PERIOD_NS = 1e9 / 1004.2
 
 def _config(tmp_path, port, source=MPU9250):
     path = tmp_path / "config.toml"
-    path.write_text(f"""
-[source]
-{source}profile = "static"
-
-[estimator]
-name = "madgwick"
-
-[rates]
-estimation_hz = 200
-
-[mavlink]
-endpoints = ["udpout:127.0.0.1:{port}"]
-
-[log]
-directory = "{tmp_path / 'logs'}"
-""")
+    write_config(path, tmp_path / "logs", port, beta=None, source=source)
     return path
 
 
 def _run_with_stall(tmp_path, port, stall_s, source=MPU9250):
     notify = FakeSystemd(tmp_path)
-    proc = start(["run", "--config", str(_config(tmp_path, port, source))], tmp_path, notify)
-    try:
+    with running(["run", "--config", str(_config(tmp_path, port, source))], tmp_path, notify) as proc:
         assert notify.wait_for("READY=1", 90)
         notify.wait_for("never", 1.0)
         proc.send_signal(signal.SIGSTOP)
@@ -68,10 +52,6 @@ def _run_with_stall(tmp_path, port, stall_s, source=MPU9250):
         notify.wait_for("never", 1.5)  # at least one housekeeping second after the stop
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=20.0) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     from ahrs_service.logs.reader import read_log
 
     path = next((tmp_path / "logs").glob("flight-*.mcap"))

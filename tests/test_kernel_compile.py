@@ -15,7 +15,7 @@ import pytest
 from ahrs_service import kernels
 from ahrs_service.systemd import Notifier
 
-from test_daemon import FakeSystemd, start, write_config  # noqa: E402  (tests/ is on sys.path)
+from tests.test_daemon import FakeSystemd, running, write_config
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -73,9 +73,8 @@ def test_a_cold_start_extends_the_start_timeout_and_a_reload_compiles_without_st
     cfg = tmp_path / "config.toml"
     write_config(cfg, tmp_path / "logs", 14996)  # madgwick at 200 Hz, simulated GY-80 at rest
     cache = tmp_path / "numba-cache"  # cold: every kernel is compiled
-    proc = start(["run", "--config", str(cfg), "--no-log"], tmp_path, notify,
-                 env={"NUMBA_CACHE_DIR": str(cache)})
-    try:
+    with running(["run", "--config", str(cfg), "--no-log"], tmp_path, notify,
+                 env={"NUMBA_CACHE_DIR": str(cache)}) as proc:
         assert notify.wait_for("READY=1", 180), "no READY"
         before_ready = [m for _, m in notify.messages[:-1]]
         # the start compiled in a child while telling systemd to wait
@@ -94,10 +93,6 @@ def test_a_cold_start_extends_the_start_timeout_and_a_reload_compiles_without_st
         assert notify.wait_for("STATUS=valenti", 10)
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=30) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     output = proc.stdout.read()
     line = _reload_line(output)
     print(line.group(0))  # pytest -s: how long the compile took, the loop meanwhile, the cache load
@@ -112,7 +107,7 @@ def test_a_cold_start_extends_the_start_timeout_and_a_reload_compiles_without_st
 
 def test_compile_refuses_an_unknown_estimator_in_one_line(tmp_path):
     from ahrs_service import estimators
-    from test_daemon import ahrs_service_command
+    from tests.test_daemon import ahrs_service_command
 
     proc = subprocess.run(ahrs_service_command() + ["compile", "madgwik"], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2

@@ -29,7 +29,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from ahrs_service.logs.reader import read_log  # noqa: E402
 from ahrs_service.logs.recover import recover  # noqa: E402
-from tests.test_daemon import ahrs_service_command  # noqa: E402
+from tests.test_daemon import ahrs_service_command, write_config  # noqa: E402
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -75,28 +75,6 @@ class GroundStation:
         self.conn.close()
 
 
-def _config(path: Path, log_dir: Path, port: int) -> None:
-    path.write_text(
-        f"""
-[source]
-type = "simulated_i2c"
-profile = "static"
-
-[estimator]
-name = "madgwick"
-
-[rates]
-estimation_hz = 200
-
-[mavlink]
-endpoints = ["udpout:127.0.0.1:{port}"]
-
-[log]
-directory = "{log_dir}"
-"""
-    )
-
-
 def _limited(limit: int | None):
     def preexec() -> None:
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG
@@ -108,7 +86,7 @@ def _limited(limit: int | None):
 
 def _run(tmp_path: Path, log_dir: Path, gcs: GroundStation, limit: int | None) -> subprocess.Popen:
     cfg = tmp_path / "config.toml"
-    _config(cfg, log_dir, gcs.port)
+    write_config(cfg, log_dir, gcs.port, beta=None)
     return subprocess.Popen(
         ahrs_service_command() + ["run", "--config", str(cfg)], cwd=tmp_path, preexec_fn=_limited(limit),
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -155,7 +133,7 @@ def _kernels_cached(tmp_path_factory):
     """One unlimited run first, so the limited ones find numba's cache warm (a cold cache they
     could not save would only cost them compile time: Service._warm_up)."""
     where = tmp_path_factory.mktemp("warm")
-    _config(where / "config.toml", where / "logs", 9)  # udpout to the discard port
+    write_config(where / "config.toml", where / "logs", 9, beta=None)  # udpout to the discard port
     subprocess.run(ahrs_service_command() + ["run", "--duration", "0.2", "--no-log", "-c", str(where / "config.toml")],
                    cwd=where, capture_output=True, timeout=170)
 
