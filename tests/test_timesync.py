@@ -127,7 +127,9 @@ def test_sync_with_a_udp_peer_offset_and_drifting():
         assert ts.synced, ts.counters
         now = time.monotonic_ns()
         assert abs(ts.to_remote_us(now) - peer.clock_ns(now) // 1000) <= 2000
-        assert abs(ts.offset_ns - OFFSET_NS) < 100_000_000  # the drift since t_ref adds a little
+        # the drift since t_ref adds a little: 50 ppm of the at most 20 s waited (1 ms), beside
+        # the 2 ms the estimate may be off by above (measured 0.16-0.23 ms in all)
+        assert abs(ts.offset_ns - OFFSET_NS) < 5_000_000
         assert ts.counters.accepted + ts.counters.rtt_too_long + ts.counters.not_ours <= ts.counters.replies
     finally:
         conn.close()
