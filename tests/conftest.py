@@ -1,4 +1,4 @@
-"""Shared fixtures: the development recordings and small trajectory helpers."""
+"""Shared fixtures: the development recordings, small trajectory helpers, a ground station."""
 
 from __future__ import annotations
 
@@ -17,3 +17,13 @@ def broad_dir() -> Path:
     if not BROAD_DIR.is_dir() or not any(BROAD_DIR.glob("*.hdf5")):
         pytest.skip(f"BROAD recordings not found at {BROAD_DIR} (set AHRS_BROAD_DIR)")
     return BROAD_DIR
+
+
+@pytest.fixture
+def gcs():
+    """A pymavlink ground station on a free loopback port, as (connection, port)."""
+    from tests.test_service import make_gcs
+
+    conn, port = make_gcs()
+    yield conn, port
+    conn.close()

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink2
 
 from ahrs_service import config as config_mod
@@ -27,6 +26,7 @@ from ahrs_service.logs.reader import read_log
 from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink, RemoteTimeline
 from ahrs_service.quaternion import quat_from_euler, quat_mul
 from ahrs_service.service import Service
+from tests.test_service import make_gcs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sim_autopilot import PtyTransport, Recording, SimAutopilot, UdpTransport  # noqa: E402
@@ -75,13 +75,6 @@ def reference(rec: Recording, keep: np.ndarray | None = None) -> np.ndarray:
     if keep is not None:
         gyr, acc, mag = gyr[keep], acc[keep], mag[keep]
     return estimators.run(ESTIMATOR, gyr, acc, mag, rate_hz=rate_hz, preset=PRESET)
-
-
-def make_gcs():
-    gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=255, source_component=190)
-    gcs.mav = mavlink2.MAVLink(gcs, srcSystem=255, srcComponent=190)
-    gcs.mav.robust_parsing = True
-    return gcs, gcs.port.getsockname()[1]
 
 
 def drain(gcs, out: list, stop: threading.Event) -> None:

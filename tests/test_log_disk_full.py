@@ -24,12 +24,11 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 
 from mcap.reader import make_reader  # noqa: E402
-from pymavlink import mavutil  # noqa: E402
-from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from ahrs_service.logs.reader import read_log  # noqa: E402
 from ahrs_service.logs.recover import recover  # noqa: E402
 from tests.test_daemon import ahrs_service_command, write_config  # noqa: E402
+from tests.test_service import make_gcs  # noqa: E402
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -40,10 +39,7 @@ class GroundStation:
     """A pymavlink udpin peer that reassembles chunked STATUSTEXT and counts ATTITUDE."""
 
     def __init__(self) -> None:
-        self.conn = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=255, source_component=190)
-        self.conn.mav = mavlink2.MAVLink(self.conn, srcSystem=255, srcComponent=190)
-        self.conn.mav.robust_parsing = True
-        self.port = self.conn.port.getsockname()[1]
+        self.conn, self.port = make_gcs()
         self.texts: list[str] = []
         self.attitudes = 0
         self._chunks: dict[int, list[str]] = {}

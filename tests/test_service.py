@@ -101,13 +101,6 @@ def service_config(tmp_path, port: int, **sections) -> config_mod.Config:
     return config_mod.validate(data)
 
 
-@pytest.fixture
-def gcs():
-    conn, port = make_gcs()
-    yield conn, port
-    conn.close()
-
-
 def test_streams_publish_the_estimate_and_the_sensor_axes_match_truth(tmp_path, gcs):
     conn, port = gcs
     run = RunningService(service_config(tmp_path, port))

@@ -175,12 +175,3 @@ def test_clipping_counted_when_the_simulated_accelerometer_saturates(tmp_path, g
     # exact over the whole run: every row was logged, every clipped one counted once
     assert run.service.vibration.clipping == int(np.count_nonzero(clipped))
     assert 0 < expected < np.count_nonzero(upto)  # near the peaks only, not every sample
-
-
-@pytest.fixture
-def gcs():
-    from tests.test_service import make_gcs
-
-    conn, port = make_gcs()
-    yield conn, port
-    conn.close()
