@@ -92,10 +92,7 @@ def one_run(tmp: Path, name: str, args: argparse.Namespace, live: bool) -> dict[
             thread.join(5)
         proc.send_signal(signal.SIGTERM)
         proc.wait(30)
-    from mcap.reader import make_reader
-
-    with open(next(logs.glob("*.mcap")), "rb") as f:
-        loops = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/loop"])]
+    loops = bench.loop_records(next(logs.glob("*.mcap")))
     steady = loops[5:] or loops
     return {"cpu": cpu, "p99": float(np.median([l["period_jitter_p99_us"] for l in steady])),
             "received": float(min(received)) if live else 0.0}

@@ -220,6 +220,14 @@ def stop_service(proc: subprocess.Popen) -> None:
         proc.kill()
 
 
+def loop_records(path: Path) -> list[dict]:
+    """The log's /loop messages (one a second, each describing that second), decoded."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/loop"])]
+
+
 def service_cpu(cfg: Path, tmp: Path, seconds: float) -> float:
     """CPU (one core = 100 %) of the service run with ``cfg``, over ``seconds`` after a 5 s warm-up."""
     proc, _ = start_service(cfg, tmp)
@@ -267,10 +275,7 @@ def measured_run(cfg: Path, tmp: Path, logs: Path, gcs, seconds: float,
     finally:
         stop_service(proc)
     log = read_log(next(logs.glob("flight-*.mcap")))
-    from mcap.reader import make_reader
-
-    with open(log.path, "rb") as f:
-        loops = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/loop"])]
+    loops = loop_records(log.path)
     steady = loops[5:] or loops
     lost = loops[-1]["source"].get("lost", {}) if loops else {}
     q32 = log.attitudes.astype(np.float32)
@@ -467,13 +472,8 @@ def main(argv: list[str] | None = None) -> int:
                 proc.kill()
         from ahrs_service.logs.reader import read_log
 
-        from mcap.reader import make_reader
-
         log_file = next((tmp / "logs").glob("flight-*.mcap"))
-        loops = []
-        with open(log_file, "rb") as f:
-            for _, channel, message in make_reader(f).iter_messages(topics=["/loop"]):
-                loops.append(json.loads(message.data))
+        loops = loop_records(log_file)
         log = read_log(log_file)
         steady = loops[5:] or loops
         p50 = float(np.median([l["period_jitter_p50_us"] for l in steady]))
