@@ -332,7 +332,6 @@ class SimAutopilot:
                     i += 1
                 if i < n:
                     time.sleep(max(0.0, min(0.002, (self.sample_time_us(i) - self.now_us()) * 1e-6)))
-            # the last heartbeat-only second: the service's replies (ACKs, TIMESYNC) are still served
         finally:
             self.finished.set()
 
