@@ -222,17 +222,17 @@ class OdometrySender:
 
         nan = float("nan")
         if r.unknown_as_nan:
-            pos, vel, pos_var = (nan, nan, nan), (nan, nan, nan), POSITION_VARIANCE_UNKNOWN
+            pos = vel = (nan, nan, nan)
             yaw_var = est.yaw_var
+            vel_cov = [nan] + [0.0] * 20
         else:
-            pos, vel, pos_var = (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), POSITION_VARIANCE_UNKNOWN
+            pos = vel = (0.0, 0.0, 0.0)
             yaw_var = est.yaw_var if heading else YAW_VARIANCE_UNINFORMATIVE
-        pose_cov = [0.0] * 21
-        pose_cov[COV_X] = pose_cov[COV_Y] = pose_cov[COV_Z] = pos_var
-        pose_cov[COV_ROLL], pose_cov[COV_PITCH], pose_cov[COV_YAW] = est.roll_var, est.pitch_var, yaw_var
-        vel_cov = [nan] + [0.0] * 20 if r.unknown_as_nan else [0.0] * 21
-        if not r.unknown_as_nan:
+            vel_cov = [0.0] * 21
             vel_cov[0] = vel_cov[6] = vel_cov[11] = POSITION_VARIANCE_UNKNOWN
+        pose_cov = [0.0] * 21
+        pose_cov[COV_X] = pose_cov[COV_Y] = pose_cov[COV_Z] = POSITION_VARIANCE_UNKNOWN
+        pose_cov[COV_ROLL], pose_cov[COV_PITCH], pose_cov[COV_YAW] = est.roll_var, est.pitch_var, yaw_var
         rates = tuple(float(v) for v in est.body_rate) if r.body_rates else (nan, nan, nan)
 
         ts = self.timesync
