@@ -399,8 +399,10 @@ def test_estimate_history_interpolates_and_refuses_outside():
         h.add(k * 10, quat_from_euler(0.0, 0.0, 0.1 * k))
     assert h.at(5) is None  # dropped from the ring
     assert h.at(95) is None  # newer than the newest
-    q = h.at(55)
-    assert Disagreement.between(0, q, quat_from_euler(0, 0, 0.55)).total_deg == pytest.approx(0.0, abs=1e-9)
+    # the ring wrapped (70 sits last, 80 first): each side of the seam, and across it
+    for when in (55, 75, 85):
+        q = h.at(when)
+        assert Disagreement.between(0, q, quat_from_euler(0, 0, when / 100)).total_deg == pytest.approx(0.0, abs=1e-9)
 
 
 def test_estimate_history_takes_blocks_like_single_estimates():
