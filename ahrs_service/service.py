@@ -122,6 +122,11 @@ class Service:
         self._live_fit: Future[LiveCalibrationResult] | None = None
         self._live_fit_kind = ""
         self.compiler = kernels.ReloadCompiler()  # a reload to an estimator not yet compiled
+        # beside an autopilot (source.type = "mavlink"): the source's link, which carries
+        # ODOMETRY (_open_mavlink), the monitor's attitudes and TIMESYNC; set once the source
+        # is open (a reload keeps the source)
+        self._autopilot_link: Any = None
+        self._timesync_logged_ns: int | None = None  # the TIMESYNC estimate last on /timesync
 
     # ------------------------------------------------------------------ set-up
     def start(self) -> None:
@@ -141,6 +146,7 @@ class Service:
             log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
         self.source = make_source(cfg.source, cfg.rates["estimation_hz"], cfg.mavlink["system_id"])
         self.source.open()
+        self._autopilot_link = getattr(self.source, "autopilot_link", None)
         if not self.source.has_mag:
             # a part without magnetometer (ICM-42688-P, BMI088): no start waiting for a field
             self.pipeline.use_mag = False
@@ -156,15 +162,10 @@ class Service:
         self._open_mavlink(cfg)
         self._open_live(cfg)
         self._open_monitor(cfg)
-        self._open_timesync()
-
-    def _open_timesync(self) -> None:
-        """Beside an autopilot (source.type = "mavlink"): the link's TIMESYNC estimate is logged
-        on /timesync after each accepted sample (ODOMETRY's link and clock: _open_mavlink)."""
-        self._autopilot_link = getattr(self.source, "autopilot_link", None)
-        self._timesync_logged_ns = None
 
     def _timesync_tick(self) -> None:
+        """Beside an autopilot: the link's TIMESYNC estimate, logged on /timesync once per new
+        estimate (ODOMETRY's link and clock: _open_mavlink)."""
         link = self._autopilot_link
         with link.timesync_lock:
             status = link.timesync.last_status
@@ -177,7 +178,7 @@ class Service:
         if self.monitor is not None:  # a reload with other [monitor] settings
             self.monitor.close()
             self.monitor = None
-        link = getattr(self.source, "autopilot_link", None)
+        link = self._autopilot_link
         if link is None or not cfg.monitor["enabled"]:
             return
         from ahrs_service.attitude_monitor import AttitudeMonitor
@@ -315,7 +316,7 @@ class Service:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
         self.mavlink = MavlinkBridge(self.bridge_link(), cfg, io_period_ns=IO_PERIOD_NS)
-        link = getattr(self.source, "autopilot_link", None)
+        link = self._autopilot_link
         if link is not None and self.mavlink.odometry is not None:
             # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
             self.mavlink.odometry.send = link.send
@@ -569,9 +570,8 @@ class Service:
             loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced)
             if self.log_writer is not None:
                 loop["log"] = self.log_writer.stats()  # docs/logs.md: /loop `log`, what was not logged
-            link = getattr(self.source, "autopilot_link", None)
-            if link is not None:  # the link, TIMESYNC's offset and drift (docs/autopilot.md)
-                loop["autopilot"] = link.status()
+            if self._autopilot_link is not None:  # the link, TIMESYNC's offset and drift (docs/autopilot.md)
+                loop["autopilot"] = self._autopilot_link.status()
             if self.live is not None:
                 self.live.publish("/loop", now, loop)
         if self.log_writer is not None:
@@ -783,7 +783,6 @@ class Service:
             # another filter has other EST_* parameters: the table is rebuilt with the component
             self.mavlink.close()
             self._open_mavlink(new)
-            self._open_timesync()
         if new.monitor != old_cfg.monitor:
             self._open_monitor(new)
         if new.live != old_cfg.live:  # a new address, rate, or switched on or off
