@@ -208,14 +208,13 @@ class Service:
                 self.mavlink.component.send(
                     mavlink.MAVLink_named_value_float_message(boot_ms & 0xFFFFFFFF, name.encode(), value))
             if self.live is not None:  # viewers get the latest comparison at the same rate
-                from ahrs_service.logs import schemas
+                from ahrs_service.logs.schemas import autopilot_attitude_messages
 
                 d = self.monitor.latest
-                q_ap = list(d.q_autopilot)
-                self.live.publish("/autopilot/attitude", d.t_ns, schemas.attitude_message(d.t_ns, q_ap, "autopilot"))
-                self.live.publish("/tf", d.t_ns, schemas.tf_message(d.t_ns, q_ap, child="autopilot"))
-                self.live.publish("/monitor", d.t_ns, schemas.monitor_message(
-                    d.t_ns, d.total_deg, d.inclination_deg, d.heading_deg, q_ap, list(d.q_estimate)))
+                for topic, message in autopilot_attitude_messages(d.t_ns, list(d.q_autopilot), list(d.q_estimate),
+                                                                  d.total_deg, d.inclination_deg,
+                                                                  d.heading_deg).items():
+                    self.live.publish(topic, d.t_ns, message)
 
     def _warm_up(self) -> None:
         """Compiles the pipeline's kernels. numba saves each new kernel to its cache after
