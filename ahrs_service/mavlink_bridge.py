@@ -25,7 +25,6 @@ from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, Parameter
 from ahrs_service.protocols.mavlink.dialect import mavlink
 from ahrs_service.protocols.mavlink.odometry import RULES as ODOMETRY_RULES
 from ahrs_service.protocols.mavlink.odometry import AttitudeEstimate, OdometrySender
-from ahrs_service.protocols.mavlink.timesync import TimeSync
 
 if TYPE_CHECKING:
     from ahrs_service.config import Config
@@ -94,6 +93,9 @@ class ServiceLink:
     rate. calibrate_gyro: () → (accepted, text). start_calibration: kind ("mag" | "accel")
     → (started, text). vibration: the VIBRATION levels now (``vibration.VibrationLevels``).
     attitude_variance: the estimator's roll/pitch/yaw variances now, rad² (ODOMETRY).
+    odometry_send, odometry_clock: beside an autopilot, where ODOMETRY goes (the autopilot
+    link's ``send``) and the clock it is stamped in (``AutopilotLink.clock``: TIMESYNC under
+    the link's lock); None: the bridge's own endpoints, our clock (docs/autopilot.md).
     """
 
     boot_ns: int
@@ -110,6 +112,8 @@ class ServiceLink:
     start_calibration: Callable[[str], tuple[bool, str]]
     vibration: Callable[[], Any]
     attitude_variance: Callable[[], Any]
+    odometry_send: Callable[[Any], Any] | None = None
+    odometry_clock: Any = None
 
 # incoming commands and parameter writes are handled at 50 Hz: a ground station does not
 # notice 20 ms, and an idle non-blocking read costs as much as a published message
@@ -200,9 +204,6 @@ class MavlinkBridge:
             accel_calibration=lambda action: self._start_collection("accel"),
             max_rate_hz=1e9 / io_period_ns,
         )
-        # beside an autopilot the service hands over the link's clock (AutopilotLink.clock: TIMESYNC
-        # under the link's lock) and sends ODOMETRY on the link (docs/autopilot.md, "ODOMETRY")
-        self.timesync: TimeSync | Any | None = None
         self.odometry = self._odometry_sender(mcfg["odometry"])
 
     # ------------------------------------------------------------------ ODOMETRY (issue 17)
@@ -211,7 +212,9 @@ class MavlinkBridge:
             return None
         self._odometry_epoch = 0
         self._odometry_ref: tuple[Any, float, bool] | None = None
-        return OdometrySender(self.component.send, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]])
+        link = self.link
+        return OdometrySender(link.odometry_send or self.component.send, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]],
+                              timesync=link.odometry_clock)
 
     def odometry_estimate(self, now_ns: int) -> AttitudeEstimate | None:
         """The published attitude and its variances for ODOMETRY; None before the first sample.
@@ -333,7 +336,6 @@ class MavlinkBridge:
             component.publish(now_ns, self.telemetry(now_ns))
         odometry = self.odometry
         if odometry is not None and odometry.due(now_ns):
-            odometry.timesync = self.timesync
             odometry.tick(now_ns, self.odometry_estimate(now_ns))
         if now_ns >= self._next_poll_ns:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS

@@ -315,15 +315,11 @@ class Service:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
         self.mavlink = MavlinkBridge(self.bridge_link(), cfg, io_period_ns=IO_PERIOD_NS)
-        link = self._autopilot_link
-        if link is not None and self.mavlink.odometry is not None:
-            # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
-            self.mavlink.odometry.send = link.send
-            self.mavlink.timesync = link.clock
 
     def bridge_link(self) -> ServiceLink:
         """What the MAVLink bridge may use of this service (mavlink_bridge.ServiceLink)."""
         est = self.estimator
+        link = self._autopilot_link
         return ServiceLink(
             boot_ns=self.boot_ns,
             estimator=est.name,
@@ -339,6 +335,9 @@ class Service:
             start_calibration=self.start_live_calibration,
             vibration=self.vibration.levels,
             attitude_variance=lambda: self.estimator.attitude_variance(),
+            # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
+            odometry_send=None if link is None else link.send,
+            odometry_clock=None if link is None else link.clock,
         )
 
     def latest_estimate(self) -> LatestEstimate | None:
