@@ -221,16 +221,16 @@ class Service:
         compiling it and raises when the disk refuses the file (full, read-only); the kernel
         is in memory all the same, so the next call goes on to the next kernel: a full disk
         costs the cache, never the start."""
-        for attempt in range(64):  # bounded: one kernel more per attempt, a pipeline has ~10
+        attempts = 64  # bounded: one kernel more per attempt, a pipeline has ~10
+        for attempt in range(attempts):
             try:
-                self.pipeline.warm_up()
-                VibrationMonitor.warm_up()
+                kernels.warm_up(self.estimator.name)  # the pipeline's kernels and VIBRATION's
                 return
             except OSError as exc:
+                if attempt == attempts - 1:
+                    raise
                 if attempt == 0:
                     log.warning("compiled kernels not cached: %s", exc)
-        self.pipeline.warm_up()
-        VibrationMonitor.warm_up()
 
     def loop_rate_hz(self, cfg: config_mod.Config) -> float:
         """How often the loop wakes, Hz: a source read in bursts (a FIFO) at its drain rate
