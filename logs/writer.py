@@ -119,7 +119,7 @@ class _Block:
     rows: list  # (n, 10) sample rows as fed to the estimator
     flags: list
     raw: dict | None  # {name: (n, …) list} driver counts
-    temperature: list | None  # (n,) °C, None where unknown
+    temperature: list | None  # (n,) °C, NaN where unknown (encode writes null)
     first_index: int
     q: list  # (n, 4)
     estimator: str
@@ -506,9 +506,6 @@ class FlightLogWriter:
         n = len(t_ns)
         if n == 0:
             return
-        temps = None
-        if temperature is not None:
-            temps = [None if v != v else v for v in np.asarray(temperature, dtype=float).tolist()]
         self._put(
             _Block(
                 np.asarray(t_ns).tolist(),
@@ -516,7 +513,8 @@ class FlightLogWriter:
                 np.asarray(rows).tolist(),
                 np.asarray(flags).tolist(),
                 None if raw is None else {k: np.asarray(v).tolist() for k, v in raw.items()},
-                temps,
+                # NaN (unknown) stays NaN: encode writes it as null, as write_sample's None
+                None if temperature is None else np.asarray(temperature, dtype=float).tolist(),
                 self.samples,
                 np.asarray(q).tolist(),
                 estimator,

@@ -529,3 +529,25 @@ def test_a_file_written_without_flushes_streams_to_disk(tmp_path, monkeypatch):
     f.close()
     log = read_log(path)
     assert log.damage is None and np.array_equal(log.rows, rows, equal_nan=True)
+
+
+def test_a_block_s_unknown_temperature_is_null_as_write_sample_s_none(tmp_path):
+    """write_block hands NaN temperatures to encode (which writes null): the same /imu/raw
+    ``temperature`` as write_sample with None."""
+    rows = np.zeros((3, 10))
+    rows[:, 9] = 0.005
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (3, 1))
+    w = FlightLogWriter(tmp_path / "block", fsync=False)
+    w.write_block(np.array([1, 2, 3]), rows, np.full(3, 3), q=q, estimator="madgwick",
+                  temperature=np.array([25.5, np.nan, -3.0]))
+    w.close()
+    ref = FlightLogWriter(tmp_path / "sample", fsync=False)
+    for i, temp in enumerate((25.5, None, -3.0)):
+        ref.write_sample(i + 1, rows[i], 3, q=q[i], estimator="madgwick", temperature=temp)
+    ref.close()
+
+    def temperatures(path):
+        with open(path, "rb") as f:
+            return [json.loads(m.data)["temperature"] for _, ch, m in make_reader(f).iter_messages() if ch.topic == "/imu/raw"]
+
+    assert temperatures(w.files[0]) == temperatures(ref.files[0]) == [25.5, None, -3.0]
