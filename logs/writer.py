@@ -34,8 +34,8 @@ Public API (all keyword arguments after the sample's time, row and flags are nam
 
 Adding a message kind: a record class below (``_Record`` subclass), a ``write_*`` method that
 queues it, and a handler registered in ``FlightLogWriter._HANDLERS``. A record that carries
-samples (or several messages) says how many in ``_CARRIES``, and its handler passes them to
-``_ensure_file(messages, samples=…)``, so the "not logged" counts stay exact.
+samples (or several messages) says how many in ``_CARRIES``, and its handler checks for a file
+with ``_ensure_item(item)``, so the queue and the disk count the same "not logged".
 """
 
 from __future__ import annotations
@@ -219,19 +219,21 @@ class _Close:
     pass
 
 
-#: samples (/imu/raw rows) and messages each record kind carries, for what a full queue or a
-#: failing disk loses; kinds not listed carry one message and no sample
+#: messages and samples (/imu/raw rows) each record kind carries, for what a full queue or a
+#: failing disk loses (the queue and the handlers both count from here); kinds not listed
+#: carry one message and no sample
 _CARRIES: dict[type, Callable[[Any], tuple[int, int]]] = {
     _Raw: lambda item: (1, 1),
-    _Sample: lambda item: (1, 2 + (item.truth_q is not None)),
-    _Block: lambda item: (len(item.t_ns), len(item.t_ns) * (2 + (item.truth_q is not None))),
+    _Sample: lambda item: (2 + (item.truth_q is not None), 1),
+    _Block: lambda item: (len(item.t_ns) * (2 + (item.truth_q is not None)), len(item.t_ns)),
+    _AutopilotAttitude: lambda item: (3, 0),  # /autopilot/attitude, /tf, /monitor
 }
 
 
 def _carried(item: Any) -> tuple[int, int]:
-    """(samples, messages) of one queue record."""
+    """(messages, samples) of one queue record."""
     count = _CARRIES.get(type(item))
-    return (0, 1) if count is None else count(item)
+    return (1, 0) if count is None else count(item)
 
 
 @dataclass(frozen=True, slots=True)
@@ -392,7 +394,7 @@ class FlightLogWriter:
         # one producer (the service loop): len() then append() cannot overshoot by more than one
         n = len(self._q)
         if self._closing or n >= self.queue_size:
-            samples, messages = _carried(item)
+            messages, samples = _carried(item)
             self._dropped_full += messages
             self._samples_dropped_full += samples
             return False
@@ -836,6 +838,13 @@ class FlightLogWriter:
         self._lose(messages, samples)
         return False
 
+    def _ensure_item(self, item: Any) -> bool:
+        """``_ensure_file`` for what ``item`` carries (``_CARRIES``, counted only when lost)."""
+        if self._file is not None and not self._stalled:
+            return True
+        messages, samples = _carried(item)
+        return self._ensure_file(messages, samples=samples)
+
     def _rotate_if_due(self) -> None:
         """At a sample boundary: rotates, or asks the caller for a state snapshot first."""
         if self._file is None or not self._should_rotate():
@@ -880,12 +889,12 @@ class FlightLogWriter:
 
     def _on_raw(self, item: _Raw) -> None:
         self._rotate_if_due()
-        if self._ensure_file(1, samples=1):
+        if self._ensure_item(item):
             self._write("/imu/raw", item.t_ns, raw_message(item.t_ns, item.row, item.flags, item.raw, item.temperature, item.index))
 
     def _on_sample(self, item: _Sample) -> None:
         self._rotate_if_due()
-        if not self._ensure_file(2 + (item.truth_q is not None), samples=1):
+        if not self._ensure_item(item):
             return
         t_ns = item.t_ns
         self._write("/imu/raw", t_ns, raw_message(t_ns, item.row, item.flags, item.raw, item.temperature, item.index))
@@ -898,11 +907,11 @@ class FlightLogWriter:
 
     def _on_block(self, item: _Block) -> None:
         self._rotate_if_due()  # at the block's start: a rotation's snapshot is a block's end state
+        if not self._ensure_item(item):
+            return
         n = len(item.t_ns)
         truth = item.truth_q
         per_row = 2 + (truth is not None)
-        if not self._ensure_file(n * per_row, samples=n):
-            return
         raw, temps, sources = item.raw, item.temperature, item.t_source_ns
         last = n - 1
         for i, t_ns in enumerate(item.t_ns):
@@ -940,7 +949,7 @@ class FlightLogWriter:
             self._write("/mavlink", item.t_ns, {"t_ns": int(item.t_ns), "counters": jsonable(item.counters)})
 
     def _on_autopilot_attitude(self, item: _AutopilotAttitude) -> None:
-        if self._ensure_file(3):
+        if self._ensure_item(item):
             t = item.t_ns
             self._write("/autopilot/attitude", t, attitude_message(t, item.q_autopilot, "autopilot"))
             self._write("/tf", t, tf_message(t, item.q_autopilot, child="autopilot"))

@@ -551,3 +551,22 @@ def test_a_block_s_unknown_temperature_is_null_as_write_sample_s_none(tmp_path):
             return [json.loads(m.data)["temperature"] for _, ch, m in make_reader(f).iter_messages() if ch.topic == "/imu/raw"]
 
     assert temperatures(w.files[0]) == temperatures(ref.files[0]) == [25.5, None, -3.0]
+
+
+def test_a_dropped_record_counts_every_message_it_carries(tmp_path):
+    """A full queue (here: a closed writer, which drops the same way) counts what a record
+    carries, as the disk's side does: an autopilot comparison is /autopilot/attitude, /tf and
+    /monitor; a block is its rows' /imu/raw, /attitude and /attitude/truth."""
+    from types import SimpleNamespace
+
+    w = FlightLogWriter(tmp_path)
+    w.close()
+    q = [1.0, 0.0, 0.0, 0.0]
+    w.write_autopilot_attitude(SimpleNamespace(t_ns=1, q_autopilot=q, q_estimate=q, total_deg=0.0,
+                                               inclination_deg=0.0, heading_deg=0.0))
+    assert w.dropped == 3 and w.samples_not_logged == 0
+    qs = np.tile(q, (2, 1))
+    w.write_block(np.array([1, 2]), np.zeros((2, 10)), np.zeros(2, dtype=int), q=qs, estimator="madgwick", truth_q=qs)
+    assert w.dropped == 3 + 6 and w.samples_not_logged == 2
+    w.write_log(3, 6, "text")
+    assert w.dropped == 3 + 6 + 1
