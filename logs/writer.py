@@ -737,7 +737,6 @@ class FlightLogWriter:
         if isinstance(exc, LogFileDeleted) and f is not None:
             # nothing of it can be read any more: all it held is lost; a new file comes next
             self._lose(f.messages, f.samples)
-            f.unflushed = f.unflushed_samples = 0
             self._file = None
             self._stalled = False
             f.abandon()
