@@ -167,27 +167,18 @@ class _Mavlink:
 
 @dataclass(slots=True)
 class _AutopilotAttitude:
-    """The autopilot's attitude and its disagreement with ours (attitude_monitor.Disagreement)."""
+    """The autopilot's attitude and its disagreement with ours: an attitude_monitor.Disagreement
+    (frozen, so queued as it is, not copied field by field)."""
 
-    t_ns: int
-    q_autopilot: list[float]
-    q_estimate: list[float]
-    total_deg: float
-    inclination_deg: float
-    heading_deg: float
+    d: Any
 
 
 @dataclass(slots=True)
 class _Timesync:
-    """The autopilot's clock estimate after one accepted TIMESYNC sample (timesync.TimesyncStatus)."""
+    """The autopilot's clock estimate after one accepted TIMESYNC sample: a
+    timesync.TimesyncStatus (frozen, so queued as it is)."""
 
-    t_ns: int
-    offset_ns: int
-    observed_offset_ns: int
-    drift_ppm: float
-    rtt_ns: int
-    synced: bool
-    samples: int
+    status: Any
 
 
 @dataclass(slots=True)
@@ -570,14 +561,12 @@ class FlightLogWriter:
         """One comparison of the attitude monitor (``attitude_monitor.Disagreement``): the
         autopilot's attitude on /autopilot/attitude and as frame ``autopilot`` on /tf, the
         disagreement on /monitor, all at the autopilot's time mapped onto ours."""
-        self._put(_AutopilotAttitude(int(d.t_ns), list(d.q_autopilot), list(d.q_estimate), float(d.total_deg),
-                                     float(d.inclination_deg), float(d.heading_deg)))
+        self._put(_AutopilotAttitude(d))
 
     def write_timesync(self, status: Any) -> None:
         """The TIMESYNC estimate (``timesync.TimesyncStatus``) on /timesync: offset and drift
         of the autopilot's clock against ours, at the sample's time on our clock."""
-        self._put(_Timesync(int(status.local_ns), int(status.offset_ns), int(status.observed_offset_ns),
-                            float(status.drift_ppm), int(status.rtt_ns), bool(status.synced), int(status.samples)))
+        self._put(_Timesync(status))
 
     def write_mavlink(self, t_ns: int, counters: Mapping[str, Any]) -> None:
         """MAVLink traffic counters."""
@@ -949,18 +938,21 @@ class FlightLogWriter:
 
     def _on_autopilot_attitude(self, item: _AutopilotAttitude) -> None:
         if self._ensure_item(item):
-            t = item.t_ns
-            self._write("/autopilot/attitude", t, attitude_message(t, item.q_autopilot, "autopilot"))
-            self._write("/tf", t, tf_message(t, item.q_autopilot, child="autopilot"))
-            self._write("/monitor", t, monitor_message(t, item.total_deg, item.inclination_deg, item.heading_deg,
-                                                       item.q_autopilot, item.q_estimate))
+            d = item.d
+            t, q_autopilot = int(d.t_ns), list(d.q_autopilot)
+            self._write("/autopilot/attitude", t, attitude_message(t, q_autopilot, "autopilot"))
+            self._write("/tf", t, tf_message(t, q_autopilot, child="autopilot"))
+            self._write("/monitor", t, monitor_message(t, float(d.total_deg), float(d.inclination_deg),
+                                                       float(d.heading_deg), q_autopilot, list(d.q_estimate)))
 
     def _on_timesync(self, item: _Timesync) -> None:
         if self._ensure_file(1):
-            self._write("/timesync", item.t_ns, {
-                "t_ns": item.t_ns, "offset_ns": item.offset_ns, "observed_offset_ns": item.observed_offset_ns,
-                "drift_ppm": num_or_null(item.drift_ppm), "rtt_ns": item.rtt_ns, "synced": item.synced,
-                "samples": item.samples,
+            s = item.status
+            t = int(s.local_ns)
+            self._write("/timesync", t, {
+                "t_ns": t, "offset_ns": int(s.offset_ns), "observed_offset_ns": int(s.observed_offset_ns),
+                "drift_ppm": num_or_null(float(s.drift_ppm)), "rtt_ns": int(s.rtt_ns), "synced": bool(s.synced),
+                "samples": int(s.samples),
             })
 
     def _on_log(self, item: _Log) -> None:
