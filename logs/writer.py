@@ -685,7 +685,7 @@ class FlightLogWriter:
             self.last_error = f"{path}: {exc.strerror or exc}" + (f" ({code})" if code else "")
         else:
             self.last_error = f"{type(exc).__name__}: {exc}"
-        if self.status != "error" and self._outage_since is None:
+        if self._outage_since is None:  # set exactly while status is "error"
             self._outage_since = time.monotonic()
             self.outages += 1
             self._outage_start_counts = (self.dropped, self.samples_not_logged)
