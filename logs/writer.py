@@ -795,6 +795,9 @@ class FlightLogWriter:
         return self.rotate_seconds is not None and time.monotonic() - self._opened_at >= self.rotate_seconds
 
     def _write(self, topic: str, t_ns: int, message: dict[str, Any]) -> None:
+        if self._file is None:  # an earlier write of the same record failed: _fail counted what the file held
+            self._lose(1, topic == "/imu/raw")
+            return
         try:
             data = encode(message)
         except (TypeError, ValueError) as exc:
@@ -888,10 +891,7 @@ class FlightLogWriter:
         self._write("/imu/raw", t_ns, raw_message(t_ns, item.row, item.flags, item.raw, item.temperature, item.index))
         self._write_attitude(t_ns, item.q, item.estimator, item.bias, item.diagnostics)
         if item.truth_q is not None:
-            if self._file is None:  # a write before failed: _fail counted what the file held
-                self._dropped_io += 1
-            else:
-                self._write("/attitude/truth", t_ns, truth_message(t_ns, item.truth_q))
+            self._write("/attitude/truth", t_ns, truth_message(t_ns, item.truth_q))
 
     def _on_block(self, item: _Block) -> None:
         self._rotate_if_due()  # at the block's start: a rotation's snapshot is a block's end state
@@ -915,10 +915,7 @@ class FlightLogWriter:
             else:  # no bias of its own: the key is left out (not zeros a plot would show)
                 self._write_attitude(t_ns, item.q[i], item.estimator, None, None, with_bias=False)
             if truth is not None:
-                if self._file is None:
-                    self._lose(1)
-                else:
-                    self._write("/attitude/truth", t_ns, truth_message(t_ns, truth[i]))
+                self._write("/attitude/truth", t_ns, truth_message(t_ns, truth[i]))
 
     def _on_attitude(self, item: _Attitude) -> None:
         if self._ensure_file(1):
@@ -978,15 +975,12 @@ class FlightLogWriter:
 
     def _write_attitude(self, t_ns: int, q: list[float], estimator: str, bias: Any, diagnostics: Any,
                         with_bias: bool = True) -> None:
-        if self._file is None:  # the write before this one failed: _fail counted it, retry later
-            self._dropped_io += 1
-            return
         message = attitude_message(t_ns, q, estimator, bias, diagnostics)
         if not with_bias:
             del message["gyro_bias"]
         self._write("/attitude", t_ns, message)
         if (
-            self._file is not None
+            self._file is not None  # /tf is not counted as carried: not written, not lost
             and (self._last_tf_ns is None or t_ns - self._last_tf_ns >= self.tf_period_ns)
             and all(map(math.isfinite, q))  # a transform with null rotation would break the 3-D panel
         ):

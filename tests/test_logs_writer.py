@@ -570,3 +570,31 @@ def test_a_dropped_record_counts_every_message_it_carries(tmp_path):
     assert w.dropped == 3 + 6 and w.samples_not_logged == 2
     w.write_log(3, 6, "text")
     assert w.dropped == 3 + 6 + 1
+
+
+def test_a_write_that_drops_the_file_loses_the_rest_of_its_record_counted(tmp_path, monkeypatch):
+    """A failure that gives the file up (not the disk's: a new file comes next) in the first of
+    a record's messages: the others are counted as lost, not written to no file (which would
+    be a second and third error hiding the first)."""
+    from types import SimpleNamespace
+
+    real = McapLogFile.write_encoded
+
+    def write_encoded(self, topic, *args, **kwargs):
+        if topic == "/autopilot/attitude":
+            raise RuntimeError("the file's own state is broken")
+        return real(self, topic, *args, **kwargs)
+
+    monkeypatch.setattr(McapLogFile, "write_encoded", write_encoded)
+    w = FlightLogWriter(tmp_path, retry_first_s=60.0, flush_interval_s=3600.0)  # the sample stays unflushed
+    w.write_raw(1, np.zeros(10), 0)
+    assert _wait_for(lambda: w._file is not None and w.written == 1)
+    q = [1.0, 0.0, 0.0, 0.0]
+    w.write_autopilot_attitude(SimpleNamespace(t_ns=2, q_autopilot=q, q_estimate=q, total_deg=0.0,
+                                               inclination_deg=0.0, heading_deg=0.0))
+    assert _wait_for(lambda: w._file is None)
+    w.close()
+    assert w.errors == 1 and w.last_error.startswith("RuntimeError"), (w.errors, w.last_error)
+    # the sample the given-up file held, and /tf and /monitor of the record (the write that
+    # raised inside the file layer is not counted: it never reached the file's counters)
+    assert w.dropped == 1 + 2 and w.samples_not_logged == 1
