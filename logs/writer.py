@@ -59,11 +59,11 @@ import numpy as np
 from ahrs_service.logs.mcap_file import LogFileDeleted, McapLogFile
 from ahrs_service.logs.schemas import (
     attitude_message,
+    autopilot_attitude_messages,
     encode,
     jsonable,
     log_message,
     num_or_null,
-    monitor_message,
     raw_message,
     tf_message,
     truth_message,
@@ -936,11 +936,10 @@ class FlightLogWriter:
     def _on_autopilot_attitude(self, item: _AutopilotAttitude) -> None:
         if self._ensure_item(item):
             d = item.d
-            t, q_autopilot = int(d.t_ns), list(d.q_autopilot)
-            self._write("/autopilot/attitude", t, attitude_message(t, q_autopilot, "autopilot"))
-            self._write("/tf", t, tf_message(t, q_autopilot, child="autopilot"))
-            self._write("/monitor", t, monitor_message(t, float(d.total_deg), float(d.inclination_deg),
-                                                       float(d.heading_deg), q_autopilot, list(d.q_estimate)))
+            t = int(d.t_ns)
+            for topic, message in autopilot_attitude_messages(t, list(d.q_autopilot), list(d.q_estimate), float(d.total_deg),
+                                                              float(d.inclination_deg), float(d.heading_deg)).items():
+                self._write(topic, t, message)
 
     def _on_timesync(self, item: _Timesync) -> None:
         if self._ensure_file(1):
