@@ -88,14 +88,6 @@ def worker_cache(key: Any, load: Callable[[], R]) -> R:
 _cache: "OrderedDict[Any, Any]" = OrderedDict()
 
 
-def _import_distributed():
-    # a missing package propagates as ModuleNotFoundError: the command line turns it into the
-    # one line naming the extra (cli.OPTIONAL_MODULES: distributed -> fleet), as for every extra
-    import distributed
-
-    return distributed
-
-
 class Runner:
     """Runs jobs serially or as Dask tasks; results in job order. Use as a context manager."""
 
@@ -176,8 +168,9 @@ def open_runner(
     ``workers=None`` means :func:`default_workers`. Raises :class:`RunnerError` (one line, names
     the address) when the scheduler cannot be reached within ``connect_timeout_s`` seconds.
     """
+    # a missing ``distributed`` propagates as ModuleNotFoundError: the command line turns it into
+    # the one line naming the extra (cli.OPTIONAL_MODULES: distributed -> fleet), as for every extra
     if scheduler:
-        _import_distributed()
         from distributed import Client
 
         try:
@@ -193,7 +186,6 @@ def open_runner(
         raise RunnerError(f"--workers must be at least 1, not {n}")
     if n == 1:
         return Runner(info=RunnerInfo("serial", 1), retries=retries)
-    _import_distributed()
     from distributed import Client, LocalCluster
 
     cluster = LocalCluster(
