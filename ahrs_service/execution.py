@@ -108,7 +108,7 @@ class Runner:
     ) -> list[R]:
         """``[fn(job) for job in jobs]``, each job a task when on a cluster; same order as ``jobs``."""
         jobs = list(jobs)
-        bar = _progress_bar(len(jobs), desc) if progress and jobs else None
+        bar = progress_bar(len(jobs), desc) if progress and jobs else None
         try:
             if self._client is None:
                 out = []
@@ -200,12 +200,13 @@ def open_runner(
     return Runner(client, cluster, RunnerInfo("local", n, cluster.scheduler_address), retries)
 
 
-def _progress_bar(total: int, desc: str):
+def progress_bar(total: int, desc: str, unit: str = "task"):
+    """A tqdm bar on stderr (``update``, ``close``), or None without tqdm."""
     try:
         from tqdm import tqdm
     except ImportError:  # the bar is a nicety: no analysis extra, no bar
         return None
-    return tqdm(total=total, unit="task", desc=desc or None, file=sys.stderr, dynamic_ncols=True)
+    return tqdm(total=total, unit=unit, desc=desc or None, file=sys.stderr, dynamic_ncols=True)
 
 
 def add_arguments(parser: Any) -> None:
