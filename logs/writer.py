@@ -59,11 +59,11 @@ import numpy as np
 from ahrs_service.logs.mcap_file import LogFileDeleted, McapLogFile
 from ahrs_service.logs.schemas import (
     attitude_message,
+    autopilot_attitude_messages,
     encode,
     jsonable,
     log_message,
     num_or_null,
-    monitor_message,
     raw_message,
     tf_message,
     truth_message,
@@ -944,10 +944,9 @@ class FlightLogWriter:
     def _on_autopilot_attitude(self, item: _AutopilotAttitude) -> None:
         if self._ensure_file(3):
             t = item.t_ns
-            self._write("/autopilot/attitude", t, attitude_message(t, item.q_autopilot, "autopilot"))
-            self._write("/tf", t, tf_message(t, item.q_autopilot, child="autopilot"))
-            self._write("/monitor", t, monitor_message(t, item.total_deg, item.inclination_deg, item.heading_deg,
-                                                       item.q_autopilot, item.q_estimate))
+            for topic, message in autopilot_attitude_messages(t, item.q_autopilot, item.q_estimate, item.total_deg,
+                                                              item.inclination_deg, item.heading_deg).items():
+                self._write(topic, t, message)
 
     def _on_timesync(self, item: _Timesync) -> None:
         if self._ensure_file(1):
