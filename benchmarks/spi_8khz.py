@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     stalls: list[tuple[float, bool]] = []  # (host time without a FIFO read, s; overflowed)
     others: list[tuple[float, float]] = []  # overflows outside the injected stalls: (gap, s since the stall)
 
-    def make_source(source_cfg, estimation_hz):
+    def make_source(source_cfg, estimation_hz, system_id=1):  # sources.make_source's signature
         board = make_transport_board("icm42688p", "spi", simulated_imu=recording,
                                      odr_hz=args.odr, fifo_read_hz=args.loop_hz)
         if args.drdy:
