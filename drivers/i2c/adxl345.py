@@ -37,7 +37,6 @@ import struct
 
 import numpy as np
 
-from ahrs_service.drivers.fifo import SimulatedFrameFifo
 from ahrs_service.drivers.i2c.bus import I2CBus
 from ahrs_service.drivers.i2c.device import (
     STANDARD_GRAVITY,
@@ -48,6 +47,7 @@ from ahrs_service.drivers.i2c.device import (
     i16_bytes,
     to_counts,
 )
+from ahrs_service.drivers.i2c.st_fifo import SimulatedFrameFifoTwin
 
 DEVID, BW_RATE, POWER_CTL, INT_SOURCE, DATA_FORMAT, DATAX0 = 0x00, 0x2C, 0x2D, 0x30, 0x31, 0x32
 FIFO_CTL, FIFO_STATUS = 0x38, 0x39
@@ -138,7 +138,7 @@ class ADXL345(I2CDevice):
         return self.read_counts() if self.data_ready() else None
 
 
-class SimulatedADXL345(SimulatedRegisterDevice):
+class SimulatedADXL345(SimulatedFrameFifoTwin, SimulatedRegisterDevice):
     """Simulated ADXL345: latches physics "acc" at BW_RATE while POWER_CTL.Measure is set;
     with FIFO_CTL in FIFO or stream mode every sample also enters the 32-entry FIFO, whose
     oldest entry the data registers show (popped when a read of them ends). Counters for
@@ -146,6 +146,7 @@ class SimulatedADXL345(SimulatedRegisterDevice):
     (entries emptied unread by bypass mode)."""
 
     CLOCK_ERROR = +0.0090  # this simulated unit runs 0.9 % fast
+    FIFO_DATA = DATAX0  # a FIFO entry is DATAX0…DATAZ1
     PART = "ADXL345"
     DEFAULT_ADDRESS = 0x53
     POWER_ON = {DEVID: DEVID_VALUE, BW_RATE: 0x0A, INT_SOURCE: 0x02}
@@ -155,28 +156,9 @@ class SimulatedADXL345(SimulatedRegisterDevice):
     def rate_hz(self) -> float:
         return 3200.0 / 2 ** (15 - (self.regs[BW_RATE] & 0x0F))
 
-    def reset_state(self, now: float) -> None:
-        self.fifo = SimulatedFrameFifo(FIFO_ENTRIES)
-
-    # the twin's counters for tests (entries overwritten/turned away, emptied unread)
-    fifo_overflowed = property(lambda self: self.fifo.overflowed)
-    fifo_discarded = property(lambda self: self.fifo.discarded)
-    fifo_frames = property(lambda self: len(self.fifo))
-
     # ---------------------------------------------------------------- FIFO
     def fifo_mode(self) -> int:
         return self.regs[FIFO_CTL] >> 6
-
-    def fifo_room(self) -> int | None:
-        if self.fifo_mode() not in (FIFO_FIFO, FIFO_STREAM):
-            return None
-        return FIFO_ENTRIES - len(self.fifo)
-
-    def fifo_keeps_oldest(self) -> bool:
-        return self.fifo_mode() == FIFO_FIFO
-
-    def fifo_dropped(self, n: int) -> None:
-        self.fifo.overflowed += n
 
     def _fifo_flags(self) -> None:
         """INT_SOURCE Watermark / Overrun and FIFO_STATUS Entries from the FIFO's level."""
@@ -189,10 +171,6 @@ class SimulatedADXL345(SimulatedRegisterDevice):
             status |= OVERRUN
         self.regs[INT_SOURCE] = status
         self.regs[FIFO_STATUS] = level
-
-    def take_popped_truth(self) -> list[Any]:
-        """The truth of the entries read since the last call, oldest first."""
-        return self.fifo.take_popped_truth()
 
     def read_register(self, reg: int) -> int:
         head = self.fifo.head()
@@ -230,8 +208,8 @@ class SimulatedADXL345(SimulatedRegisterDevice):
             if fmt & 0x04:  # left-justified (MSB) mode
                 c <<= 16 - bits
             self.regs[DATAX0 + 2 * i: DATAX0 + 2 * i + 2] = bytes(i16_bytes(c, False))
-        if self.fifo_mode() in (FIFO_FIFO, FIFO_STREAM):
-            self.fifo.push(bytes(self.regs[DATAX0:DATAX0 + 6]), phys.get("truth"), self.fifo_keeps_oldest())
+        if self.fifo_filling():
+            self._fifo_push(phys.get("truth"))
             self._fifo_flags()
 
     def on_read(self, regs: list[int], now: float) -> None:

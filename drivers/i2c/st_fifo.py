@@ -85,17 +85,16 @@ class STFifoDriver:
         return np.frombuffer(data, dtype="<i2").reshape(frames, 3).astype(np.int64)
 
 
-class SimulatedSTFifo:
-    """Twin side, mixed into the ST twins (before :class:`SimulatedRegisterDevice`, whose
-    ``read_register``, ``next_pointer`` and ``on_write`` it extends): the 32-sample FIFO of
-    the registers above, filled by every due sample (the base's FIFO latching), the
-    stream/FIFO mode rules, the watermark and OVRN, the OUT_X_L … OUT_Z_H roll-over. The twin
-    calls :meth:`_fifo_push` at the end of its ``latch``."""
+class SimulatedFrameFifoTwin:
+    """Twin side of a 32-sample FIFO of whole X, Y, Z frames (6 bytes from ``FIFO_DATA``), in
+    the modes the ST parts and the ADXL345 number alike: 0 bypass, 1 FIFO (a full FIFO turns
+    the new sample away), 2 stream (it overwrites its oldest). Mixed into the twins before
+    :class:`SimulatedRegisterDevice`, it gives the base's FIFO latching its hooks; the twin
+    tells :meth:`fifo_mode` and calls :meth:`_fifo_push` at the end of its ``latch``."""
 
     regs: bytearray
-    #: where FM sits in FIFO_CTRL_REG: bits 7:5 on the gyroscopes, 7:6 (bit 5: TR) on the
-    #: LSM303DLHC — the same mode numbers either way
-    FM_SHIFT = 5
+    #: the first data register: a frame is the 6 bytes from here
+    FIFO_DATA = OUT_X_L
 
     def reset_state(self, now: float) -> None:
         super().reset_state(now)  # type: ignore[misc]
@@ -107,15 +106,15 @@ class SimulatedSTFifo:
     fifo_frames = property(lambda self: len(self.fifo))
 
     def fifo_mode(self) -> int | None:
-        """FM of FIFO_CTRL_REG, or None while CTRL_REG5.FIFO_EN is clear."""
-        if not self.regs[CTRL_REG5] & FIFO_EN:
-            return None
-        return self.regs[FIFO_CTRL_REG] >> self.FM_SHIFT
+        """The FIFO's mode (FM_BYPASS, FM_FIFO, FM_STREAM, …), None while it is off."""
+        raise NotImplementedError
+
+    def fifo_filling(self) -> bool:
+        """Whether each new sample enters the FIFO (FIFO or stream mode)."""
+        return self.fifo_mode() in (FM_FIFO, FM_STREAM)
 
     def fifo_room(self) -> int | None:
-        if self.fifo_mode() not in (FM_FIFO, FM_STREAM):
-            return None
-        return FIFO_FRAMES - len(self.fifo)
+        return FIFO_FRAMES - len(self.fifo) if self.fifo_filling() else None
 
     def fifo_keeps_oldest(self) -> bool:
         return self.fifo_mode() == FM_FIFO
@@ -124,9 +123,32 @@ class SimulatedSTFifo:
         self.fifo.overflowed += n
 
     def _fifo_push(self, truth: Any) -> None:
-        """The sample just latched into OUT_X_L … OUT_Z_H, into the FIFO (§5.2)."""
-        if self.fifo_mode() in (FM_FIFO, FM_STREAM):
-            self.fifo.push(bytes(self.regs[OUT_X_L:OUT_X_L + FRAME_BYTES]), truth, self.fifo_keeps_oldest())
+        """The sample just latched into the data registers, into the FIFO when it fills."""
+        if self.fifo_filling():
+            self.fifo.push(bytes(self.regs[self.FIFO_DATA:self.FIFO_DATA + FRAME_BYTES]), truth,
+                           self.fifo_keeps_oldest())
+
+    def take_popped_truth(self) -> list[Any]:
+        """The truth of the samples read from the FIFO since the last call, oldest first."""
+        return self.fifo.take_popped_truth()
+
+
+class SimulatedSTFifo(SimulatedFrameFifoTwin):
+    """Twin side, mixed into the ST twins (before :class:`SimulatedRegisterDevice`, whose
+    ``read_register``, ``next_pointer`` and ``on_write`` it extends): the 32-sample FIFO of
+    the registers above, filled by every due sample (the base's FIFO latching), the
+    stream/FIFO mode rules, the watermark and OVRN, the OUT_X_L … OUT_Z_H roll-over. The twin
+    calls :meth:`_fifo_push` at the end of its ``latch``."""
+
+    #: where FM sits in FIFO_CTRL_REG: bits 7:5 on the gyroscopes, 7:6 (bit 5: TR) on the
+    #: LSM303DLHC — the same mode numbers either way
+    FM_SHIFT = 5
+
+    def fifo_mode(self) -> int | None:
+        """FM of FIFO_CTRL_REG, or None while CTRL_REG5.FIFO_EN is clear."""
+        if not self.regs[CTRL_REG5] & FIFO_EN:
+            return None
+        return self.regs[FIFO_CTRL_REG] >> self.FM_SHIFT
 
     def _fifo_src(self) -> int:
         level = len(self.fifo)
@@ -160,7 +182,3 @@ class SimulatedSTFifo:
         if self.fifo_mode() is not None and reg == OUT_Z_H:
             return OUT_X_L
         return super().next_pointer(reg)  # type: ignore[misc]
-
-    def take_popped_truth(self) -> list[Any]:
-        """The truth of the samples read from the FIFO since the last call, oldest first."""
-        return self.fifo.take_popped_truth()
