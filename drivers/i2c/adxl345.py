@@ -47,7 +47,7 @@ from ahrs_service.drivers.i2c.device import (
     i16_bytes,
     to_counts,
 )
-from ahrs_service.drivers.i2c.st_fifo import SimulatedFrameFifoTwin
+from ahrs_service.drivers.i2c.st_fifo import FrameFifoDriver, SimulatedFrameFifoTwin
 
 DEVID, BW_RATE, POWER_CTL, INT_SOURCE, DATA_FORMAT, DATAX0 = 0x00, 0x2C, 0x2D, 0x30, 0x31, 0x32
 FIFO_CTL, FIFO_STATUS = 0x38, 0x39
@@ -70,7 +70,7 @@ RATES_HZ = {3200 / 2 ** (15 - c): c for c in range(6, 16)}
 _UNPACK = struct.Struct("<3h").unpack
 
 
-class ADXL345(I2CDevice):
+class ADXL345(FrameFifoDriver, I2CDevice):
     """ADXL345 driver: specific force in m/s², sensor axes.
 
     range_g: 2, 4, 8 or 16 (full resolution). rate_hz: 6.25 … 3200 (powers of two × 6.25).
@@ -80,6 +80,7 @@ class ADXL345(I2CDevice):
     PART = "ADXL345"
     DEFAULT_ADDRESS = 0x53
     fifo_layout = FIFO_LAYOUT
+    FIFO_CTRL, FM_SHIFT = FIFO_CTL, 6  # FIFO_MODE in bits 7:6
 
     def __init__(self, bus: I2CBus, address: int | None = None, *, range_g: int = 8,
                  rate_hz: float = 800, fifo: bool = False, watermark: int = 8, **kw: Any) -> None:
@@ -108,22 +109,14 @@ class ADXL345(I2CDevice):
         self.write_u8(POWER_CTL, MEASURE)
 
     # ---------------------------------------------------------------- FIFO
-    def fifo_reset(self) -> None:
-        """Empties the FIFO (bypass mode) and restarts it in stream mode with the watermark."""
-        self.write_u8(FIFO_CTL, FIFO_BYPASS << 6)
-        self.write_u8(FIFO_CTL, FIFO_STREAM << 6 | self.fifo_watermark)
-
+    # fifo_reset (bypass mode empties it, then stream mode with the watermark) and read_fifo
+    # (one 6-byte read per entry: FIFO_LAYOUT) are FrameFifoDriver's
     def fifo_status(self) -> FifoStatus:
         """Stored entries (FIFO_STATUS) and whether the FIFO had filled (INT_SOURCE.Overrun)."""
         overrun = bool(self.read_u8(INT_SOURCE) & OVERRUN)
         t = self.bus.now_ns()
         entries = self.read_u8(FIFO_STATUS) & 0x3F
         return FifoStatus(entries, overrun or entries >= FIFO_ENTRIES, t)
-
-    def read_fifo(self, frames: int) -> np.ndarray:
-        """``frames`` entries, oldest first: (frames, 3) int64 counts, one 6-byte read each."""
-        data = self.read_fifo_frames(FIFO_LAYOUT, frames)
-        return np.frombuffer(data, dtype="<i2").reshape(frames, 3).astype(np.int64)
 
     def data_ready(self) -> bool:
         """INT_SOURCE.DATA_READY: a sample not read yet."""

@@ -50,13 +50,34 @@ FIFO_LAYOUT = FifoLayout(depth_frames=FIFO_FRAMES, frame_bytes=FRAME_BYTES,
                          frames_per_transfer=SMBUS_BLOCK_MAX // FRAME_BYTES)
 
 
-class STFifoDriver:
-    """Driver side, mixed into the ST parts' :class:`~ahrs_service.drivers.i2c.device.I2CDevice`
-    drivers (they provide ``write_u8``, ``read_u8``, ``read_fifo_frames``)."""
+class FrameFifoDriver:
+    """Driver side of a 32-sample FIFO of X, Y, Z frames (little-endian counts) whose control
+    register holds the mode at ``FM_SHIFT`` (0 bypass, 2 stream) above a 5-bit watermark: the
+    ST parts' FIFO_CTRL_REG and the ADXL345's FIFO_CTL. Mixed into the
+    :class:`~ahrs_service.drivers.i2c.device.I2CDevice` drivers (they provide ``write_u8``,
+    ``read_fifo_frames`` and ``fifo_watermark``)."""
 
-    #: where FM sits in FIFO_CTRL_REG: bits 7:5 on the gyroscopes, 7:6 on the LSM303DLHC
+    #: the FIFO's control register and where its mode sits in it
+    FIFO_CTRL = FIFO_CTRL_REG
     FM_SHIFT = 5
     fifo_layout = FIFO_LAYOUT
+
+    def fifo_reset(self) -> None:
+        """Empties the FIFO: bypass mode, then stream mode again with the watermark."""
+        self.write_u8(self.FIFO_CTRL, FM_BYPASS << self.FM_SHIFT)  # type: ignore[attr-defined]
+        self.write_u8(self.FIFO_CTRL, FM_STREAM << self.FM_SHIFT | self.fifo_watermark)  # type: ignore[attr-defined]
+
+    def read_fifo(self, frames: int) -> np.ndarray:
+        """``frames`` samples, oldest first: (frames, 3) int64 counts, little-endian."""
+        data = self.read_fifo_frames(self.fifo_layout, frames)  # type: ignore[attr-defined]
+        return np.frombuffer(data, dtype="<i2").reshape(frames, 3).astype(np.int64)
+
+
+class STFifoDriver(FrameFifoDriver):
+    """Driver side, mixed into the ST parts' :class:`~ahrs_service.drivers.i2c.device.I2CDevice`
+    drivers (they provide ``write_u8``, ``read_u8``, ``read_fifo_frames``); :meth:`fifo_reset`
+    (§5.2.1: bypass resets it) and :meth:`read_fifo` (BLE 0) are :class:`FrameFifoDriver`'s.
+    FM sits in FIFO_CTRL_REG at bits 7:5 on the gyroscopes, 7:6 on the LSM303DLHC."""
 
     def configure_fifo(self, watermark: int) -> None:
         """FIFO on in stream mode with the watermark (1 … 31 samples), emptied."""
@@ -66,11 +87,6 @@ class STFifoDriver:
         self.write_u8(CTRL_REG5, FIFO_EN)  # type: ignore[attr-defined]
         self.fifo_reset()
 
-    def fifo_reset(self) -> None:
-        """Empties the FIFO: bypass mode, then stream mode again (§5.2.1)."""
-        self.write_u8(FIFO_CTRL_REG, FM_BYPASS << self.FM_SHIFT)  # type: ignore[attr-defined]
-        self.write_u8(FIFO_CTRL_REG, FM_STREAM << self.FM_SHIFT | self.fifo_watermark)  # type: ignore[attr-defined]
-
     def fifo_status(self) -> FifoStatus:
         """Stored samples and whether the FIFO had filled (FIFO_SRC_REG, one byte)."""
         t = self.bus.now_ns()  # type: ignore[attr-defined]
@@ -78,11 +94,6 @@ class STFifoDriver:
         if src & SRC_OVRN:
             return FifoStatus(FIFO_FRAMES, True, t)
         return FifoStatus(0 if src & SRC_EMPTY else src & 0x1F, False, t)
-
-    def read_fifo(self, frames: int) -> np.ndarray:
-        """``frames`` samples, oldest first: (frames, 3) int64 counts, little-endian (BLE 0)."""
-        data = self.read_fifo_frames(FIFO_LAYOUT, frames)  # type: ignore[attr-defined]
-        return np.frombuffer(data, dtype="<i2").reshape(frames, 3).astype(np.int64)
 
 
 class SimulatedFrameFifoTwin:
