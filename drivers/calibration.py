@@ -203,16 +203,12 @@ def apply_calibration(sample: ImuSample, cal: SensorCalibration) -> ImuSample:
 
 
 @njit(cache=True)
-def _calibrate_rows(mats, offs, gyr, acc, mag, out_gyr, out_acc, out_mag):
-    """The rows of a block through :func:`_calibrate`'s arithmetic, term for term (so a block
-    and the same samples one by one give the same bits); NaN rows (no field) stay NaN."""
+def _calibrate_rows(mats, offs, gyr, acc, mag, out):
+    """Each row of a block through :func:`_calibrate` itself (so a block and the same samples
+    one by one give the same bits): ``out[:, k]`` = (gyr, acc, mag) of row k; NaN rows (no
+    field) stay NaN."""
     for k in range(gyr.shape[0]):
-        for r in range(3):
-            x = gyr if r == 0 else (acc if r == 1 else mag)
-            out = out_gyr if r == 0 else (out_acc if r == 1 else out_mag)
-            d0, d1, d2 = x[k, 0] - offs[r, 0], x[k, 1] - offs[r, 1], x[k, 2] - offs[r, 2]
-            for i in range(3):
-                out[k, i] = mats[r, i, 0] * d0 + mats[r, i, 1] * d1 + mats[r, i, 2] * d2
+        _calibrate(mats, offs, gyr[k], acc[k], mag[k], True, out[:, k])
 
 
 def apply_calibration_block(block: SampleBlock, cal: SensorCalibration) -> SampleBlock:
@@ -231,7 +227,7 @@ def apply_calibration_block(block: SampleBlock, cal: SensorCalibration) -> Sampl
         # contiguous float64 (a no-op for the usual block): one compiled specialisation
         np.ascontiguousarray(block.gyr, dtype=np.float64), np.ascontiguousarray(block.acc, dtype=np.float64),
         np.ascontiguousarray(block.mag, dtype=np.float64),
-        gyr, acc, mag,
+        out,
     )
     # the constructor, not dataclasses.replace: a tenth of the cost, once per block
     return SampleBlock(block.t_ns, gyr, acc, mag, block.flags, block.temperature_c, block.raw, block.truth_q,
