@@ -25,6 +25,10 @@ The driver runs the FIFO in stream mode: a host that stops longer than 32 sample
 newest 32, the oldest ones overwritten; the overrun is flagged only as "filled", so the loss
 is estimated from the sensor clock (:class:`~ahrs_service.drivers.fifo.FifoTimeline`).
 The FIFO is emptied by switching to bypass mode and back (§5.2.1: bypass resets it).
+
+The ADXL345's 32-entry FIFO (:mod:`.adxl345`) numbers its modes alike and holds the same
+X, Y, Z frames: it shares the mode-only parts, :class:`FrameFifoDriver` (reset, burst
+decode) and :class:`SimulatedFrameFifoTwin` (the twin's FIFO hooks), not the ST registers.
 """
 
 from __future__ import annotations
