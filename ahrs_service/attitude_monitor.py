@@ -132,15 +132,22 @@ class EstimateHistory:
         count = min(self.n, self.size)
         if count < 2:
             return None
-        order = (np.arange(count) + (self.head - count)) % self.size
-        t = self.t[order]
-        if t_ns < t[0] or t_ns > t[-1]:
+        t = self.t
+        first = (self.head - count) % self.size  # the oldest
+        if t_ns < t[first] or t_ns > t[(self.head - 1) % self.size]:
             return None
-        j = int(np.searchsorted(t, t_ns))
+        # the ring holds one sorted run, or (once it wrapped) two: t[first:], then t[:head];
+        # search the one that holds t_ns in place, without copying the ring into time order
+        if first + count <= self.size:
+            j = first + int(np.searchsorted(t[first:first + count], t_ns))
+        elif t_ns <= t[-1]:
+            j = first + int(np.searchsorted(t[first:], t_ns))
+        else:
+            j = int(np.searchsorted(t[:self.head], t_ns))
         if t[j] == t_ns:
-            return tuple(self.q[order[j]].tolist())  # type: ignore[return-value]
-        i0, i1 = order[j - 1], order[j]
-        f = (t_ns - self.t[i0]) / (self.t[i1] - self.t[i0])
+            return tuple(self.q[j].tolist())  # type: ignore[return-value]
+        i0, i1 = (j - 1) % self.size, j
+        f = (t_ns - t[i0]) / (t[i1] - t[i0])
         return slerp(self.q[i0], self.q[i1], float(f))
 
 

@@ -15,8 +15,10 @@ section, the checker built from the factories below (they never let NaN or ±inf
 
 * ``_number(lo, hi)`` / ``_number(lo, hi, integer=True)`` — a finite number (int or float;
   bool refused) in [lo, hi] (``None`` = unbounded on that side);
-* ``_stream_rate(hi)`` — a MAVLink stream rate: 0 (off) or [0.01, hi] Hz;
+* ``_stream_rate(hi)`` — a MAVLink stream rate: 0 (off) or [0.01, hi] Hz (``lo=``: another floor);
 * ``_choice(("a", "b"))``, ``_string``, ``_boolean``, ``_string_list``, ``_table``;
+* ``_subtable(KEYS)`` — a sub-table ``[section.key]`` whose own keys are declared like a
+  section's (``{"name": (default, checker)}``), e.g. ``mavlink.odometry``;
 * ``_optional(checker)`` — the key may be unset (default ``None``);
 * ``_endpoints`` — a non-empty list of distinct MAVLink connection strings, each parsed
   (scheme, host, port 1..65535 or a serial device and baud);
@@ -80,14 +82,14 @@ def _number(lo: float | None = None, hi: float | None = None, integer: bool = Fa
 MIN_STREAM_HZ = 0.01  # protocols.mavlink.component.MIN_RATE_HZ: an interval MESSAGE_INTERVAL can carry
 
 
-def _stream_rate(hi: float) -> Checker:
-    """A MAVLink stream rate, Hz: 0 (off) or [MIN_STREAM_HZ, hi]."""
+def _stream_rate(hi: float, lo: float = MIN_STREAM_HZ) -> Checker:
+    """A MAVLink stream rate, Hz: 0 (off) or [lo, hi]."""
     number = _number(0.0, hi)
 
     def check(key: str, v: Any) -> float:
         v = number(key, v)
-        if 0.0 < v < MIN_STREAM_HZ:
-            raise ConfigError(f"{key}: {v!r} is too slow; accepted: 0 (off) or a number in [{MIN_STREAM_HZ}, {hi}]")
+        if 0.0 < v < lo:
+            raise ConfigError(f"{key}: {v!r} is too slow; accepted: 0 (off) or a number in [{lo}, {hi}]")
         return v
 
     return check
@@ -187,26 +189,35 @@ def _endpoints(key: str, v: Any) -> list[str]:
     return out
 
 
+def _check_keys(prefix: str, keys: dict[str, tuple[Any, Checker]], given: dict[str, Any], out: dict[str, Any]) -> None:
+    """Each key of ``given`` through its checker in ``keys`` into ``out`` (a section, or a
+    sub-table of :func:`_subtable`); an unknown key names the accepted ones."""
+    for key, value in given.items():
+        if key not in keys:
+            raise ConfigError(f"{prefix}.{key}: unknown key; accepted keys: {', '.join(keys)}")
+        out[key] = keys[key][1](f"{prefix}.{key}", value)
+
+
+def _defaults_of(keys: dict[str, tuple[Any, Checker]]) -> dict[str, Any]:
+    return {k: copy.deepcopy(d) for k, (d, _) in keys.items()}
+
+
+def _subtable(keys: dict[str, tuple[Any, Checker]]) -> Checker:
+    """A sub-table (``[section.key]``) with keys of its own, declared like a section's."""
+    def check(key: str, v: Any) -> dict:
+        out = _defaults_of(keys)
+        _check_keys(key, keys, _table(key, v), out)
+        return out
+
+    return check
+
+
 #: [mavlink.odometry]: ODOMETRY out for an autopilot (protocols/mavlink/odometry.py, docs/autopilot.md)
 ODOMETRY_RULES = ("px4", "ardupilot")
-ODOMETRY_DEFAULTS = {"rate_hz": 0.0, "rules": "px4"}
-
-
-def _odometry_table(key: str, v: Any) -> dict:
-    """rate_hz: 0 (off) or 1..200 Hz; rules: which autopilot's handler the fields follow."""
-    given = _table(key, v)
-    out = dict(ODOMETRY_DEFAULTS)
-    for k, value in given.items():
-        if k == "rate_hz":
-            rate = _number(0.0, 200.0)(f"{key}.rate_hz", value)
-            if 0.0 < rate < 1.0:
-                raise ConfigError(f"{key}.rate_hz: {value!r} is too slow; accepted: 0 (off) or a number in [1, 200]")
-            out[k] = rate
-        elif k == "rules":
-            out[k] = _choice(ODOMETRY_RULES)(f"{key}.rules", value)
-        else:
-            raise ConfigError(f"{key}.{k}: unknown key; accepted keys: {', '.join(ODOMETRY_DEFAULTS)}")
-    return out
+ODOMETRY = {
+    "rate_hz": (0.0, _stream_rate(200.0, lo=1.0)),  # 0 (off) or 1..200 Hz
+    "rules": ("px4", _choice(ODOMETRY_RULES)),  # which autopilot's handler the fields follow
+}
 
 
 def _finite_table(key: str, v: Any) -> dict:
@@ -321,7 +332,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "identity": ("standalone", _choice(IDENTITIES)),
         "system_id": (1, _number(1, 255, integer=True)),
         "signing_key": ("", _signing_key),
-        "odometry": (dict(ODOMETRY_DEFAULTS), _odometry_table),
+        "odometry": (_defaults_of(ODOMETRY), _subtable(ODOMETRY)),
     },
     # where the vehicle flies: when latitude and longitude are set, the magnetic declination
     # comes from the World Magnetic Model for today (it replaces estimator.declination_deg)
@@ -372,7 +383,7 @@ class Config:
 
 
 def defaults() -> dict[str, dict[str, Any]]:
-    return {sec: {k: copy.deepcopy(d) for k, (d, _) in keys.items()} for sec, keys in SCHEMA.items()}
+    return {sec: _defaults_of(keys) for sec, keys in SCHEMA.items()}
 
 
 def validate(data: dict[str, Any]) -> Config:
@@ -390,10 +401,7 @@ def validate(data: dict[str, Any]) -> Config:
         if section == "calibration":
             out[section] = _check_calibration(given)
             continue
-        for key, value in given.items():
-            if key not in keys:
-                raise ConfigError(f"{section}.{key}: unknown key; accepted keys: {', '.join(keys)}")
-            out[section][key] = keys[key][1](f"{section}.{key}", value)
+        _check_keys(section, keys, given, out[section])
     _check_estimator_params(out["estimator"])
     if (out["location"]["latitude_deg"] is None) != (out["location"]["longitude_deg"] is None):
         raise ConfigError("location: give both latitude_deg and longitude_deg, or neither")

@@ -88,14 +88,6 @@ def worker_cache(key: Any, load: Callable[[], R]) -> R:
 _cache: "OrderedDict[Any, Any]" = OrderedDict()
 
 
-def _import_distributed():
-    # a missing package propagates as ModuleNotFoundError: the command line turns it into the
-    # one line naming the extra (cli.OPTIONAL_MODULES: distributed -> fleet), as for every extra
-    import distributed
-
-    return distributed
-
-
 class Runner:
     """Runs jobs serially or as Dask tasks; results in job order. Use as a context manager."""
 
@@ -116,7 +108,7 @@ class Runner:
     ) -> list[R]:
         """``[fn(job) for job in jobs]``, each job a task when on a cluster; same order as ``jobs``."""
         jobs = list(jobs)
-        bar = _progress_bar(len(jobs), desc) if progress and jobs else None
+        bar = progress_bar(len(jobs), desc) if progress and jobs else None
         try:
             if self._client is None:
                 out = []
@@ -176,8 +168,9 @@ def open_runner(
     ``workers=None`` means :func:`default_workers`. Raises :class:`RunnerError` (one line, names
     the address) when the scheduler cannot be reached within ``connect_timeout_s`` seconds.
     """
+    # a missing ``distributed`` propagates as ModuleNotFoundError: the command line turns it into
+    # the one line naming the extra (cli.OPTIONAL_MODULES: distributed -> fleet), as for every extra
     if scheduler:
-        _import_distributed()
         from distributed import Client
 
         try:
@@ -193,7 +186,6 @@ def open_runner(
         raise RunnerError(f"--workers must be at least 1, not {n}")
     if n == 1:
         return Runner(info=RunnerInfo("serial", 1), retries=retries)
-    _import_distributed()
     from distributed import Client, LocalCluster
 
     cluster = LocalCluster(
@@ -208,12 +200,13 @@ def open_runner(
     return Runner(client, cluster, RunnerInfo("local", n, cluster.scheduler_address), retries)
 
 
-def _progress_bar(total: int, desc: str):
+def progress_bar(total: int, desc: str, unit: str = "task"):
+    """A tqdm bar on stderr (``update``, ``close``), or None without tqdm."""
     try:
         from tqdm import tqdm
     except ImportError:  # the bar is a nicety: no analysis extra, no bar
         return None
-    return tqdm(total=total, unit="task", desc=desc or None, file=sys.stderr, dynamic_ncols=True)
+    return tqdm(total=total, unit=unit, desc=desc or None, file=sys.stderr, dynamic_ncols=True)
 
 
 def add_arguments(parser: Any) -> None:

@@ -54,7 +54,7 @@ def warm_up(name: str) -> float:
 
     t0 = time.monotonic()
     EstimationPipeline(estimators.create(name)).warm_up()
-    VibrationMonitor.warm_up()  # the service's warm-up does both (Service._warm_up)
+    VibrationMonitor.warm_up()
     return time.monotonic() - t0
 
 

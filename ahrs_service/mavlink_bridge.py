@@ -25,7 +25,6 @@ from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, Parameter
 from ahrs_service.protocols.mavlink.dialect import mavlink
 from ahrs_service.protocols.mavlink.odometry import RULES as ODOMETRY_RULES
 from ahrs_service.protocols.mavlink.odometry import AttitudeEstimate, OdometrySender
-from ahrs_service.protocols.mavlink.timesync import TimeSync
 
 if TYPE_CHECKING:
     from ahrs_service.config import Config
@@ -94,6 +93,9 @@ class ServiceLink:
     rate. calibrate_gyro: () → (accepted, text). start_calibration: kind ("mag" | "accel")
     → (started, text). vibration: the VIBRATION levels now (``vibration.VibrationLevels``).
     attitude_variance: the estimator's roll/pitch/yaw variances now, rad² (ODOMETRY).
+    odometry_send, odometry_clock: beside an autopilot, where ODOMETRY goes (the autopilot
+    link's ``send``) and the clock it is stamped in (``AutopilotLink.clock``: TIMESYNC under
+    the link's lock); None: the bridge's own endpoints, our clock (docs/autopilot.md).
     """
 
     boot_ns: int
@@ -110,6 +112,8 @@ class ServiceLink:
     start_calibration: Callable[[str], tuple[bool, str]]
     vibration: Callable[[], Any]
     attitude_variance: Callable[[], Any]
+    odometry_send: Callable[[Any], Any] | None = None
+    odometry_clock: Any = None
 
 # incoming commands and parameter writes are handled at 50 Hz: a ground station does not
 # notice 20 ms, and an idle non-blocking read costs as much as a published message
@@ -200,9 +204,6 @@ class MavlinkBridge:
             accel_calibration=lambda action: self._start_collection("accel"),
             max_rate_hz=1e9 / io_period_ns,
         )
-        # beside an autopilot the service hands over the link's clock (AutopilotLink.clock: TIMESYNC
-        # under the link's lock) and sends ODOMETRY on the link (docs/autopilot.md, "ODOMETRY")
-        self.timesync: TimeSync | Any | None = None
         self.odometry = self._odometry_sender(mcfg["odometry"])
 
     # ------------------------------------------------------------------ ODOMETRY (issue 17)
@@ -211,18 +212,25 @@ class MavlinkBridge:
             return None
         self._odometry_epoch = 0
         self._odometry_ref: tuple[Any, float, bool] | None = None
-        return OdometrySender(self.component.send, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]])
+        link = self.link
+        return OdometrySender(link.odometry_send or self.component.send, ocfg["rate_hz"], ODOMETRY_RULES[ocfg["rules"]],
+                              timesync=link.odometry_clock)
 
-    def odometry_estimate(self, now_ns: int) -> AttitudeEstimate | None:
-        """The published attitude and its variances for ODOMETRY; None before the first sample.
-        The epoch goes up when the estimator object, its initialisation or the declination
-        changes (the heading reference moved: ODOMETRY's reset_counter follows)."""
-        est = self.link.latest()
-        if est is None:
-            return None
+    def _fresh(self, est: LatestEstimate, now_ns: int) -> bool:
+        """Whether a sample was estimated within ``STALE_NS`` of ``now_ns`` (the estimate's
+        sample count grew)."""
         if est.samples != self._samples_seen:
             self._samples_seen, self._fresh_at_ns = est.samples, now_ns
-        fresh = now_ns - self._fresh_at_ns <= STALE_NS
+        return now_ns - self._fresh_at_ns <= STALE_NS
+
+    def odometry_estimate(self, now_ns: int, est: LatestEstimate | None) -> AttitudeEstimate | None:
+        """The published attitude of ``est`` (the link's newest) and its variances for
+        ODOMETRY; None before the first sample. The epoch goes up when the estimator object,
+        its initialisation or the declination changes (the heading reference moved:
+        ODOMETRY's reset_counter follows)."""
+        if est is None:
+            return None
+        fresh = self._fresh(est, now_ns)
         ref = (est.estimator_id, est.declination_deg, est.initialised)
         if self._odometry_ref is not None and ref != self._odometry_ref:
             self._odometry_epoch += 1
@@ -284,16 +292,13 @@ class MavlinkBridge:
         return (mavlink.MAV_RESULT_ACCEPTED if started else mavlink.MAV_RESULT_TEMPORARILY_REJECTED), text
 
     # ------------------------------------------------------------------ per tick
-    def telemetry(self, now_ns: int) -> Telemetry | None:
-        """What the streams publish now; None until the first sample is estimated (then
-        HEARTBEAT alone goes out, state BOOT: there is no attitude yet)."""
+    def telemetry(self, now_ns: int, est: LatestEstimate | None) -> Telemetry | None:
+        """What the streams publish now from ``est`` (the link's newest); None until the first
+        sample is estimated (then HEARTBEAT alone goes out, state BOOT: there is no attitude yet)."""
         link = self.link
-        est = link.latest()
         if est is None:
             return None
-        if est.samples != self._samples_seen:
-            self._samples_seen, self._fresh_at_ns = est.samples, now_ns
-        fresh = now_ns - self._fresh_at_ns <= STALE_NS
+        fresh = self._fresh(est, now_ns)
         h = link.health()
         return Telemetry.from_quaternion(
             (now_ns - link.boot_ns) // 1_000_000,
@@ -328,13 +333,15 @@ class MavlinkBridge:
         The telemetry snapshot is built only when a stream is due: at 100 Hz ATTITUDE that is
         every other 5 ms tick, and building it is the costliest part of a tick.
         """
-        component = self.component
-        if component.due(now_ns):
-            component.publish(now_ns, self.telemetry(now_ns))
-        odometry = self.odometry
-        if odometry is not None and odometry.due(now_ns):
-            odometry.timesync = self.timesync
-            odometry.tick(now_ns, self.odometry_estimate(now_ns))
+        component, odometry = self.component, self.odometry
+        streams_due = component.due(now_ns)
+        odometry_due = odometry is not None and odometry.due(now_ns)
+        if streams_due or odometry_due:
+            est = self.link.latest()  # once for both: the same newest estimate
+            if streams_due:
+                component.publish(now_ns, self.telemetry(now_ns, est))
+            if odometry_due:
+                odometry.tick(now_ns, self.odometry_estimate(now_ns, est))  # type: ignore[union-attr]
         if now_ns >= self._next_poll_ns:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)

@@ -122,6 +122,11 @@ class Service:
         self._live_fit: Future[LiveCalibrationResult] | None = None
         self._live_fit_kind = ""
         self.compiler = kernels.ReloadCompiler()  # a reload to an estimator not yet compiled
+        # beside an autopilot (source.type = "mavlink"): the source's link, which carries
+        # ODOMETRY (_open_mavlink), the monitor's attitudes and TIMESYNC; set once the source
+        # is open (a reload keeps the source)
+        self._autopilot_link: Any = None
+        self._timesync_logged_ns: int | None = None  # the TIMESYNC estimate last on /timesync
 
     # ------------------------------------------------------------------ set-up
     def start(self) -> None:
@@ -141,6 +146,7 @@ class Service:
             log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
         self.source = make_source(cfg.source, cfg.rates["estimation_hz"], cfg.mavlink["system_id"])
         self.source.open()
+        self._autopilot_link = getattr(self.source, "autopilot_link", None)
         if not self.source.has_mag:
             # a part without magnetometer (ICM-42688-P, BMI088): no start waiting for a field
             self.pipeline.use_mag = False
@@ -156,15 +162,10 @@ class Service:
         self._open_mavlink(cfg)
         self._open_live(cfg)
         self._open_monitor(cfg)
-        self._open_timesync()
-
-    def _open_timesync(self) -> None:
-        """Beside an autopilot (source.type = "mavlink"): the link's TIMESYNC estimate is logged
-        on /timesync after each accepted sample (ODOMETRY's link and clock: _open_mavlink)."""
-        self._autopilot_link = getattr(self.source, "autopilot_link", None)
-        self._timesync_logged_ns = None
 
     def _timesync_tick(self) -> None:
+        """Beside an autopilot: the link's TIMESYNC estimate, logged on /timesync once per new
+        estimate (ODOMETRY's link and clock: _open_mavlink)."""
         link = self._autopilot_link
         with link.timesync_lock:
             status = link.timesync.last_status
@@ -177,7 +178,7 @@ class Service:
         if self.monitor is not None:  # a reload with other [monitor] settings
             self.monitor.close()
             self.monitor = None
-        link = getattr(self.source, "autopilot_link", None)
+        link = self._autopilot_link
         if link is None or not cfg.monitor["enabled"]:
             return
         from ahrs_service.attitude_monitor import AttitudeMonitor
@@ -207,30 +208,29 @@ class Service:
                 self.mavlink.component.send(
                     mavlink.MAVLink_named_value_float_message(boot_ms & 0xFFFFFFFF, name.encode(), value))
             if self.live is not None:  # viewers get the latest comparison at the same rate
-                from ahrs_service.logs import schemas
+                from ahrs_service.logs.schemas import autopilot_attitude_messages
 
                 d = self.monitor.latest
-                q_ap = list(d.q_autopilot)
-                self.live.publish("/autopilot/attitude", d.t_ns, schemas.attitude_message(d.t_ns, q_ap, "autopilot"))
-                self.live.publish("/tf", d.t_ns, schemas.tf_message(d.t_ns, q_ap, child="autopilot"))
-                self.live.publish("/monitor", d.t_ns, schemas.monitor_message(
-                    d.t_ns, d.total_deg, d.inclination_deg, d.heading_deg, q_ap, list(d.q_estimate)))
+                for topic, message in autopilot_attitude_messages(d.t_ns, list(d.q_autopilot), list(d.q_estimate),
+                                                                  d.total_deg, d.inclination_deg,
+                                                                  d.heading_deg).items():
+                    self.live.publish(topic, d.t_ns, message)
 
     def _warm_up(self) -> None:
         """Compiles the pipeline's kernels. numba saves each new kernel to its cache after
         compiling it and raises when the disk refuses the file (full, read-only); the kernel
         is in memory all the same, so the next call goes on to the next kernel: a full disk
         costs the cache, never the start."""
-        for attempt in range(64):  # bounded: one kernel more per attempt, a pipeline has ~10
+        attempts = 64  # bounded: one kernel more per attempt, a pipeline has ~10
+        for attempt in range(attempts):
             try:
-                self.pipeline.warm_up()
-                VibrationMonitor.warm_up()
+                kernels.warm_up(self.estimator.name)  # the pipeline's kernels and VIBRATION's
                 return
             except OSError as exc:
+                if attempt == attempts - 1:
+                    raise
                 if attempt == 0:
                     log.warning("compiled kernels not cached: %s", exc)
-        self.pipeline.warm_up()
-        VibrationMonitor.warm_up()
 
     def loop_rate_hz(self, cfg: config_mod.Config) -> float:
         """How often the loop wakes, Hz: a source read in bursts (a FIFO) at its drain rate
@@ -315,15 +315,11 @@ class Service:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
         self.mavlink = MavlinkBridge(self.bridge_link(), cfg, io_period_ns=IO_PERIOD_NS)
-        link = getattr(self.source, "autopilot_link", None)
-        if link is not None and self.mavlink.odometry is not None:
-            # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
-            self.mavlink.odometry.send = link.send
-            self.mavlink.timesync = link.clock
 
     def bridge_link(self) -> ServiceLink:
         """What the MAVLink bridge may use of this service (mavlink_bridge.ServiceLink)."""
         est = self.estimator
+        link = self._autopilot_link
         return ServiceLink(
             boot_ns=self.boot_ns,
             estimator=est.name,
@@ -339,6 +335,9 @@ class Service:
             start_calibration=self.start_live_calibration,
             vibration=self.vibration.levels,
             attitude_variance=lambda: self.estimator.attitude_variance(),
+            # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
+            odometry_send=None if link is None else link.send,
+            odometry_clock=None if link is None else link.clock,
         )
 
     def latest_estimate(self) -> LatestEstimate | None:
@@ -569,9 +568,8 @@ class Service:
             loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced)
             if self.log_writer is not None:
                 loop["log"] = self.log_writer.stats()  # docs/logs.md: /loop `log`, what was not logged
-            link = getattr(self.source, "autopilot_link", None)
-            if link is not None:  # the link, TIMESYNC's offset and drift (docs/autopilot.md)
-                loop["autopilot"] = link.status()
+            if self._autopilot_link is not None:  # the link, TIMESYNC's offset and drift (docs/autopilot.md)
+                loop["autopilot"] = self._autopilot_link.status()
             if self.live is not None:
                 self.live.publish("/loop", now, loop)
         if self.log_writer is not None:
@@ -783,7 +781,6 @@ class Service:
             # another filter has other EST_* parameters: the table is rebuilt with the component
             self.mavlink.close()
             self._open_mavlink(new)
-            self._open_timesync()
         if new.monitor != old_cfg.monitor:
             self._open_monitor(new)
         if new.live != old_cfg.live:  # a new address, rate, or switched on or off

@@ -204,8 +204,8 @@ def apply_calibration(sample: ImuSample, cal: SensorCalibration) -> ImuSample:
 
 @njit(cache=True)
 def _calibrate_rows(mats, offs, gyr, acc, mag, out):
-    """Each row of a block through :func:`_calibrate` itself (so a block and the same samples
-    one by one give the same bits): ``out[:, k]`` = (gyr, acc, mag) of row k; NaN rows (no
+    """Row k of a block through :func:`_calibrate` itself into ``out[:, k]`` ((3, n, 3): gyr,
+    acc, mag), so a block and the same samples one by one give the same bits; NaN rows (no
     field) stay NaN."""
     for k in range(gyr.shape[0]):
         _calibrate(mats, offs, gyr[k], acc[k], mag[k], True, out[:, k])
@@ -220,7 +220,6 @@ def apply_calibration_block(block: SampleBlock, cal: SensorCalibration) -> Sampl
     if cal.is_identity or not len(block):  # type: ignore[attr-defined]
         return block
     out = np.empty((3, len(block), 3))  # one allocation for the three readings
-    gyr, acc, mag = out[0], out[1], out[2]
     _calibrate_rows(
         cal._matrices,  # type: ignore[attr-defined]
         cal._offsets,  # type: ignore[attr-defined]
@@ -230,5 +229,5 @@ def apply_calibration_block(block: SampleBlock, cal: SensorCalibration) -> Sampl
         out,
     )
     # the constructor, not dataclasses.replace: a tenth of the cost, once per block
-    return SampleBlock(block.t_ns, gyr, acc, mag, block.flags, block.temperature_c, block.raw, block.truth_q,
+    return SampleBlock(block.t_ns, out[0], out[1], out[2], block.flags, block.temperature_c, block.raw, block.truth_q,
                        block.lost)

@@ -148,12 +148,12 @@ class FifoTimeline:
         self.events_key = events_key
         diagnostics.extra.setdefault(events_key, 0)
         self.next_index = 0
+        #: whether a sample of this part has been read or counted lost (here or on the
+        #: timeline this one continues, :meth:`carry_loss`): an overflow found before that
+        #: holds stale samples nobody asked for yet, one found after it is a loss
+        self.started = False
         self._pending = LossCounts()
         self._shortest_read = 1 << 62  # ns: the quickest level read so far
-
-    @property
-    def anchored(self) -> bool:
-        return self.clock.anchored
 
     def stamp(self, host_ns: int, n: int, full: bool = False, read_end_ns: int | None = None) -> np.ndarray:
         """Times (int64 ns, oldest first) of the next ``n`` samples, the newest of which was
@@ -174,6 +174,7 @@ class FifoTimeline:
                 anchor = False
         t = self.clock.stamp(host_ns, self.next_index, n, anchor=anchor)
         self.next_index += n
+        self.started |= n > 0
         return t
 
     def overflowed(self, reset_host_ns: int, flagged: bool = True) -> int:
@@ -212,9 +213,11 @@ class FifoTimeline:
         """Takes over the losses ``earlier`` (the timeline before a re-configuration) has
         not handed out yet, so the first block of this one carries them."""
         self._pending.add(earlier.take_loss())
+        self.started |= earlier.started
 
     def _lose(self, n: int, cause: str) -> None:
         self.next_index += n
+        self.started = True
         if not self.rows:
             return
         setattr(self._pending, cause, getattr(self._pending, cause) + n)

@@ -151,6 +151,16 @@ def _import_broad(args: argparse.Namespace) -> int:
     return 0
 
 
+def _blend_time(args: argparse.Namespace) -> float | None:
+    """--offline's fusion time constant (s), None without --offline. A bad --offline-blend
+    raises ValueError: cli.main prints it as the command's one error line (exit status 2)."""
+    if not args.offline:
+        return None
+    from ahrs_service.estimators.offline import blend_time
+
+    return blend_time(args.offline_blend)
+
+
 def _is_fleet(specs: list[str]) -> bool:
     return len(specs) > 1 or Path(specs[0]).is_dir() or any(c in specs[0] for c in "*?[")
 
@@ -170,15 +180,7 @@ def _replay_fleet(args: argparse.Namespace) -> int:
     if args.out.exists() and not args.out.is_dir():
         print(f"ahrs-service replay: error: --out {str(args.out)!r} is a file; several logs need a folder", file=sys.stderr)
         return 2
-    blend: float | None = None
-    if args.offline:
-        from ahrs_service.estimators.offline import blend_time
-
-        try:
-            blend = blend_time(args.offline_blend)
-        except ValueError as exc:
-            print(f"ahrs-service replay: error: {exc}", file=sys.stderr)
-            return 2
+    blend = _blend_time(args)  # checked before any log is replayed
     args.out.mkdir(parents=True, exist_ok=True)
     names = [p.stem for p in paths]
     jobs = [
@@ -223,15 +225,8 @@ def _replay(args: argparse.Namespace) -> int:
                   file=sys.stderr)
         return 2
     follow = not args.no_param_changes
-    blend: float | None = None
-    if args.offline:
-        from ahrs_service.estimators.offline import blend_time
-
-        try:
-            blend = blend_time(args.offline_blend)
-        except ValueError as exc:
-            print(f"ahrs-service replay: error: {exc}", file=sys.stderr)
-            return 2
+    blend = _blend_time(args)
+    if blend is not None:
         q = replay_offline(log, name, params, follow, blend_time_s=blend).q
     else:
         q = replay(log, name, params, follow_param_changes=follow)

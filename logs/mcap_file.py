@@ -128,9 +128,7 @@ class McapLogFile:
         self._schemas: dict[str, int] = {}
         self._seq: dict[int, int] = {}
         self.unflushed = 0  # messages written since the last commit (lost if the process dies now)
-        self.unflushed_samples = 0  # of which /imu/raw samples
-        self.messages = 0  # messages written into this file, in all
-        self.samples = 0  # of which /imu/raw samples
+        self._committed_samples = 0  # /imu/raw samples on disk at the last commit
         self.closed = False
         self._finished = False  # the summary is staged: only commit() is left to do
 
@@ -156,15 +154,12 @@ class McapLogFile:
         cid = self._channels.get(topic)
         if cid is None:
             cid = self._new_channel(topic)
-        seq = self._seq[cid] = self._seq[cid] + 1
+        seq = self._seq[cid] + 1
         self._w.add_message(
             cid, int(log_time_ns), data, time.time_ns() if publish_time_ns is None else int(publish_time_ns), seq
         )
+        self._seq[cid] = seq  # counted once written: messages and samples count from here
         self.unflushed += 1
-        self.messages += 1
-        if topic == "/imu/raw":
-            self.unflushed_samples += 1
-            self.samples += 1
         if self._out.staged >= COMMIT_BYTES:
             self.retry(fsync=False)
 
@@ -186,7 +181,23 @@ class McapLogFile:
             raise LogFileDeleted(errno.ENOENT, "deleted while being written", str(self.path))
         self._out.commit(fsync)
         self.unflushed = 0
-        self.unflushed_samples = 0
+        self._committed_samples = self.samples
+
+    @property
+    def messages(self) -> int:
+        """Messages written into this file, in all (the channels' sequence counters)."""
+        return sum(self._seq.values())
+
+    @property
+    def samples(self) -> int:
+        """Of which /imu/raw samples."""
+        cid = self._channels.get("/imu/raw")
+        return 0 if cid is None else self._seq[cid]
+
+    @property
+    def unflushed_samples(self) -> int:
+        """/imu/raw samples written since the last commit."""
+        return self.samples - self._committed_samples
 
     @property
     def size(self) -> int:

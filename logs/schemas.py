@@ -452,6 +452,18 @@ def monitor_message(t_ns: int, total_deg: float, inclination_deg: float, heading
             "heading_deg": num_or_null(heading_deg), "q_autopilot": list(q_autopilot), "q_estimate": list(q_estimate)}
 
 
+def autopilot_attitude_messages(t_ns: int, q_autopilot: list[float], q_estimate: list[float], total_deg: float,
+                                inclination_deg: float, heading_deg: float) -> dict[str, dict[str, Any]]:
+    """One comparison of the attitude monitor as its messages by topic, for the log and the
+    live view alike: the autopilot's attitude on /autopilot/attitude and as frame
+    ``autopilot`` on /tf, the disagreement on /monitor (:func:`monitor_message`)."""
+    return {
+        "/autopilot/attitude": attitude_message(t_ns, q_autopilot, "autopilot"),
+        "/tf": tf_message(t_ns, q_autopilot, child="autopilot"),
+        "/monitor": monitor_message(t_ns, total_deg, inclination_deg, heading_deg, q_autopilot, q_estimate),
+    }
+
+
 def tf_message(t_ns: int, q: list[float], child: str = "body") -> dict[str, Any]:
     """foxglove.FrameTransform of the body frame (or ``child``: ``"autopilot"``, the autopilot's
     attitude beside an autopilot) in the NED frame (rotation in x, y, z, w order)."""

@@ -34,8 +34,8 @@ Public API (all keyword arguments after the sample's time, row and flags are nam
 
 Adding a message kind: a record class below (``_Record`` subclass), a ``write_*`` method that
 queues it, and a handler registered in ``FlightLogWriter._HANDLERS``. A record that carries
-samples (or several messages) says how many in ``_CARRIES``, and its handler passes them to
-``_ensure_file(messages, samples=…)``, so the "not logged" counts stay exact.
+samples (or several messages) says how many in ``_CARRIES``, and its handler checks for a file
+with ``_ensure_item(item)``, so the queue and the disk count the same "not logged".
 """
 
 from __future__ import annotations
@@ -59,11 +59,11 @@ import numpy as np
 from ahrs_service.logs.mcap_file import LogFileDeleted, McapLogFile
 from ahrs_service.logs.schemas import (
     attitude_message,
+    autopilot_attitude_messages,
     encode,
     jsonable,
     log_message,
     num_or_null,
-    monitor_message,
     raw_message,
     tf_message,
     truth_message,
@@ -119,7 +119,7 @@ class _Block:
     rows: list  # (n, 10) sample rows as fed to the estimator
     flags: list
     raw: dict | None  # {name: (n, …) list} driver counts
-    temperature: list | None  # (n,) °C, None where unknown
+    temperature: list | None  # (n,) °C, NaN where unknown (encode writes null)
     first_index: int
     q: list  # (n, 4)
     estimator: str
@@ -167,27 +167,18 @@ class _Mavlink:
 
 @dataclass(slots=True)
 class _AutopilotAttitude:
-    """The autopilot's attitude and its disagreement with ours (attitude_monitor.Disagreement)."""
+    """The autopilot's attitude and its disagreement with ours: an attitude_monitor.Disagreement
+    (frozen, so queued as it is, not copied field by field)."""
 
-    t_ns: int
-    q_autopilot: list[float]
-    q_estimate: list[float]
-    total_deg: float
-    inclination_deg: float
-    heading_deg: float
+    d: Any
 
 
 @dataclass(slots=True)
 class _Timesync:
-    """The autopilot's clock estimate after one accepted TIMESYNC sample (timesync.TimesyncStatus)."""
+    """The autopilot's clock estimate after one accepted TIMESYNC sample: a
+    timesync.TimesyncStatus (frozen, so queued as it is)."""
 
-    t_ns: int
-    offset_ns: int
-    observed_offset_ns: int
-    drift_ppm: float
-    rtt_ns: int
-    synced: bool
-    samples: int
+    status: Any
 
 
 @dataclass(slots=True)
@@ -219,19 +210,21 @@ class _Close:
     pass
 
 
-#: samples (/imu/raw rows) and messages each record kind carries, for what a full queue or a
-#: failing disk loses; kinds not listed carry one message and no sample
+#: messages and samples (/imu/raw rows) each record kind carries, for what a full queue or a
+#: failing disk loses (the queue and the handlers both count from here); kinds not listed
+#: carry one message and no sample
 _CARRIES: dict[type, Callable[[Any], tuple[int, int]]] = {
     _Raw: lambda item: (1, 1),
-    _Sample: lambda item: (1, 2 + (item.truth_q is not None)),
-    _Block: lambda item: (len(item.t_ns), len(item.t_ns) * (2 + (item.truth_q is not None))),
+    _Sample: lambda item: (2 + (item.truth_q is not None), 1),
+    _Block: lambda item: (len(item.t_ns) * (2 + (item.truth_q is not None)), len(item.t_ns)),
+    _AutopilotAttitude: lambda item: (3, 0),  # /autopilot/attitude, /tf, /monitor
 }
 
 
 def _carried(item: Any) -> tuple[int, int]:
-    """(samples, messages) of one queue record."""
+    """(messages, samples) of one queue record."""
     count = _CARRIES.get(type(item))
-    return (0, 1) if count is None else count(item)
+    return (1, 0) if count is None else count(item)
 
 
 @dataclass(frozen=True, slots=True)
@@ -392,7 +385,7 @@ class FlightLogWriter:
         # one producer (the service loop): len() then append() cannot overshoot by more than one
         n = len(self._q)
         if self._closing or n >= self.queue_size:
-            samples, messages = _carried(item)
+            messages, samples = _carried(item)
             self._dropped_full += messages
             self._samples_dropped_full += samples
             return False
@@ -506,9 +499,6 @@ class FlightLogWriter:
         n = len(t_ns)
         if n == 0:
             return
-        temps = None
-        if temperature is not None:
-            temps = [None if v != v else v for v in np.asarray(temperature, dtype=float).tolist()]
         self._put(
             _Block(
                 np.asarray(t_ns).tolist(),
@@ -516,7 +506,8 @@ class FlightLogWriter:
                 np.asarray(rows).tolist(),
                 np.asarray(flags).tolist(),
                 None if raw is None else {k: np.asarray(v).tolist() for k, v in raw.items()},
-                temps,
+                # NaN (unknown) stays NaN: encode writes it as null, as write_sample's None
+                None if temperature is None else np.asarray(temperature, dtype=float).tolist(),
                 self.samples,
                 np.asarray(q).tolist(),
                 estimator,
@@ -570,14 +561,12 @@ class FlightLogWriter:
         """One comparison of the attitude monitor (``attitude_monitor.Disagreement``): the
         autopilot's attitude on /autopilot/attitude and as frame ``autopilot`` on /tf, the
         disagreement on /monitor, all at the autopilot's time mapped onto ours."""
-        self._put(_AutopilotAttitude(int(d.t_ns), list(d.q_autopilot), list(d.q_estimate), float(d.total_deg),
-                                     float(d.inclination_deg), float(d.heading_deg)))
+        self._put(_AutopilotAttitude(d))
 
     def write_timesync(self, status: Any) -> None:
         """The TIMESYNC estimate (``timesync.TimesyncStatus``) on /timesync: offset and drift
         of the autopilot's clock against ours, at the sample's time on our clock."""
-        self._put(_Timesync(int(status.local_ns), int(status.offset_ns), int(status.observed_offset_ns),
-                            float(status.drift_ppm), int(status.rtt_ns), bool(status.synced), int(status.samples)))
+        self._put(_Timesync(status))
 
     def write_mavlink(self, t_ns: int, counters: Mapping[str, Any]) -> None:
         """MAVLink traffic counters."""
@@ -696,7 +685,7 @@ class FlightLogWriter:
             self.last_error = f"{path}: {exc.strerror or exc}" + (f" ({code})" if code else "")
         else:
             self.last_error = f"{type(exc).__name__}: {exc}"
-        if self.status != "error" and self._outage_since is None:
+        if self._outage_since is None:  # set exactly while status is "error"
             self._outage_since = time.monotonic()
             self.outages += 1
             self._outage_start_counts = (self.dropped, self.samples_not_logged)
@@ -737,7 +726,6 @@ class FlightLogWriter:
         if isinstance(exc, LogFileDeleted) and f is not None:
             # nothing of it can be read any more: all it held is lost; a new file comes next
             self._lose(f.messages, f.samples)
-            f.unflushed = f.unflushed_samples = 0
             self._file = None
             self._stalled = False
             f.abandon()
@@ -807,6 +795,9 @@ class FlightLogWriter:
         return self.rotate_seconds is not None and time.monotonic() - self._opened_at >= self.rotate_seconds
 
     def _write(self, topic: str, t_ns: int, message: dict[str, Any]) -> None:
+        if self._file is None:  # an earlier write of the same record failed: _fail counted what the file held
+            self._lose(1, topic == "/imu/raw")
+            return
         try:
             data = encode(message)
         except (TypeError, ValueError) as exc:
@@ -837,6 +828,13 @@ class FlightLogWriter:
             return True
         self._lose(messages, samples)
         return False
+
+    def _ensure_item(self, item: Any) -> bool:
+        """``_ensure_file`` for what ``item`` carries (``_CARRIES``, counted only when lost)."""
+        if self._file is not None and not self._stalled:
+            return True
+        messages, samples = _carried(item)
+        return self._ensure_file(messages, samples=samples)
 
     def _rotate_if_due(self) -> None:
         """At a sample boundary: rotates, or asks the caller for a state snapshot first."""
@@ -882,29 +880,26 @@ class FlightLogWriter:
 
     def _on_raw(self, item: _Raw) -> None:
         self._rotate_if_due()
-        if self._ensure_file(1, samples=1):
+        if self._ensure_item(item):
             self._write("/imu/raw", item.t_ns, raw_message(item.t_ns, item.row, item.flags, item.raw, item.temperature, item.index))
 
     def _on_sample(self, item: _Sample) -> None:
         self._rotate_if_due()
-        if not self._ensure_file(2 + (item.truth_q is not None), samples=1):
+        if not self._ensure_item(item):
             return
         t_ns = item.t_ns
         self._write("/imu/raw", t_ns, raw_message(t_ns, item.row, item.flags, item.raw, item.temperature, item.index))
         self._write_attitude(t_ns, item.q, item.estimator, item.bias, item.diagnostics)
         if item.truth_q is not None:
-            if self._file is None:  # a write before failed: _fail counted what the file held
-                self._dropped_io += 1
-            else:
-                self._write("/attitude/truth", t_ns, truth_message(t_ns, item.truth_q))
+            self._write("/attitude/truth", t_ns, truth_message(t_ns, item.truth_q))
 
     def _on_block(self, item: _Block) -> None:
         self._rotate_if_due()  # at the block's start: a rotation's snapshot is a block's end state
+        if not self._ensure_item(item):
+            return
         n = len(item.t_ns)
         truth = item.truth_q
         per_row = 2 + (truth is not None)
-        if not self._ensure_file(n * per_row, samples=n):
-            return
         raw, temps, sources = item.raw, item.temperature, item.t_source_ns
         last = n - 1
         for i, t_ns in enumerate(item.t_ns):
@@ -920,10 +915,7 @@ class FlightLogWriter:
             else:  # no bias of its own: the key is left out (not zeros a plot would show)
                 self._write_attitude(t_ns, item.q[i], item.estimator, None, None, with_bias=False)
             if truth is not None:
-                if self._file is None:
-                    self._lose(1)
-                else:
-                    self._write("/attitude/truth", t_ns, truth_message(t_ns, truth[i]))
+                self._write("/attitude/truth", t_ns, truth_message(t_ns, truth[i]))
 
     def _on_attitude(self, item: _Attitude) -> None:
         if self._ensure_file(1):
@@ -942,19 +934,21 @@ class FlightLogWriter:
             self._write("/mavlink", item.t_ns, {"t_ns": int(item.t_ns), "counters": jsonable(item.counters)})
 
     def _on_autopilot_attitude(self, item: _AutopilotAttitude) -> None:
-        if self._ensure_file(3):
-            t = item.t_ns
-            self._write("/autopilot/attitude", t, attitude_message(t, item.q_autopilot, "autopilot"))
-            self._write("/tf", t, tf_message(t, item.q_autopilot, child="autopilot"))
-            self._write("/monitor", t, monitor_message(t, item.total_deg, item.inclination_deg, item.heading_deg,
-                                                       item.q_autopilot, item.q_estimate))
+        if self._ensure_item(item):
+            d = item.d
+            t = int(d.t_ns)
+            for topic, message in autopilot_attitude_messages(t, list(d.q_autopilot), list(d.q_estimate), float(d.total_deg),
+                                                              float(d.inclination_deg), float(d.heading_deg)).items():
+                self._write(topic, t, message)
 
     def _on_timesync(self, item: _Timesync) -> None:
         if self._ensure_file(1):
-            self._write("/timesync", item.t_ns, {
-                "t_ns": item.t_ns, "offset_ns": item.offset_ns, "observed_offset_ns": item.observed_offset_ns,
-                "drift_ppm": num_or_null(item.drift_ppm), "rtt_ns": item.rtt_ns, "synced": item.synced,
-                "samples": item.samples,
+            s = item.status
+            t = int(s.local_ns)
+            self._write("/timesync", t, {
+                "t_ns": t, "offset_ns": int(s.offset_ns), "observed_offset_ns": int(s.observed_offset_ns),
+                "drift_ppm": num_or_null(float(s.drift_ppm)), "rtt_ns": int(s.rtt_ns), "synced": bool(s.synced),
+                "samples": int(s.samples),
             })
 
     def _on_log(self, item: _Log) -> None:
@@ -980,15 +974,12 @@ class FlightLogWriter:
 
     def _write_attitude(self, t_ns: int, q: list[float], estimator: str, bias: Any, diagnostics: Any,
                         with_bias: bool = True) -> None:
-        if self._file is None:  # the write before this one failed: _fail counted it, retry later
-            self._dropped_io += 1
-            return
         message = attitude_message(t_ns, q, estimator, bias, diagnostics)
         if not with_bias:
             del message["gyro_bias"]
         self._write("/attitude", t_ns, message)
         if (
-            self._file is not None
+            self._file is not None  # /tf is not counted as carried: not written, not lost
             and (self._last_tf_ns is None or t_ns - self._last_tf_ns >= self.tf_period_ns)
             and all(map(math.isfinite, q))  # a transform with null rotation would break the 3-D panel
         ):

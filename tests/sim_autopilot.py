@@ -18,6 +18,7 @@ Every loop is bounded: the recording's length plus ``time_limit_s``.
 
 from __future__ import annotations
 
+import math
 import os
 import select
 import socket
@@ -30,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
+
+from ahrs_service.quaternion import quat_from_euler, quat_mul
 
 G = 9.80665
 
@@ -200,8 +203,7 @@ class SimAutopilot:
         self.drop = frozenset(drop)
         self.highres_mag = recording.highres_mag(kind)
         self.attitude_period_us = int(1e6 / attitude_hz)
-        self.q_offset = np.array([np.cos(np.radians(attitude_offset_deg) / 2), 0.0, 0.0,
-                                  np.sin(np.radians(attitude_offset_deg) / 2)])
+        self.q_offset = quat_from_euler(0.0, 0.0, math.radians(attitude_offset_deg))
         self.pause = pause
         self.refuse_streams = refuse_streams  # answer SET_MESSAGE_INTERVAL with DENIED, stream nothing
         # ArduPilot stamps a message when it sends it (AP_HAL::micros64 / millis), not when the
@@ -262,10 +264,7 @@ class SimAutopilot:
             self.stats.imu_stamps_us.append(t_us if name == "HIGHRES_IMU" else t_us // 1000 * 1000)
 
     def _send_attitude(self, i: int) -> None:
-        w1, x1, y1, z1 = self.q_offset
-        w2, x2, y2, z2 = self.rec.q[i]
-        q = (w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-             w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2)
+        q = quat_mul(self.q_offset, tuple(self.rec.q[i].tolist()))
         self.send(mavlink.MAVLink_attitude_quaternion_message(self.sample_time_us(i) // 1000, *map(float, q),
                                                              0.0, 0.0, 0.0))
         self.stats.attitudes += 1
@@ -332,7 +331,6 @@ class SimAutopilot:
                     i += 1
                 if i < n:
                     time.sleep(max(0.0, min(0.002, (self.sample_time_us(i) - self.now_us()) * 1e-6)))
-            # the last heartbeat-only second: the service's replies (ACKs, TIMESYNC) are still served
         finally:
             self.finished.set()
 

@@ -23,7 +23,8 @@ from ahrs_service import estimators
 from ahrs_service.attitude_monitor import AttitudeMonitor, Disagreement, EstimateHistory
 from ahrs_service.drivers.mavlink_imu import MavlinkImuSource, decode_scaled
 from ahrs_service.estimators import SAMPLE_ROW
-from ahrs_service.logs.reader import read_log
+from ahrs_service.logs.reader import MessageSource, read_log
+from ahrs_service.logs.schemas import decode
 from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink, RemoteTimeline
 from ahrs_service.quaternion import quat_from_euler, quat_mul
 from ahrs_service.service import Service
@@ -197,18 +198,12 @@ def test_udp_autopilot_highres_imu_estimates_bit_identical_and_monitor_agrees(tm
     assert log.counts.get("/monitor", 0) == monitor.compared
     assert log.counts.get("/autopilot/attitude", 0) == monitor.compared
     # once a second the link, TIMESYNC's offset and drift in /loop
-    from ahrs_service.logs.reader import MessageSource as _Messages
-    from ahrs_service.logs.schemas import decode as _decode
-
-    loops = [_decode(d) for topic, _, _, d in _Messages(log.path) if topic == "/loop"]
+    loops = [decode(d) for topic, _, _, d in MessageSource(log.path) if topic == "/loop"]
     synced = [m["autopilot"] for m in loops if m["autopilot"]["timesync"]["synced"]]
     assert synced and synced[-1]["autopilot"]["kind"] == "px4" and synced[-1]["link"]["messages"] > 0
     assert abs(synced[-1]["timesync"]["offset_ns"] + rig.sim.boot_ns) < 5_000_000
     assert "drift_ppm" in synced[-1]["timesync"] and synced[-1]["timeline"]["slewed_ns"] == 0
     # a second body for Foxglove's 3-D panel: frame "autopilot" beside "body" in "ned"
-    from ahrs_service.logs.reader import MessageSource
-    from ahrs_service.logs.schemas import decode
-
     children = [decode(data)["child_frame_id"] for topic, _, _, data in MessageSource(log.path) if topic == "/tf"]
     assert children.count("autopilot") == monitor.compared and "body" in children
 
@@ -404,8 +399,10 @@ def test_estimate_history_interpolates_and_refuses_outside():
         h.add(k * 10, quat_from_euler(0.0, 0.0, 0.1 * k))
     assert h.at(5) is None  # dropped from the ring
     assert h.at(95) is None  # newer than the newest
-    q = h.at(55)
-    assert Disagreement.between(0, q, quat_from_euler(0, 0, 0.55)).total_deg == pytest.approx(0.0, abs=1e-9)
+    # the ring wrapped (70 sits last, 80 first): each side of the seam, and across it
+    for when in (55, 75, 85):
+        q = h.at(when)
+        assert Disagreement.between(0, q, quat_from_euler(0, 0, when / 100)).total_deg == pytest.approx(0.0, abs=1e-9)
 
 
 def test_estimate_history_takes_blocks_like_single_estimates():

@@ -140,3 +140,22 @@ def test_every_calibration_key_refuses_hostile_values_with_one_line_naming_it(ke
             config_mod.validate({"calibration": {key: value}})
         msg = str(exc.value)
         assert "\n" not in msg and msg.startswith("calibration") and repr(key) in msg, (value, msg)
+
+
+@pytest.mark.parametrize("value,key", [
+    ({"rate_hz": 0.5}, "mavlink.odometry.rate_hz"),  # 0 (off) or 1..200 Hz
+    ({"rate_hz": 201.0}, "mavlink.odometry.rate_hz"),
+    ({"rate_hz": float("nan")}, "mavlink.odometry.rate_hz"),
+    ({"rules": "inav"}, "mavlink.odometry.rules"),
+    ({"rate": 10.0}, "mavlink.odometry.rate"),
+    ("px4", "mavlink.odometry"),
+])
+def test_a_sub_table_s_keys_are_checked_like_a_section_s(value, key):
+    with pytest.raises(config_mod.ConfigError) as exc:
+        config_mod.validate({"mavlink": {"odometry": value}})
+    assert str(exc.value).startswith(key + ":"), str(exc.value)
+
+
+def test_a_sub_table_fills_in_its_defaults():
+    assert config_mod.validate({"mavlink": {"odometry": {"rate_hz": 30}}}).mavlink["odometry"] == {"rate_hz": 30.0, "rules": "px4"}
+    assert config_mod.validate({}).mavlink["odometry"] == {"rate_hz": 0.0, "rules": "px4"}

@@ -312,5 +312,5 @@ BROAD_BOUNDS = {
 def test_broad_accuracy(broad_dir, name):
     for trial, bound in BROAD_BOUNDS[name].items():
         path = next(broad_dir.glob(f"{trial}_*.hdf5"))
-        total, incl = _broad_rmse(path, name, **({} if name in ("triad", "quest") else {"preset": "paper"}))
+        total, incl = _broad_rmse(path, name, preset=_paper(name))
         assert (total if name in MAG else incl) < bound, (name, trial, total, incl)

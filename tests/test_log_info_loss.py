@@ -26,7 +26,6 @@ def _wait(pred, seconds: float = 30.0) -> bool:
     return pred()
 
 
-@pytest.mark.xfail(reason="known defect (issue 18): after the simulated MPU-9250 vanishes and comes back, a 0.3 s loop stall is no longer counted as fifo_overflow since the block loop met the FIFO drain", strict=False)
 def test_log_info_prints_the_loss_by_cause_of_a_real_run(tmp_path, capsys):
     conn, port = make_gcs()
     run = RunningService(service_config(tmp_path, port, source={"board": "mpu9250", "profile": "static"}))

@@ -529,3 +529,72 @@ def test_a_file_written_without_flushes_streams_to_disk(tmp_path, monkeypatch):
     f.close()
     log = read_log(path)
     assert log.damage is None and np.array_equal(log.rows, rows, equal_nan=True)
+
+
+def test_a_block_s_unknown_temperature_is_null_as_write_sample_s_none(tmp_path):
+    """write_block hands NaN temperatures to encode (which writes null): the same /imu/raw
+    ``temperature`` as write_sample with None."""
+    rows = np.zeros((3, 10))
+    rows[:, 9] = 0.005
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (3, 1))
+    w = FlightLogWriter(tmp_path / "block", fsync=False)
+    w.write_block(np.array([1, 2, 3]), rows, np.full(3, 3), q=q, estimator="madgwick",
+                  temperature=np.array([25.5, np.nan, -3.0]))
+    w.close()
+    ref = FlightLogWriter(tmp_path / "sample", fsync=False)
+    for i, temp in enumerate((25.5, None, -3.0)):
+        ref.write_sample(i + 1, rows[i], 3, q=q[i], estimator="madgwick", temperature=temp)
+    ref.close()
+
+    def temperatures(path):
+        with open(path, "rb") as f:
+            return [json.loads(m.data)["temperature"] for _, ch, m in make_reader(f).iter_messages() if ch.topic == "/imu/raw"]
+
+    assert temperatures(w.files[0]) == temperatures(ref.files[0]) == [25.5, None, -3.0]
+
+
+def test_a_dropped_record_counts_every_message_it_carries(tmp_path):
+    """A full queue (here: a closed writer, which drops the same way) counts what a record
+    carries, as the disk's side does: an autopilot comparison is /autopilot/attitude, /tf and
+    /monitor; a block is its rows' /imu/raw, /attitude and /attitude/truth."""
+    from types import SimpleNamespace
+
+    w = FlightLogWriter(tmp_path)
+    w.close()
+    q = [1.0, 0.0, 0.0, 0.0]
+    w.write_autopilot_attitude(SimpleNamespace(t_ns=1, q_autopilot=q, q_estimate=q, total_deg=0.0,
+                                               inclination_deg=0.0, heading_deg=0.0))
+    assert w.dropped == 3 and w.samples_not_logged == 0
+    qs = np.tile(q, (2, 1))
+    w.write_block(np.array([1, 2]), np.zeros((2, 10)), np.zeros(2, dtype=int), q=qs, estimator="madgwick", truth_q=qs)
+    assert w.dropped == 3 + 6 and w.samples_not_logged == 2
+    w.write_log(3, 6, "text")
+    assert w.dropped == 3 + 6 + 1
+
+
+def test_a_write_that_drops_the_file_loses_the_rest_of_its_record_counted(tmp_path, monkeypatch):
+    """A failure that gives the file up (not the disk's: a new file comes next) in the first of
+    a record's messages: the others are counted as lost, not written to no file (which would
+    be a second and third error hiding the first)."""
+    from types import SimpleNamespace
+
+    real = McapLogFile.write_encoded
+
+    def write_encoded(self, topic, *args, **kwargs):
+        if topic == "/autopilot/attitude":
+            raise RuntimeError("the file's own state is broken")
+        return real(self, topic, *args, **kwargs)
+
+    monkeypatch.setattr(McapLogFile, "write_encoded", write_encoded)
+    w = FlightLogWriter(tmp_path, retry_first_s=60.0, flush_interval_s=3600.0)  # the sample stays unflushed
+    w.write_raw(1, np.zeros(10), 0)
+    assert _wait_for(lambda: w._file is not None and w.written == 1)
+    q = [1.0, 0.0, 0.0, 0.0]
+    w.write_autopilot_attitude(SimpleNamespace(t_ns=2, q_autopilot=q, q_estimate=q, total_deg=0.0,
+                                               inclination_deg=0.0, heading_deg=0.0))
+    assert _wait_for(lambda: w._file is None)
+    w.close()
+    assert w.errors == 1 and w.last_error.startswith("RuntimeError"), (w.errors, w.last_error)
+    # the sample the given-up file held, and /tf and /monitor of the record (the write that
+    # raised inside the file layer is not counted: it never reached the file's counters)
+    assert w.dropped == 1 + 2 and w.samples_not_logged == 1

@@ -10,7 +10,6 @@ import time
 
 import numpy as np
 import pytest
-from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink2
 
 from ahrs_service.protocols.mavlink.attitude import encode_attitude_quaternion
@@ -30,16 +29,10 @@ from ahrs_service.protocols.mavlink.odometry import (
 from ahrs_service.protocols.mavlink.telemetry import Telemetry
 from ahrs_service.protocols.mavlink.timesync import TimeSync
 from ahrs_service.quaternion import quat_from_euler
-from timesync_peer import ClockPeer
+from timesync_peer import ClockPeer, link_to, sync
 
 pytestmark = pytest.mark.timeout(90)
 M = mavlink2
-
-
-def link_to(peer: ClockPeer):
-    conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{peer.port}", source_system=1, source_component=197)
-    conn.mav = mavlink2.MAVLink(conn, srcSystem=1, srcComponent=197)
-    return conn
 
 
 def wait_for(peer: ClockPeer, name: str, n: int, seconds: float = 10.0) -> list:
@@ -145,14 +138,7 @@ def test_time_usec_is_in_the_autopilot_clock_after_timesync(peer):
     conn = link_to(peer)
     ts = TimeSync()
     try:
-        deadline = time.monotonic() + 20.0
-        while ts.counters.accepted < 20 and time.monotonic() < deadline:
-            conn.mav.send(ts.request(time.monotonic_ns()).encode())
-            end = time.monotonic() + 0.05
-            while time.monotonic() < end:
-                msg = conn.recv_match(type="TIMESYNC", blocking=True, timeout=0.02)
-                if msg is not None:
-                    ts.handle(msg, time.monotonic_ns())
+        sync(conn, ts)
         assert ts.synced
         sender = OdometrySender(conn.mav.send, rate_hz=30.0, rules=PX4, timesync=ts)
         stamps = []

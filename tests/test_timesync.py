@@ -8,8 +8,6 @@ import random
 import time
 
 import pytest
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import common as mavlink2
 
 from ahrs_service.protocols.mavlink.timesync import (
     MAX_CONSECUTIVE_DEVIATIONS,
@@ -18,7 +16,7 @@ from ahrs_service.protocols.mavlink.timesync import (
     TimeSync,
     TimesyncFields,
 )
-from timesync_peer import ClockPeer
+from timesync_peer import ClockPeer, link_to, sync
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -112,18 +110,10 @@ def test_requests_are_answered_in_the_presented_clock():
 
 def test_sync_with_a_udp_peer_offset_and_drifting():
     peer = ClockPeer(offset_s=123.456, drift_ppm=50.0)
-    conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{peer.port}", source_system=1, source_component=197)
-    conn.mav = mavlink2.MAVLink(conn, srcSystem=1, srcComponent=197)
+    conn = link_to(peer)
     ts = TimeSync()
     try:
-        deadline = time.monotonic() + 20.0
-        while (ts.counters.accepted < 20) and time.monotonic() < deadline:  # bounded in count and time
-            conn.mav.send(ts.request(time.monotonic_ns()).encode())
-            end = time.monotonic() + 0.05
-            while time.monotonic() < end:
-                msg = conn.recv_match(type="TIMESYNC", blocking=True, timeout=0.02)
-                if msg is not None:
-                    ts.handle(msg, time.monotonic_ns())  # receive time taken on arrival
+        sync(conn, ts)  # bounded in count and time; receive times taken on arrival
         assert ts.synced, ts.counters
         now = time.monotonic_ns()
         assert abs(ts.to_remote_us(now) - peer.clock_ns(now) // 1000) <= 2000

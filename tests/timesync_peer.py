@@ -1,7 +1,8 @@
 """A pymavlink peer that speaks for an autopilot's clock: answers TIMESYNC requests with its
 own time (ours offset by ``offset_s`` and running ``drift_ppm`` fast), over real UDP on
 127.0.0.1, from a thread. Also collects every other message it receives (ODOMETRY …) with the
-peer-clock time it arrived at. Used by test_timesync.py and test_odometry.py."""
+peer-clock time it arrived at. Used by test_timesync.py and test_odometry.py, with
+:func:`link_to` (our side of the link) and :func:`sync` (TIMESYNC exchanges until converged)."""
 
 from __future__ import annotations
 
@@ -58,3 +59,24 @@ class ClockPeer:
         self._stop.set()
         self._thread.join(timeout=2.0)
         self.conn.close()
+
+
+def link_to(peer: ClockPeer):
+    """Our side: a MAVLink 2 ``udpout`` connection to ``peer`` (system 1, component 197)."""
+    conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{peer.port}", source_system=1, source_component=197)
+    conn.mav = mavlink2.MAVLink(conn, srcSystem=1, srcComponent=197)
+    return conn
+
+
+def sync(conn, ts, accepted: int = 20, seconds: float = 20.0) -> None:
+    """Requests TIMESYNC on ``conn`` every 50 ms and hands every reply to ``ts`` (a
+    ``TimeSync``) with its receive time taken on arrival, until ``accepted`` samples were
+    accepted (bounded by ``seconds``)."""
+    deadline = time.monotonic() + seconds
+    while ts.counters.accepted < accepted and time.monotonic() < deadline:
+        conn.mav.send(ts.request(time.monotonic_ns()).encode())
+        end = time.monotonic() + 0.05
+        while time.monotonic() < end:
+            msg = conn.recv_match(type="TIMESYNC", blocking=True, timeout=0.02)
+            if msg is not None:
+                ts.handle(msg, time.monotonic_ns())

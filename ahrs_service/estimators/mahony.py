@@ -32,8 +32,9 @@ corrected, yaw from the gyro); without a usable accelerometer sample ϱ = 0.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, make_dataclass
 
 from numba import njit
 
@@ -89,28 +90,29 @@ class MahonyParams:
                 raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
 
 
-@dataclass
-class MahonyDirectParams(MahonyParams):
-    """:class:`MahonyParams` at the direct filter's own tuned defaults (same fields, same order)."""
+def _with_defaults(cls_name: str, filter_name: str, **defaults: float) -> type:
+    """A subclass of :class:`MahonyParams` with each filter's own tuned defaults: same fields,
+    same order, same paper values and search ranges (the field metadata), same checks."""
+    fields = [
+        (f.name, f.type, field(default=defaults.pop(f.name, f.default), metadata=f.metadata))
+        for f in dataclasses.fields(MahonyParams)
+    ]
+    if defaults:
+        raise TypeError(f"not fields of MahonyParams: {sorted(defaults)}")
+    doc = f":class:`MahonyParams` at the {filter_name} filter's own tuned defaults (same fields, same order)."
+    return make_dataclass(cls_name, fields, bases=(MahonyParams,), namespace={"__doc__": doc, "__module__": __name__})
 
-    kp: float = tunable(25.281570545804, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
-    ki: float = tunable(4.209355054011459e-05, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
-    w_acc: float = tunable(0.015578192138000827, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
-    w_mag: float = tunable(0.016407770891012818, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
-    mag_heading_only: float = tunable(1.0, paper=0.0)
-    acc_gate: float = tunable(0.0660808053772176, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
-
-@dataclass
-class MahonyPassiveParams(MahonyParams):
-    """:class:`MahonyParams` at the passive filter's own tuned defaults (same fields, same order)."""
-
-    kp: float = tunable(3.9829087937635066, paper=25.0, search=SearchRange(0.01, 30.0, log=True))  # 1/s
-    ki: float = tunable(3.647554896509165e-05, paper=10.0, search=SearchRange(1e-5, 10.0, log=True))  # 1/s²
-    w_acc: float = tunable(0.07733754823380287, paper=1.0, search=SearchRange(0.001, 1.0, log=True))
-    w_mag: float = tunable(0.09234330643498717, paper=1.0, search=SearchRange(0.01, 5.0, log=True))
-    mag_heading_only: float = tunable(1.0, paper=0.0)
-    acc_gate: float = tunable(0.0907772200483565, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+MahonyDirectParams = _with_defaults(
+    "MahonyDirectParams", "direct",
+    kp=25.281570545804, ki=4.209355054011459e-05, w_acc=0.015578192138000827, w_mag=0.016407770891012818,
+    acc_gate=0.0660808053772176,
+)  # fmt: skip
+MahonyPassiveParams = _with_defaults(
+    "MahonyPassiveParams", "passive",
+    kp=3.9829087937635066, ki=3.647554896509165e-05, w_acc=0.07733754823380287, w_mag=0.09234330643498717,
+    acc_gate=0.0907772200483565,
+)  # fmt: skip
 
 
 _P = param_index(MahonyParams)  # indices of the packed parameter vector, by field name

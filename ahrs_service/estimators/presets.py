@@ -54,11 +54,20 @@ PAPER = "paper"
 TUNED_DIR = Path(__file__).with_name("tuned")
 
 
-def paper_params(name: str, params_cls: type) -> dict[str, Any]:
-    """The source paper's value of every field of ``params_cls`` that declares one."""
+def _paper_values(params_cls: type) -> dict[str, Any]:
     import dataclasses
 
-    out = {f.name: f.metadata["paper"] for f in dataclasses.fields(params_cls) if "paper" in f.metadata}
+    return {f.name: f.metadata["paper"] for f in dataclasses.fields(params_cls) if "paper" in f.metadata}
+
+
+def has_paper_preset(params_cls: type) -> bool:
+    """Whether ``params_cls`` declares paper values (else ``preset="paper"`` is a ValueError)."""
+    return bool(_paper_values(params_cls))
+
+
+def paper_params(name: str, params_cls: type) -> dict[str, Any]:
+    """The source paper's value of every field of ``params_cls`` that declares one."""
+    out = _paper_values(params_cls)
     if not out:
         raise ValueError(f"estimator {name!r} has no preset {PAPER!r} (its parameters declare no paper values)")
     return out

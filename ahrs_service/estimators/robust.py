@@ -374,7 +374,9 @@ class RobustEstimator(Estimator):
             "consistency_ratio": float(np.sqrt(max(s[ST.cons], 0.0))),
         }
 
-    #: floors of the error model (``uncertainty``); the drift comes from the bias covariance,
+    #: floors of the error model (``uncertainty``): set values, not derived from sensor figures
+    #: as the default model's are (on BROAD its errors stay below them: docs/autopilot.md,
+    #: 0.72° / 2.35° RMS inclination / heading); the drift comes from the bias covariance,
     #: whose unit (robust_layout: bias_p) is (0.01 °/s)²: σ_b = √p · BIAS_P_UNIT rad/s
     error_model = ErrorModel(tilt_sigma=1.5 * DEG, heading_sigma=4.0 * DEG)
 

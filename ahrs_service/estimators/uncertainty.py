@@ -18,8 +18,10 @@ Every estimator answers ``Estimator.attitude_variance()`` with an :class:`Attitu
   acceleration seen by the accelerometer, field distortion seen by the magnetometer) plus the
   gyro drift integrated since the last usable correction (the header's ``acc_age`` /
   ``mag_age``, kept by the shared kernel; ``robust`` adds its rejection clock and its own bias
-  covariance). The constants are a-priori values from sensor figures, not fitted to any data
-  (docs/autopilot.md, "Attitude uncertainty", shows how they cover BROAD's errors).
+  covariance). The default model's constants are a-priori values from sensor figures, not
+  fitted to any data; ``robust``'s floors (1.5°, 4°) have no such derivation: they are set
+  values, above the errors it leaves on BROAD (docs/autopilot.md, "Attitude covariance",
+  shows how both cover BROAD's errors).
 * **NaN** — heading of the estimators that do not observe it (the 6D filters: their yaw is the
   integrated gyro from an arbitrary start) and of any estimator before its first usable field
   sample; every angle before the estimator is initialised.

@@ -15,7 +15,6 @@ With ``--offline`` every selected column X gets a twin column "X+offline": the s
 from __future__ import annotations
 
 import datetime as _dt
-import dataclasses
 import json
 import math
 import os
@@ -512,14 +511,12 @@ def with_presets(items: list[str], names: list[str], params: dict[str, dict[str,
     """``--preset`` items under the ``--param`` values: ``paper`` gives every selected estimator
     that declares paper values (``presets.paper_params``; not robust, triad, quest) its source
     paper's values; a preset file gives its own estimator (which must be selected) its params."""
-    import json
-
-    from ahrs_service.estimators.presets import PAPER, load_preset
+    from ahrs_service.estimators.presets import PAPER, has_paper_preset, load_preset
 
     out = {k: dict(v) for k, v in params.items()}
     for item in items:
         if item == PAPER:
-            targets = [n for n in names if any("paper" in f.metadata for f in dataclasses.fields(estimators.get(n).Params))]
+            targets = [n for n in names if has_paper_preset(estimators.get(n).Params)]
         else:
             try:
                 target = json.loads(Path(item).read_text(encoding="utf-8")).get("estimator")

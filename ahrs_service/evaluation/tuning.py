@@ -40,7 +40,7 @@ import numpy as np
 from ahrs_service import estimators
 from ahrs_service.estimators.presets import SearchRange
 from ahrs_service.evaluation import report
-from ahrs_service.execution import Runner
+from ahrs_service.execution import Runner, progress_bar
 
 
 def search_space(name: str) -> dict[str, SearchRange]:
@@ -212,11 +212,7 @@ def tune(
     scores: list[np.ndarray] = []  # per Optuna trial: (recordings,) RMSE, deg
     batch = max(1, runner.info.workers)
     n = len(recordings)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=budget, unit="trial", desc=f"tune {name}", file=sys.stderr, dynamic_ncols=True)
+    bar = progress_bar(budget, f"tune {name}", unit="trial") if progress else None
     try:
         while len(scores) < budget:
             asked = [study.ask(dists) for _ in range(min(batch, budget - len(scores)))]

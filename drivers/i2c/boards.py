@@ -472,7 +472,7 @@ class _PairedFifoBoard(I2CFifoBoard):
         except I2CDeviceError as exc:
             self._mark_lost(role, exc)
             return None
-        if not timeline.anchored and (status.overflow or stopped):
+        if not timeline.started and (status.overflow or stopped):
             # filled before the first read after open(): stale samples nobody asked for yet
             if stopped:
                 return np.empty((0, 3), np.int64), np.empty(0, np.int64), []
@@ -677,7 +677,7 @@ class MPU9250Board(I2CFifoBoard):
             self._mark_lost("gyro", exc)
             return SampleBlock.empty()
         timeline = self.timeline
-        if overflow and not timeline.anchored:
+        if overflow and not timeline.started:
             # the FIFO filled between open() and the first read (the service sets up its log
             # and links in between): stale samples nobody asked for yet, not a loss
             self._restart_fifo_schedule()

@@ -182,7 +182,7 @@ class FifoBoard(ImuSource):
         ``open`` and the consumer's first read: the service sets up its log and links in
         between): those samples predate the consumer, not a loss — the FIFO is flushed and
         nothing counted (as on the I2C boards). True when that was the case."""
-        if self.timeline.anchored:
+        if self.timeline.started:
             return False
         part.flush()
         self._overflow_pending = False

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 from ahrs_service.protocols.mavlink.dialect import mavlink
 
-HEADER_BYTES = 10  # MAVLink 2: STX, len, incompat, compat, seq, sysid, compid, msgid (3)
+HEADER_BYTES = mavlink.HEADER_LEN_V2  # 10: STX, len, incompat, compat, seq, sysid, compid, msgid (3)
 CRC_BYTES = 2
-SIGNATURE_BYTES = 13  # link id (1), timestamp (6), signature (6)
+SIGNATURE_BYTES = mavlink.MAVLINK_SIGNATURE_BLOCK_LEN  # 13: link id (1), timestamp (6), signature (6)
 BITS_PER_BYTE = 10  # 8N1 framing on a UART
 
 

@@ -36,6 +36,7 @@ from typing import Any, Callable, Sequence
 
 from ahrs_service.protocols.mavlink.dialect import mavlink
 from ahrs_service.protocols.mavlink.timesync import TimeSync
+from ahrs_service.quaternion import euler_of
 
 #: where each variance sits in pose_covariance (upper triangle of 6 × 6, row-major)
 COV_X, COV_Y, COV_Z, COV_ROLL, COV_PITCH, COV_YAW = 0, 6, 11, 15, 18, 20
@@ -118,17 +119,10 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def _yaw(q: Sequence[float]) -> float:
-    w, x, y, z = q
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
 def _euler_yaw_rate(q: Sequence[float], rate: Sequence[float]) -> float:
     # ZYX: ψ̇ = (q sin φ + r cos φ) / cos θ
-    w, x, y, z = q
-    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    sp = max(-1.0, min(1.0, 2.0 * (w * y - z * x)))
-    cp = max(math.sqrt(1.0 - sp * sp), 1e-3)
+    roll, pitch, _ = euler_of(q)
+    cp = max(math.cos(pitch), 1e-3)
     return (rate[1] * math.sin(roll) + rate[2] * math.cos(roll)) / cp
 
 
@@ -214,7 +208,7 @@ class OdometrySender:
             return False
         # the heading change the gyro explains, trapezoid over the two messages' rates
         turned = 0.5 * dt * (_euler_yaw_rate(prev.q, prev.body_rate) + _euler_yaw_rate(est.q, est.body_rate))
-        return abs(_wrap(_yaw(est.q) - _yaw(prev.q) - turned)) > HEADING_JUMP_RAD
+        return abs(_wrap(euler_of(est.q)[2] - euler_of(prev.q)[2] - turned)) > HEADING_JUMP_RAD
 
     def encode(self, est: AttitudeEstimate) -> "mavlink.MAVLink_odometry_message":
         """The ODOMETRY for ``est`` under the rules (updates reset_counter)."""
@@ -228,17 +222,17 @@ class OdometrySender:
 
         nan = float("nan")
         if r.unknown_as_nan:
-            pos, vel, pos_var = (nan, nan, nan), (nan, nan, nan), POSITION_VARIANCE_UNKNOWN
+            pos = vel = (nan, nan, nan)
             yaw_var = est.yaw_var
+            vel_cov = [nan] + [0.0] * 20
         else:
-            pos, vel, pos_var = (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), POSITION_VARIANCE_UNKNOWN
+            pos = vel = (0.0, 0.0, 0.0)
             yaw_var = est.yaw_var if heading else YAW_VARIANCE_UNINFORMATIVE
-        pose_cov = [0.0] * 21
-        pose_cov[COV_X] = pose_cov[COV_Y] = pose_cov[COV_Z] = pos_var
-        pose_cov[COV_ROLL], pose_cov[COV_PITCH], pose_cov[COV_YAW] = est.roll_var, est.pitch_var, yaw_var
-        vel_cov = [nan] + [0.0] * 20 if r.unknown_as_nan else [0.0] * 21
-        if not r.unknown_as_nan:
+            vel_cov = [0.0] * 21
             vel_cov[0] = vel_cov[6] = vel_cov[11] = POSITION_VARIANCE_UNKNOWN
+        pose_cov = [0.0] * 21
+        pose_cov[COV_X] = pose_cov[COV_Y] = pose_cov[COV_Z] = POSITION_VARIANCE_UNKNOWN
+        pose_cov[COV_ROLL], pose_cov[COV_PITCH], pose_cov[COV_YAW] = est.roll_var, est.pitch_var, yaw_var
         rates = tuple(float(v) for v in est.body_rate) if r.body_rates else (nan, nan, nan)
 
         ts = self.timesync
