@@ -16,6 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from ahrs_service.drivers.base import ACC_SATURATED, ACC_VALID, GYR_SATURATED, GYR_VALID
 from ahrs_service.drivers.i2c import adxl345 as adxl
 from ahrs_service.drivers.i2c import st_fifo as st
 from ahrs_service.drivers.i2c.adxl345 import ADXL345, SimulatedADXL345
@@ -125,7 +126,7 @@ def test_watermark_flag(name):
         return bool(bus.read_byte_data(twin.address, st.FIFO_SRC_REG) & st.SRC_WTM)
 
     src.advance(9.5 * period)
-    twin.update(src.clock.now())  # the twin moves on bus accesses; look at it now
+    twin.update(src.clock.now())  # the twin latches on bus access; fifo_frames is not one
     assert twin.fifo_frames == 9
     assert not wtm()
     src.advance(period)
@@ -164,7 +165,7 @@ BOARDS = {"gy80": dict(gyro=0x69, acc=0x53, rate=800.0, options=dict(acc_range_g
 def board_run(name, seconds, stall_at=None, stall_s=0.0, clock_error=0.0, **options):
     spec = BOARDS[name]
     src = RampImu()
-    board = make_simulated_board(name, src, **spec["options"], **options)
+    board = make_simulated_board(name, src, **{**spec["options"], **options})
     for addr in (spec["gyro"], spec["acc"]):
         board.bus.device(addr).clock_error = clock_error
     board.open()
@@ -255,6 +256,23 @@ def test_board_stop_longer_than_the_fifo_counts_what_the_gyro_overwrote(name, cl
     carrying = [b for b in blocks if b.lost.total]
     assert len(carrying) == 1 and carrying[0].t_ns[0] - t[np.searchsorted(t, carrying[0].t_ns[0]) - 1] > 0.15e9
     assert board.diagnostics.extra["acc_fifo_overflows"] >= 1  # costs no rows
+
+
+@pytest.mark.parametrize("name", BOARDS)
+def test_board_fifo_rows_at_full_scale_are_flagged_saturated(name):
+    # the FIFO path's flags (the polled path's: tests/test_i2c.py::test_board_saturation_flags):
+    # the ramp passes ±250 °/s at t ≈ 0.22 s and ±2 g at t ≈ 0.20 s
+    board, blocks = board_run(name, 0.5, gyro_range_dps=250, acc_range_g=2)
+    t, gyr, acc, truth = joined(blocks)
+    flags = np.concatenate([b.flags for b in blocks])
+    row_t = truth[:, 1]
+    early, late = row_t < 0.15, row_t > 0.3
+    assert early.sum() > 50 and late.sum() > 50
+    assert np.all(flags[early] & GYR_VALID) and np.all(flags[early] & ACC_VALID)
+    assert not np.any(flags[early] & (GYR_SATURATED | ACC_SATURATED))
+    assert np.all(flags[late] & GYR_SATURATED) and not np.any(flags[late] & GYR_VALID)
+    assert np.all(flags[late] & ACC_SATURATED) and not np.any(flags[late] & ACC_VALID)
+    assert board.diagnostics.saturated >= 2 * late.sum()
 
 
 def test_board_fifo_off_polls():

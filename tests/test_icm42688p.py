@@ -204,7 +204,7 @@ def test_read_block_takes_at_most_max_samples_and_empties_the_fifo_at_once():
     a = b.read_block(max_samples=64)
     # the whole FIFO is read (and reset) at once; the rows beyond 64 wait on the host
     assert len(a) == 64 and b.diagnostics.extra["fifo_overflows"] == 1 and twin.fifo.level == 0
-    transfers = twin_transfers = b.transport.bus.transfers
+    transfers = b.transport.bus.transfers
     c = b.read_block(max_samples=64)
     assert len(c) == 38 and c.lost.total == 0
     assert c.t_ns[0] - a.t_ns[-1] == pytest.approx(1e9 / twin.rate_hz(), rel=1e-3)  # contiguous

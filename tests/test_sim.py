@@ -467,6 +467,23 @@ def test_source_on_looping_trajectory_runs_past_the_end():
     np.testing.assert_allclose(s.truth_q, ValidationManoeuvre(hold=0.5, move=0.5).state(1.2).q, atol=1e-9)
 
 
+def test_vibration_on_a_looping_trajectory_still_loops():
+    # source.vibration_mss wraps the profile (loop_profile defaults to true): the shaken
+    # trajectory loops as its base does, the source runs past the base's duration
+    from ahrs_service.drivers.sim.motion import Vibrating
+
+    clock = ManualClock()
+    base = ValidationManoeuvre(hold=0.5, move=0.5, looping=True)
+    tr = Vibrating(base, [1.0, 0.0, 0.0], 50.0)
+    assert tr.looping
+    src = SimulatedSource(SimulatedImu(tr, clock=clock), rate_hz=50.0)
+    clock.set(base.duration + 1.2)
+    s = src.read()
+    assert s is not None and s.t_ns == round((base.duration + 1.2) * 1e9)
+    np.testing.assert_allclose(s.truth_q, base.state(1.2).q, atol=1e-9)
+    assert not Vibrating(ValidationManoeuvre(hold=0.5, move=0.5), [1.0, 0.0, 0.0], 50.0).looping
+
+
 def test_a_parts_noise_does_not_depend_on_when_another_part_reads():
     """Two parts whose sample grids lie 1 µs apart: each reading's noise is drawn over the
     reading part's own band (``period``), not over the 1 µs since the other part's reading —

@@ -37,7 +37,6 @@ import struct
 
 import numpy as np
 
-from ahrs_service.drivers.fifo import SimulatedFrameFifo
 from ahrs_service.drivers.i2c.bus import I2CBus
 from ahrs_service.drivers.i2c.device import (
     STANDARD_GRAVITY,
@@ -48,6 +47,7 @@ from ahrs_service.drivers.i2c.device import (
     i16_bytes,
     to_counts,
 )
+from ahrs_service.drivers.i2c.st_fifo import FrameFifoDriver, SimulatedFrameFifoTwin
 
 DEVID, BW_RATE, POWER_CTL, INT_SOURCE, DATA_FORMAT, DATAX0 = 0x00, 0x2C, 0x2D, 0x30, 0x31, 0x32
 FIFO_CTL, FIFO_STATUS = 0x38, 0x39
@@ -70,7 +70,7 @@ RATES_HZ = {3200 / 2 ** (15 - c): c for c in range(6, 16)}
 _UNPACK = struct.Struct("<3h").unpack
 
 
-class ADXL345(I2CDevice):
+class ADXL345(FrameFifoDriver, I2CDevice):
     """ADXL345 driver: specific force in m/s², sensor axes.
 
     range_g: 2, 4, 8 or 16 (full resolution). rate_hz: 6.25 … 3200 (powers of two × 6.25).
@@ -80,6 +80,7 @@ class ADXL345(I2CDevice):
     PART = "ADXL345"
     DEFAULT_ADDRESS = 0x53
     fifo_layout = FIFO_LAYOUT
+    FIFO_CTRL, FM_SHIFT = FIFO_CTL, 6  # FIFO_MODE in bits 7:6
 
     def __init__(self, bus: I2CBus, address: int | None = None, *, range_g: int = 8,
                  rate_hz: float = 800, fifo: bool = False, watermark: int = 8, **kw: Any) -> None:
@@ -108,22 +109,14 @@ class ADXL345(I2CDevice):
         self.write_u8(POWER_CTL, MEASURE)
 
     # ---------------------------------------------------------------- FIFO
-    def fifo_reset(self) -> None:
-        """Empties the FIFO (bypass mode) and restarts it in stream mode with the watermark."""
-        self.write_u8(FIFO_CTL, FIFO_BYPASS << 6)
-        self.write_u8(FIFO_CTL, FIFO_STREAM << 6 | self.fifo_watermark)
-
+    # fifo_reset (bypass mode empties it, then stream mode with the watermark) and read_fifo
+    # (one 6-byte read per entry: FIFO_LAYOUT) are FrameFifoDriver's
     def fifo_status(self) -> FifoStatus:
         """Stored entries (FIFO_STATUS) and whether the FIFO had filled (INT_SOURCE.Overrun)."""
         overrun = bool(self.read_u8(INT_SOURCE) & OVERRUN)
         t = self.bus.now_ns()
         entries = self.read_u8(FIFO_STATUS) & 0x3F
         return FifoStatus(entries, overrun or entries >= FIFO_ENTRIES, t)
-
-    def read_fifo(self, frames: int) -> np.ndarray:
-        """``frames`` entries, oldest first: (frames, 3) int64 counts, one 6-byte read each."""
-        data = self.read_fifo_frames(FIFO_LAYOUT, frames)
-        return np.frombuffer(data, dtype="<i2").reshape(frames, 3).astype(np.int64)
 
     def data_ready(self) -> bool:
         """INT_SOURCE.DATA_READY: a sample not read yet."""
@@ -138,7 +131,7 @@ class ADXL345(I2CDevice):
         return self.read_counts() if self.data_ready() else None
 
 
-class SimulatedADXL345(SimulatedRegisterDevice):
+class SimulatedADXL345(SimulatedFrameFifoTwin, SimulatedRegisterDevice):
     """Simulated ADXL345: latches physics "acc" at BW_RATE while POWER_CTL.Measure is set;
     with FIFO_CTL in FIFO or stream mode every sample also enters the 32-entry FIFO, whose
     oldest entry the data registers show (popped when a read of them ends). Counters for
@@ -146,6 +139,7 @@ class SimulatedADXL345(SimulatedRegisterDevice):
     (entries emptied unread by bypass mode)."""
 
     CLOCK_ERROR = +0.0090  # this simulated unit runs 0.9 % fast
+    FIFO_DATA = DATAX0  # a FIFO entry is DATAX0…DATAZ1
     PART = "ADXL345"
     DEFAULT_ADDRESS = 0x53
     POWER_ON = {DEVID: DEVID_VALUE, BW_RATE: 0x0A, INT_SOURCE: 0x02}
@@ -155,28 +149,9 @@ class SimulatedADXL345(SimulatedRegisterDevice):
     def rate_hz(self) -> float:
         return 3200.0 / 2 ** (15 - (self.regs[BW_RATE] & 0x0F))
 
-    def reset_state(self, now: float) -> None:
-        self.fifo = SimulatedFrameFifo(FIFO_ENTRIES)
-
-    # the twin's counters for tests (entries overwritten/turned away, emptied unread)
-    fifo_overflowed = property(lambda self: self.fifo.overflowed)
-    fifo_discarded = property(lambda self: self.fifo.discarded)
-    fifo_frames = property(lambda self: len(self.fifo))
-
     # ---------------------------------------------------------------- FIFO
     def fifo_mode(self) -> int:
         return self.regs[FIFO_CTL] >> 6
-
-    def fifo_room(self) -> int | None:
-        if self.fifo_mode() not in (FIFO_FIFO, FIFO_STREAM):
-            return None
-        return FIFO_ENTRIES - len(self.fifo)
-
-    def fifo_keeps_oldest(self) -> bool:
-        return self.fifo_mode() == FIFO_FIFO
-
-    def fifo_dropped(self, n: int) -> None:
-        self.fifo.overflowed += n
 
     def _fifo_flags(self) -> None:
         """INT_SOURCE Watermark / Overrun and FIFO_STATUS Entries from the FIFO's level."""
@@ -189,10 +164,6 @@ class SimulatedADXL345(SimulatedRegisterDevice):
             status |= OVERRUN
         self.regs[INT_SOURCE] = status
         self.regs[FIFO_STATUS] = level
-
-    def take_popped_truth(self) -> list[Any]:
-        """The truth of the entries read since the last call, oldest first."""
-        return self.fifo.take_popped_truth()
 
     def read_register(self, reg: int) -> int:
         head = self.fifo.head()
@@ -230,8 +201,8 @@ class SimulatedADXL345(SimulatedRegisterDevice):
             if fmt & 0x04:  # left-justified (MSB) mode
                 c <<= 16 - bits
             self.regs[DATAX0 + 2 * i: DATAX0 + 2 * i + 2] = bytes(i16_bytes(c, False))
-        if self.fifo_mode() in (FIFO_FIFO, FIFO_STREAM):
-            self.fifo.push(bytes(self.regs[DATAX0:DATAX0 + 6]), phys.get("truth"), self.fifo_keeps_oldest())
+        if self.fifo_filling():
+            self._fifo_push(phys.get("truth"))
             self._fifo_flags()
 
     def on_read(self, regs: list[int], now: float) -> None:

@@ -242,11 +242,11 @@ class FifoStatus:
     overwritten or dropped samples since the last reset), ``level_read_ns``: the host time
     (ns) at which the transfer that read the level began — the part latches its level while
     that transfer runs, so the newest counted sample is at most its address phase younger:
-    the sensor clock's anchor (None where the caller takes it)."""
+    the sensor clock's anchor."""
 
     level: int
     overflow: bool
-    level_read_ns: int | None = None
+    level_read_ns: int
 
 
 def watermark_frames(rate_hz: float, wakeup_hz: float, depth_frames: int) -> int:

@@ -319,7 +319,7 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
 
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
         if reg == USER_CTRL and value & USER_FIFO_RST:
-            self.fifo_discarded += len(self.fifo) // max(1, self.frame_bytes())
+            self.fifo_discarded += self.fifo_frames
             self.fifo.clear()
             self.fifo_samples.clear()
             self.regs[USER_CTRL] = value & ~USER_FIFO_RST  # self-clearing

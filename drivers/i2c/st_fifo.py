@@ -25,6 +25,10 @@ The driver runs the FIFO in stream mode: a host that stops longer than 32 sample
 newest 32, the oldest ones overwritten; the overrun is flagged only as "filled", so the loss
 is estimated from the sensor clock (:class:`~ahrs_service.drivers.fifo.FifoTimeline`).
 The FIFO is emptied by switching to bypass mode and back (§5.2.1: bypass resets it).
+
+The ADXL345's 32-entry FIFO (:mod:`.adxl345`) numbers its modes alike and holds the same
+X, Y, Z frames: it shares the mode-only parts, :class:`FrameFifoDriver` (reset, burst
+decode) and :class:`SimulatedFrameFifoTwin` (the twin's FIFO hooks), not the ST registers.
 """
 
 from __future__ import annotations
@@ -50,13 +54,34 @@ FIFO_LAYOUT = FifoLayout(depth_frames=FIFO_FRAMES, frame_bytes=FRAME_BYTES,
                          frames_per_transfer=SMBUS_BLOCK_MAX // FRAME_BYTES)
 
 
-class STFifoDriver:
-    """Driver side, mixed into the ST parts' :class:`~ahrs_service.drivers.i2c.device.I2CDevice`
-    drivers (they provide ``write_u8``, ``read_u8``, ``read_fifo_frames``)."""
+class FrameFifoDriver:
+    """Driver side of a 32-sample FIFO of X, Y, Z frames (little-endian counts) whose control
+    register holds the mode at ``FM_SHIFT`` (0 bypass, 2 stream) above a 5-bit watermark: the
+    ST parts' FIFO_CTRL_REG and the ADXL345's FIFO_CTL. Mixed into the
+    :class:`~ahrs_service.drivers.i2c.device.I2CDevice` drivers (they provide ``write_u8``,
+    ``read_fifo_frames`` and ``fifo_watermark``)."""
 
-    #: where FM sits in FIFO_CTRL_REG: bits 7:5 on the gyroscopes, 7:6 on the LSM303DLHC
+    #: the FIFO's control register and where its mode sits in it
+    FIFO_CTRL = FIFO_CTRL_REG
     FM_SHIFT = 5
     fifo_layout = FIFO_LAYOUT
+
+    def fifo_reset(self) -> None:
+        """Empties the FIFO: bypass mode, then stream mode again with the watermark."""
+        self.write_u8(self.FIFO_CTRL, FM_BYPASS << self.FM_SHIFT)  # type: ignore[attr-defined]
+        self.write_u8(self.FIFO_CTRL, FM_STREAM << self.FM_SHIFT | self.fifo_watermark)  # type: ignore[attr-defined]
+
+    def read_fifo(self, frames: int) -> np.ndarray:
+        """``frames`` samples, oldest first: (frames, 3) int64 counts, little-endian."""
+        data = self.read_fifo_frames(self.fifo_layout, frames)  # type: ignore[attr-defined]
+        return np.frombuffer(data, dtype="<i2").reshape(frames, 3).astype(np.int64)
+
+
+class STFifoDriver(FrameFifoDriver):
+    """Driver side, mixed into the ST parts' :class:`~ahrs_service.drivers.i2c.device.I2CDevice`
+    drivers (they provide ``write_u8``, ``read_u8``, ``read_fifo_frames``); :meth:`fifo_reset`
+    (§5.2.1: bypass resets it) and :meth:`read_fifo` (BLE 0) are :class:`FrameFifoDriver`'s.
+    FM sits in FIFO_CTRL_REG at bits 7:5 on the gyroscopes, 7:6 on the LSM303DLHC."""
 
     def configure_fifo(self, watermark: int) -> None:
         """FIFO on in stream mode with the watermark (1 … 31 samples), emptied."""
@@ -66,11 +91,6 @@ class STFifoDriver:
         self.write_u8(CTRL_REG5, FIFO_EN)  # type: ignore[attr-defined]
         self.fifo_reset()
 
-    def fifo_reset(self) -> None:
-        """Empties the FIFO: bypass mode, then stream mode again (§5.2.1)."""
-        self.write_u8(FIFO_CTRL_REG, FM_BYPASS << self.FM_SHIFT)  # type: ignore[attr-defined]
-        self.write_u8(FIFO_CTRL_REG, FM_STREAM << self.FM_SHIFT | self.fifo_watermark)  # type: ignore[attr-defined]
-
     def fifo_status(self) -> FifoStatus:
         """Stored samples and whether the FIFO had filled (FIFO_SRC_REG, one byte)."""
         t = self.bus.now_ns()  # type: ignore[attr-defined]
@@ -79,23 +99,17 @@ class STFifoDriver:
             return FifoStatus(FIFO_FRAMES, True, t)
         return FifoStatus(0 if src & SRC_EMPTY else src & 0x1F, False, t)
 
-    def read_fifo(self, frames: int) -> np.ndarray:
-        """``frames`` samples, oldest first: (frames, 3) int64 counts, little-endian (BLE 0)."""
-        data = self.read_fifo_frames(FIFO_LAYOUT, frames)  # type: ignore[attr-defined]
-        return np.frombuffer(data, dtype="<i2").reshape(frames, 3).astype(np.int64)
 
-
-class SimulatedSTFifo:
-    """Twin side, mixed into the ST twins (before :class:`SimulatedRegisterDevice`, whose
-    ``read_register``, ``next_pointer`` and ``on_write`` it extends): the 32-sample FIFO of
-    the registers above, filled by every due sample (the base's FIFO latching), the
-    stream/FIFO mode rules, the watermark and OVRN, the OUT_X_L … OUT_Z_H roll-over. The twin
-    calls :meth:`_fifo_push` at the end of its ``latch``."""
+class SimulatedFrameFifoTwin:
+    """Twin side of a 32-sample FIFO of whole X, Y, Z frames (6 bytes from ``FIFO_DATA``), in
+    the modes the ST parts and the ADXL345 number alike: 0 bypass, 1 FIFO (a full FIFO turns
+    the new sample away), 2 stream (it overwrites its oldest). Mixed into the twins before
+    :class:`SimulatedRegisterDevice`, it gives the base's FIFO latching its hooks; the twin
+    tells :meth:`fifo_mode` and calls :meth:`_fifo_push` at the end of its ``latch``."""
 
     regs: bytearray
-    #: where FM sits in FIFO_CTRL_REG: bits 7:5 on the gyroscopes, 7:6 (bit 5: TR) on the
-    #: LSM303DLHC — the same mode numbers either way
-    FM_SHIFT = 5
+    #: the first data register: a frame is the 6 bytes from here
+    FIFO_DATA = OUT_X_L
 
     def reset_state(self, now: float) -> None:
         super().reset_state(now)  # type: ignore[misc]
@@ -107,15 +121,15 @@ class SimulatedSTFifo:
     fifo_frames = property(lambda self: len(self.fifo))
 
     def fifo_mode(self) -> int | None:
-        """FM of FIFO_CTRL_REG, or None while CTRL_REG5.FIFO_EN is clear."""
-        if not self.regs[CTRL_REG5] & FIFO_EN:
-            return None
-        return self.regs[FIFO_CTRL_REG] >> self.FM_SHIFT
+        """The FIFO's mode (FM_BYPASS, FM_FIFO, FM_STREAM, …), None while it is off."""
+        raise NotImplementedError
+
+    def fifo_filling(self) -> bool:
+        """Whether each new sample enters the FIFO (FIFO or stream mode)."""
+        return self.fifo_mode() in (FM_FIFO, FM_STREAM)
 
     def fifo_room(self) -> int | None:
-        if self.fifo_mode() not in (FM_FIFO, FM_STREAM):
-            return None
-        return FIFO_FRAMES - len(self.fifo)
+        return FIFO_FRAMES - len(self.fifo) if self.fifo_filling() else None
 
     def fifo_keeps_oldest(self) -> bool:
         return self.fifo_mode() == FM_FIFO
@@ -124,9 +138,32 @@ class SimulatedSTFifo:
         self.fifo.overflowed += n
 
     def _fifo_push(self, truth: Any) -> None:
-        """The sample just latched into OUT_X_L … OUT_Z_H, into the FIFO (§5.2)."""
-        if self.fifo_mode() in (FM_FIFO, FM_STREAM):
-            self.fifo.push(bytes(self.regs[OUT_X_L:OUT_X_L + FRAME_BYTES]), truth, self.fifo_keeps_oldest())
+        """The sample just latched into the data registers, into the FIFO when it fills."""
+        if self.fifo_filling():
+            self.fifo.push(bytes(self.regs[self.FIFO_DATA:self.FIFO_DATA + FRAME_BYTES]), truth,
+                           self.fifo_keeps_oldest())
+
+    def take_popped_truth(self) -> list[Any]:
+        """The truth of the samples read from the FIFO since the last call, oldest first."""
+        return self.fifo.take_popped_truth()
+
+
+class SimulatedSTFifo(SimulatedFrameFifoTwin):
+    """Twin side, mixed into the ST twins (before :class:`SimulatedRegisterDevice`, whose
+    ``read_register``, ``next_pointer`` and ``on_write`` it extends): the 32-sample FIFO of
+    the registers above, filled by every due sample (the base's FIFO latching), the
+    stream/FIFO mode rules, the watermark and OVRN, the OUT_X_L … OUT_Z_H roll-over. The twin
+    calls :meth:`_fifo_push` at the end of its ``latch``."""
+
+    #: where FM sits in FIFO_CTRL_REG: bits 7:5 on the gyroscopes, 7:6 (bit 5: TR) on the
+    #: LSM303DLHC — the same mode numbers either way
+    FM_SHIFT = 5
+
+    def fifo_mode(self) -> int | None:
+        """FM of FIFO_CTRL_REG, or None while CTRL_REG5.FIFO_EN is clear."""
+        if not self.regs[CTRL_REG5] & FIFO_EN:
+            return None
+        return self.regs[FIFO_CTRL_REG] >> self.FM_SHIFT
 
     def _fifo_src(self) -> int:
         level = len(self.fifo)
@@ -160,7 +197,3 @@ class SimulatedSTFifo:
         if self.fifo_mode() is not None and reg == OUT_Z_H:
             return OUT_X_L
         return super().next_pointer(reg)  # type: ignore[misc]
-
-    def take_popped_truth(self) -> list[Any]:
-        """The truth of the samples read from the FIFO since the last call, oldest first."""
-        return self.fifo.take_popped_truth()

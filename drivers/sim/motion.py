@@ -487,10 +487,11 @@ class Vibrating(Trajectory):
     force on body axis i gains ``amplitude_mss[i]``·sin(2π·``frequency_hz``·t) (m/s²), as a
     motor's vibration shakes the airframe (the gyroscope does not see it; the displacement,
     amplitude / (2π f)², below a millimetre at the rates that matter, is left out of the
-    position). The kinematic acceleration (NED) carries the same vibration rotated to NED."""
+    position). The kinematic acceleration (NED) carries the same vibration rotated to NED. It
+    loops when ``base`` does (``base.state`` folds the time; the vibration runs on)."""
 
     def __init__(self, base: Trajectory, amplitude_mss: Sequence[float], frequency_hz: float) -> None:
-        super().__init__(field_ned=base.field_ned, gravity=base.gravity, looping=False)
+        super().__init__(field_ned=base.field_ned, gravity=base.gravity, looping=base.looping)
         self.base = base
         self.duration = base.duration
         self.amplitude = _vec3(amplitude_mss, "amplitude_mss")
