@@ -47,16 +47,24 @@ class TruthClockImu:
 
 
 def _timed_transfers(bus, src: TruthClockImu, seconds_per_byte: float, overhead_s: float) -> None:
-    """Each transfer on ``bus`` takes its wire time on the simulated clock."""
+    """Each transfer on ``bus`` takes its wire time on the simulated clock, and the part
+    answers where a real one latches: after the transfer's set-up and its command phase
+    (I2C: address, register, address again — 3 bytes; SPI: the command byte), before the
+    data bytes are clocked out."""
     for name in ("read_byte_data", "read_i2c_block_data", "write_byte_data", "transfer"):
         inner = getattr(bus, name, None)
         if inner is None:
             continue
 
         def timed(*args, _inner=inner, _name=name):
-            n = args[-1] if _name == "read_i2c_block_data" else (len(args[-1]) if _name == "transfer" else 1)
+            if _name == "transfer":
+                command, data = 1, len(args[-1]) - 1
+            else:
+                command, data = (2, 1) if _name == "write_byte_data" else \
+                    (3, args[-1] if _name == "read_i2c_block_data" else 1)
+            src.advance(overhead_s + command * seconds_per_byte)
             out = _inner(*args)
-            src.advance(overhead_s + n * seconds_per_byte)
+            src.advance(data * seconds_per_byte)
             return out
 
         setattr(bus, name, timed)

@@ -31,95 +31,248 @@ from ahrs_service.drivers.base import (
 from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice
 
 
+class _LowerHull:
+    """The lower convex hull of integer points added in increasing x (Andrew's monotone
+    chain, one point at a time): the only points that can be the minimum of ``y − x·p`` for
+    any slope ``p``. Exact integer arithmetic, so hours of nanoseconds lose nothing."""
+
+    __slots__ = ("x", "y")
+
+    def __init__(self) -> None:
+        self.x: list[int] = []
+        self.y: list[int] = []
+
+    def add(self, x: int, y: int) -> None:
+        xs, ys = self.x, self.y
+        if xs and x <= xs[-1]:
+            if y >= ys[-1] or x < xs[-1]:
+                return  # the same index again, no lower: nothing new
+            xs.pop()
+            ys.pop()
+        while len(xs) >= 2 and (xs[-1] - xs[-2]) * (y - ys[-2]) - (ys[-1] - ys[-2]) * (x - xs[-2]) <= 0:
+            xs.pop()
+            ys.pop()
+        xs.append(x)
+        ys.append(y)
+
+
+class _Segment:
+    """Reads between two FIFO resets: within one, sample indices are counted, not estimated.
+
+    Each read gives two bounds on the line ``t_i = offset + i·period`` (times and indices
+    relative to the segment's first read, integers): the newest sample ``i`` in the FIFO
+    when its level was latched was produced by the end of that transfer (``t_i ≤ done``,
+    kept in ``before``: a lower hull of ``(i, done)``), and the next one was not yet produced
+    at its start (``t_{i+1} > start``, kept in ``after``: the upper hull of ``(i + 1, start)``,
+    stored negated as a lower hull). A FIFO that had filled gives only the first bound."""
+
+    def __init__(self, index: int, host_ns: int) -> None:
+        self.i0 = index
+        self.h0 = host_ns
+        self.before = _LowerHull()
+        self.after = _LowerHull()  # of (i + 1, −start)
+        self.reads = 0
+        self.last_ns = host_ns
+
+    def add(self, index: int, start_ns: int, done_ns: int, two_sided: bool) -> None:
+        x = index - self.i0
+        self.before.add(x, done_ns - self.h0)
+        if two_sided:
+            self.after.add(x + 1, self.h0 - start_ns)
+        self.reads += 1
+        self.last_ns = max(self.last_ns, done_ns)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(x, y) of both hulls as float arrays, y relative to the segment's origin."""
+        return (np.array(self.before.x, float), np.array(self.before.y, float),
+                np.array(self.after.x, float), -np.array(self.after.y, float))
+
+
 class SensorClock:
     """Sample times from sample indices on the part's clock, mapped onto the host clock.
 
-    A part's samples are evenly spaced on its own oscillator, ``1 / rate`` apart, where the
-    real rate is off the nominal one by the oscillator's error. Sample ``i`` is at
-    ``offset + i · period``. ``period`` is the host time between the first anchor (the least
-    late of the first 16 reads) and the least late read of the last ``window`` bursts, divided
-    by the samples between them (read latency is a few 100 µs against seconds of span, and a
-    read delayed by a host stall is never the one chosen); ``offset`` is the lower envelope
-    of ``host_read − i_newest · period`` over the last ``window`` bursts — a read never
-    happens before the newest sample it returns, so the smallest latency is the best
-    estimate of none.
+    A part's samples are evenly spaced on its own oscillator: sample ``i`` is at
+    ``offset + i · period``, where the real period is off the nominal one by the
+    oscillator's error. Every FIFO level read bounds that line from both sides (the newest
+    sample counted existed when the level was latched, the one after it did not yet; see
+    :class:`_Segment`), however late the host was: a read delayed by a stall only gives a
+    looser bound, never a wrong one. The period is the middle of the range of periods that
+    satisfy every bound of the reads of the last ``horizon_s`` (at the period that satisfies
+    them best when none does: a part whose rate drifts); ``offset`` is the middle of the
+    latest offset the current segment's reads allow at that period (:meth:`_offset_rel`). This is the two-sided version
+    of the convex-hull skew estimate of network clock synchronisation (Moon, Skelly and
+    Towsley, "Estimation and removal of clock skew from network delay measurements", 1999).
+
+    A FIFO reset starts a new segment (:meth:`forget_offset`): the indices across it are an
+    estimate (the samples lost are counted with this clock), so segments share the period
+    but each has its own offset — a loss miscounted by one never tilts the period.
     """
 
-    def __init__(self, nominal_rate_hz: float, window: int = 128, min_span_s: float = 0.2) -> None:
+    #: periods searched: the nominal one ±10 % (a part further off is broken)
+    SEARCH = 0.10
+    #: where a part's period is before its reads say more: the nominal one ±2 % (datasheets
+    #: give ±0.5–2 % for these oscillators); a uniform prior, so the estimate is the middle
+    #: of the periods both it and the reads allow, or of those the reads allow when a part
+    #: turns out further off
+    PRIOR = 0.02
+    #: bisection steps of the period search (the range shrinks by 0.618 each)
+    STEPS = 48
+
+    def __init__(self, nominal_rate_hz: float, horizon_s: float = 60.0, refit_s: float = 0.25,
+                 max_segments: int = 64) -> None:
         self.nominal_period_ns = 1e9 / nominal_rate_hz
         self.period_ns = self.nominal_period_ns
-        self._min_span = min_span_s * 1e9
-        self._first: tuple[int, int] | None = None  # (index, host_ns)
-        self._early: list[tuple[int, int]] = []  # the first 16 anchors (index, host_ns)
-        self._idx = deque(maxlen=window)
-        self._host = deque(maxlen=window)
+        self._horizon_ns = horizon_s * 1e9
+        self._refit_ns = refit_s * 1e9
+        self._max_segments = max_segments
+        self._segments: deque[_Segment] = deque()
+        self._current: _Segment | None = None
+        self._last_refit_ns: int | None = None
+        # the current segment's offset bounds at ``period_ns`` (relative to its origin)
+        #: how far off the tracked period can be (half the range the reads allow), ns
+        self.period_uncertainty_ns = self.nominal_period_ns * self.PRIOR
         self._last_t: int | None = None
-        self._anchors = 0
 
     @property
     def rate_hz(self) -> float:
         """The part's tracked real output rate, Hz."""
         return 1e9 / self.period_ns
 
-    def stamp(self, host_ns: int, first_index: int, n: int, anchor: bool = True) -> np.ndarray:
-        """Times (int64 ns, oldest first) of samples ``first_index … first_index + n − 1``,
-        the newest of which was read out at ``host_ns``.
-
-        anchor: False when the newest sample is known to be older than the read (a FIFO that
-        was full): the burst is stamped from the current fit without updating it.
-        """
-        last = first_index + n - 1
-        if anchor:
-            self._anchors += 1
-            if self._anchors <= 16:
-                # the first reads: the period's far end is the least late of them, judged
-                # with the period tracked so far (re-judged as it improves): one slow first
-                # read (a start-up stall) must not bias the period for good, and judged with
-                # the nominal period a part 1 % off picks a read up to a period late
-                self._early.append((last, host_ns))
-            self._idx.append(last)
-            self._host.append(host_ns)
-            p = self.period_ns
-            i0, h0 = min(self._early, key=lambda ih: ih[1] - ih[0] * p)
-            self._first = (i0, h0)
-            if host_ns - h0 >= self._min_span:
-                # the slope to the least late recent read: a read delayed by a host stall
-                # (late by ms) must not tilt the period
-                i1, h1 = min(zip(self._idx, self._host), key=lambda ih: ih[1] - ih[0] * p)
-                if h1 - h0 >= self._min_span and i1 > i0:
-                    self.period_ns = (h1 - h0) / (i1 - i0)
-        if not self._idx:  # no anchor yet (a first burst from a full FIFO): provisional offset
-            self._idx.append(last)
-            self._host.append(host_ns)
-        p = self.period_ns
-        offset = min(h - i * p for i, h in zip(self._idx, self._host))
-        t = offset + p * np.arange(first_index, last + 1, dtype=np.float64)
-        t = np.rint(t).astype(np.int64)
-        # a new estimate may move the offset back a little: never hand out a time twice
-        if self._last_t is not None and t[0] <= self._last_t:
-            t += self._last_t + int(p / 2) - t[0]
-        self._last_t = int(t[-1])
-        return t
-
     @property
     def anchored(self) -> bool:
         """True once a read has tied the part's sample indices to the host clock."""
-        return bool(self._idx)
+        return self._current is not None and self._current.reads > 0
+
+    def stamp(self, host_ns: int, first_index: int, n: int, anchor: bool = True,
+              read_end_ns: int | None = None, newest_index: int | None = None) -> np.ndarray:
+        """Times (int64 ns, oldest first) of samples ``first_index … first_index + n − 1``,
+        read from a FIFO whose level was latched by a transfer from ``host_ns`` to
+        ``read_end_ns`` (``host_ns`` when not given).
+
+        newest_index: the newest sample in the FIFO at that latch (default the newest one
+        read; more when the read took fewer than the level). anchor: False when the FIFO was
+        full (samples after its newest were turned away): only the "it existed" bound holds.
+        """
+        done = host_ns if read_end_ns is None else max(int(read_end_ns), host_ns)
+        newest = first_index + n - 1 if newest_index is None else int(newest_index)
+        self._add(newest, host_ns, done, two_sided=anchor)
+        p = self.period_ns
+        seg = self._current
+        t = (seg.h0 + self._offset_rel()) + p * np.arange(first_index - seg.i0, first_index - seg.i0 + n,
+                                                          dtype=np.float64)
+        t = np.rint(t).astype(np.int64)
+        # a new estimate may move the offset back a little: never hand out a time twice
+        if n and self._last_t is not None and t[0] <= self._last_t:
+            t += self._last_t + int(p / 2) - t[0]
+        if n:
+            self._last_t = int(t[-1])
+        return t
 
     def forget_offset(self) -> None:
-        """Drops the index ↔ host-time anchors, keeps the tracked period: after a FIFO
-        reset the next reads anchor the offset afresh, so an index estimated across the
-        reset one sample off shifts the count, never the times."""
-        self._idx.clear()
-        self._host.clear()
+        """After a FIFO reset: the next reads start a new segment (a fresh offset), the
+        period keeps what every segment so far says."""
+        self._current = None
 
     def index_at(self, host_ns: int) -> int:
         """The index of the newest sample the part has produced by ``host_ns``."""
-        if not self._idx:
+        if not self.anchored:
             return -1
+        seg = self._current
         p = self.period_ns
-        offset = min(h - i * p for i, h in zip(self._idx, self._host))
-        return int(math.floor((host_ns - offset) / p))
+        return int(math.floor((host_ns - seg.h0 - self._offset_rel()) / p)) + seg.i0
+
+    # the fit ---------------------------------------------------------------------------------
+
+    def _add(self, index: int, start_ns: int, done_ns: int, two_sided: bool) -> None:
+        seg = self._current
+        if seg is None:
+            seg = self._current = _Segment(index, start_ns)
+            self._segments.append(seg)
+            self._drop_old(done_ns)
+        seg.add(index, start_ns, done_ns, two_sided)
+        reads = seg.reads
+        if (reads & (reads - 1)) == 0 or self._last_refit_ns is None \
+                or done_ns - self._last_refit_ns >= self._refit_ns:
+            self._refit(done_ns)
+
+    def _drop_old(self, now_ns: int) -> None:
+        while len(self._segments) > 1 and (len(self._segments) > self._max_segments
+                                           or now_ns - self._segments[0].last_ns > self._horizon_ns):
+            self._segments.popleft()
+
+    def _offset_rel(self) -> float:
+        """The latest offset the current segment's reads allow: each sample at the latest
+        time it can have been taken, never before it was (with the period right). Not the
+        middle of the allowed range: a host that reads on the part's data-ready line or
+        watermark reads just after a sample every time, and the earliest allowed end is then
+        a whole period early."""
+        p = self.period_ns
+        hull = self._current.before
+        return min(y - x * p for x, y in zip(hull.x, hull.y))
+
+    def _refit(self, now_ns: int) -> None:
+        self._last_refit_ns = now_ns
+        bx, by, ax, ay, b_seg, a_seg = [], [], [], [], [], []
+        for k, seg in enumerate(self._segments):
+            sbx, sby, sax, say = seg.arrays()
+            if len(sax) == 0:
+                continue  # no two-sided bound: says nothing about the period
+            bx.append(sbx), by.append(sby), ax.append(sax), ay.append(say)
+            b_seg.append(np.full(len(sbx), k)), a_seg.append(np.full(len(sax), k))
+        if bx:
+            bx, by, ax, ay = (np.concatenate(v) for v in (bx, by, ax, ay))
+            b_seg, a_seg = np.concatenate(b_seg), np.concatenate(a_seg)
+            _, b_first = np.unique(b_seg, return_index=True)
+            _, a_first = np.unique(a_seg, return_index=True)
+
+            def room(p: float) -> float:
+                """The least room any segment leaves its offset at period p (ns)."""
+                latest = np.minimum.reduceat(by - bx * p, b_first)
+                earliest = np.maximum.reduceat(ay - ax * p, a_first)
+                return float(np.min(latest - earliest))
+
+            self.period_ns = self._middle_of_feasible(room)
+
+    def _middle_of_feasible(self, room) -> float:
+        """The middle of the periods at which ``room`` (concave) is ≥ 0 (within the prior
+        when it overlaps), else the period of its maximum (the bounds disagree)."""
+        lo = self.nominal_period_ns * (1.0 - self.SEARCH)
+        hi = self.nominal_period_ns * (1.0 + self.SEARCH)
+        g = 0.5 * (math.sqrt(5.0) - 1.0)
+        a, b = lo, hi
+        c, d = b - g * (b - a), a + g * (b - a)
+        fc, fd = room(c), room(d)
+        for _ in range(self.STEPS):
+            if fc < fd:
+                a, c, fc = c, d, fd
+                d = a + g * (b - a)
+                fd = room(d)
+            else:
+                b, d, fd = d, c, fc
+                c = b - g * (b - a)
+                fc = room(c)
+        best = 0.5 * (a + b)
+        if room(best) < 0.0:
+            return best
+
+        def edge(inside: float, outside: float) -> float:
+            if room(outside) >= 0.0:
+                return outside
+            for _ in range(self.STEPS):
+                mid = 0.5 * (inside + outside)
+                if room(mid) >= 0.0:
+                    inside = mid
+                else:
+                    outside = mid
+            return 0.5 * (inside + outside)
+
+        low, high = edge(best, lo), edge(best, hi)
+        prior_low = max(low, self.nominal_period_ns * (1.0 - self.PRIOR))
+        prior_high = min(high, self.nominal_period_ns * (1.0 + self.PRIOR))
+        if prior_low > prior_high:
+            prior_low, prior_high = low, high
+        self.period_uncertainty_ns = 0.5 * (prior_high - prior_low)
+        return 0.5 * (prior_low + prior_high)
 
 
 class FifoTimeline:
@@ -139,42 +292,51 @@ class FifoTimeline:
     """
 
     def __init__(self, rate_hz: float, diagnostics: SourceDiagnostics,
-                 events_key: str = "fifo_overflows", rows: bool = True) -> None:
+                 events_key: str = "fifo_overflows", rows: bool = True,
+                 latch_after_ns: int = 0, latch_before_end_ns: int = 0) -> None:
         self.clock = SensorClock(rate_hz)
+        #: the least time from a level read's start to the part latching its level (the
+        #: read's command phase on the wire) and from the latch to the read's end (its data
+        #: phase): :func:`wire_time_ns`
+        self.latch_after_ns = int(latch_after_ns)
+        self.latch_before_end_ns = int(latch_before_end_ns)
         self.diagnostics = diagnostics
         #: whether this part's samples are the rows: then its losses are lost rows
         #: (``diagnostics.lost``); a part held by the pairing rule only counts its events
         self.rows = rows
         self.events_key = events_key
         diagnostics.extra.setdefault(events_key, 0)
+        #: where the part's tracked output rate (Hz) is reported: ``sensor_rate_hz`` for the
+        #: row part, ``acc_sensor_rate_hz`` beside ``acc_fifo_overflows``
+        self.rate_key = events_key.replace("fifo_overflows", "sensor_rate_hz")
         self.next_index = 0
         #: whether a sample of this part has been read or counted lost (here or on the
         #: timeline this one continues, :meth:`carry_loss`): an overflow found before that
         #: holds stale samples nobody asked for yet, one found after it is a loss
         self.started = False
         self._pending = LossCounts()
-        self._shortest_read = 1 << 62  # ns: the quickest level read so far
 
-    def stamp(self, host_ns: int, n: int, full: bool = False, read_end_ns: int | None = None) -> np.ndarray:
-        """Times (int64 ns, oldest first) of the next ``n`` samples, the newest of which was
-        in the FIFO when its level was read in a transfer begun at ``host_ns`` (and ended at
-        ``read_end_ns``). full: the FIFO had filled (its newest sample may be much older than
-        the read): timed from the clock's fit.
+    def stamp(self, host_ns: int, n: int, full: bool = False, read_end_ns: int | None = None,
+              level: int | None = None) -> np.ndarray:
+        """Times (int64 ns, oldest first) of the next ``n`` samples, read from a FIFO whose
+        level was latched by a transfer from ``host_ns`` to ``read_end_ns``: the part
+        latches its level while the transfer runs, so the newest sample counted existed by
+        its end and the next one did not yet at its start (:class:`SensorClock`'s bounds).
 
-        The anchor is the transfer's start: the part latches its level while the transfer
-        runs, so the newest counted sample can be younger than the start by as much as the
-        transfer took. A level read that took much longer than the shortest seen (the host
-        was preempted inside it) is no anchor: a sample counted long after the start would
-        look earlier than it was and pull the clock's lower envelope early."""
-        anchor = not full
-        if read_end_ns is not None:
-            took = read_end_ns - host_ns
-            self._shortest_read = min(self._shortest_read, took)
-            if took > 2 * self._shortest_read + 200_000:
-                anchor = False
-        t = self.clock.stamp(host_ns, self.next_index, n, anchor=anchor)
+        level: the samples the FIFO held at that latch (default ``n``; more when the read
+        took fewer). full: the FIFO had filled (what came after its newest was turned away):
+        only the "it existed" bound holds."""
+        newest = self.next_index + (n if level is None else int(level)) - 1
+        end = host_ns if read_end_ns is None else read_end_ns
+        # the latch lies between the read's command phase and its data phase (a transfer
+        # timed shorter than its wire time, as on a simulated bus, bounds nothing more)
+        latch_earliest = min(host_ns + self.latch_after_ns, end)
+        latch_latest = max(end - self.latch_before_end_ns, latch_earliest)
+        t = self.clock.stamp(latch_earliest, self.next_index, n, anchor=not full,
+                             read_end_ns=latch_latest, newest_index=newest)
         self.next_index += n
         self.started |= n > 0
+        self.diagnostics.extra[self.rate_key] = round(self.clock.rate_hz, 3)
         return t
 
     def overflowed(self, reset_host_ns: int, flagged: bool = True) -> int:
@@ -232,6 +394,24 @@ class FifoTimeline:
     @property
     def loss_pending(self) -> bool:
         return self._pending.total > 0
+
+
+#: bus clocks a register read spends before the part can latch the register's value (I2C:
+#: START, the address, the register, a repeated START and the address again, 3 bytes of 9
+#: clocks; SPI: the command byte), and per data byte clocked out after it
+COMMAND_CLOCKS = {"i2c": 27, "spi": 8}
+DATA_BYTE_CLOCKS = {"i2c": 9, "spi": 8}
+
+
+def wire_time_ns(kind: str, clock_hz: float, data_bytes: int | None = None) -> int:
+    """The wire time of a register read on a ``kind`` ("i2c"/"spi") bus clocked at
+    ``clock_hz`` (0 when either is unknown): its command phase, or with ``data_bytes`` its
+    data phase. Bounds of when a part latches a level read inside the read's host times:
+    host delays only widen them, a bus slower than ``clock_hz`` too."""
+    if not clock_hz or kind not in COMMAND_CLOCKS:
+        return 0
+    clocks = COMMAND_CLOCKS[kind] if data_bytes is None else DATA_BYTE_CLOCKS[kind] * data_bytes
+    return int(clocks * 1e9 / clock_hz)
 
 
 def burst_flags(gyr_counts: np.ndarray, acc_counts: np.ndarray, gyro_full_scale: int,

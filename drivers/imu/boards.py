@@ -29,7 +29,7 @@ from ahrs_service.drivers.base import (
     LossCounts,
     SampleBlock,
 )
-from ahrs_service.drivers.fifo import FifoTimeline, SensorClock, burst_flags, hold_pairing
+from ahrs_service.drivers.fifo import FifoTimeline, SensorClock, burst_flags, hold_pairing, wire_time_ns
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, watermark_frames
 from ahrs_service.drivers.imu import icm42688p
 from ahrs_service.drivers.transport import RegisterTransport, check_bus_rate
@@ -76,6 +76,11 @@ class FifoBoard(ImuSource):
 
     def _kw(self) -> dict[str, Any]:
         return {"diagnostics": self.diagnostics, "retries": self.retries}
+
+    def _latch_after_ns(self, transport: RegisterTransport | None = None) -> int:
+        """How soon after a level read starts the part can latch it: its command phase."""
+        transport = self.transport if transport is None else transport
+        return wire_time_ns(transport.kind, transport.clock_hz)
 
     # ------------------------------------------------------------------ life cycle
     def open(self) -> None:
@@ -234,7 +239,7 @@ class ICM42688PBoard(FifoBoard):
     def _configure(self) -> None:
         self.part.configure()
         if self.timeline is None:
-            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics)
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics, latch_after_ns=self._latch_after_ns())
 
     def _burst(self, max_samples: int) -> SampleBlock:
         part = self.part
@@ -262,7 +267,8 @@ class ICM42688PBoard(FifoBoard):
             (pk["gyr20"] != icm42688p.INVALID_20BIT).all(axis=1)
         lost = self._take_loss()
         # a full FIFO's newest sample is older than the read: timed from the clock's fit
-        t = self.timeline.stamp(host, len(header), full=overflow, read_end_ns=host_done)[ok]
+        t = self.timeline.stamp(host, len(header), full=overflow, read_end_ns=host_done,
+                                level=count // icm42688p.PACKET)[ok]
         if overflow and drained:
             part.flush()
             self._overflow_pending = False
@@ -342,10 +348,11 @@ class BMI088Board(FifoBoard):
         self.acc.configure()
         self.gyro.configure()
         if self.timeline is None:
-            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics)
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics, latch_after_ns=self._latch_after_ns())
             # the accelerometer's samples are held by the pairing rule: its overflows cost
             # no rows, they are counted as events
             self.acc_timeline = FifoTimeline(self.acc.odr_hz, self.diagnostics,
+                                             latch_after_ns=self._latch_after_ns(self.acc_transport),
                                              events_key="acc_fifo_overflows", rows=False)
             self._acc_t = np.empty(0, np.int64)
             self._acc_c = np.empty((0, 3), np.int64)
@@ -382,7 +389,7 @@ class BMI088Board(FifoBoard):
             _twin(self.transport).take_popped_truth()
             return SampleBlock.empty()
         lost = self._take_loss()
-        t = self.timeline.stamp(host, take, full=overflow, read_end_ns=host_done)
+        t = self.timeline.stamp(host, take, full=overflow, read_end_ns=host_done, level=frames)
         if overflow and take == frames:
             gyro.flush()
             self._overflow_pending = False
@@ -436,7 +443,7 @@ class ICM20948Board(FifoBoard):
     def _configure(self) -> None:
         self.part.configure()
         if self.timeline is None:
-            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics)
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics, latch_after_ns=self._latch_after_ns())
 
     def _burst(self, max_samples: int) -> SampleBlock:
         from ahrs_service.drivers.base import MAG_NEW, MAG_SATURATED, MAG_VALID
@@ -459,7 +466,8 @@ class ICM20948Board(FifoBoard):
         if overflow and self._stale_start(part):
             return SampleBlock.empty()
         lost = self._take_loss()
-        t = self.timeline.stamp(host, packets, full=overflow, read_end_ns=host_done)
+        t = self.timeline.stamp(host, packets, full=overflow, read_end_ns=host_done,
+                                level=count // icm.PACKET)
         if overflow and drained:
             part.flush()
             self._overflow_pending = False
