@@ -79,9 +79,13 @@ def test_a_stop_inside_a_drain_shorter_than_the_fifo_loses_nothing(where):
     assert board.diagnostics.lost.total == 0
     assert twin.fifo_overflowed == 0 and twin.fifo_discarded == 0
     assert len(t_ns) + len(twin.fifo) // 12 == twin.samples_latched == twin.samples_due
-    assert np.all(np.diff(t_ns) == 1_000_000)  # every period, one row each
-    # on the sensor clock: each row within its read latency (under a period) of its sample
-    assert np.all((t_ns - truth >= 0) & (t_ns - truth < 1_000_000))
+    # every period, one row each: each dt one period to within 1 % (the tracked period
+    # settles from the reads' bounds: 0.2 % off in the first 0.1 s, 2e-5 after 1 s); a
+    # missing or doubled row would be a whole period off
+    assert np.all(np.abs(np.diff(t_ns) - 1_000_000) < 10_000)
+    # on the sensor clock: each row within its read latency (under a period) after its
+    # sample, or before it by the tracked period's error carried over the run (µs here)
+    assert np.all((t_ns - truth > -20_000) & (t_ns - truth < 1_000_000))
 
 
 @pytest.mark.parametrize("where", POSITIONS)
@@ -92,11 +96,10 @@ def test_a_stop_inside_a_drain_longer_than_the_fifo_counts_what_the_part_dropped
     dropped = twin.fifo_overflowed + twin.fifo_discarded  # the part's own count
     assert dropped > 250
     assert lost.total == lost.fifo_overflow == sum(b.lost.total for b in blocks)
-    if clock_error == 0.0:
-        assert lost.fifo_overflow == dropped
-    else:
-        # 0.7 % fast: the tracked clock places the reset within its read latency of a sample
-        assert abs(lost.fifo_overflow - dropped) <= 1
+    # the tracked clock places the reset within its read latency of a sample: within one
+    # (exact at 0 % with the old one-sided clock, whose period was the nominal one until
+    # 0.2 s: exact for a part exactly at nominal only)
+    assert abs(lost.fifo_overflow - dropped) <= 1
     assert len(t_ns) + dropped + len(twin.fifo) // 12 == twin.samples_due
     # the rows are the part's samples, each timed within a period of its true time, with
     # the gap one long dt (never filled in)
