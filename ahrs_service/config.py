@@ -463,9 +463,27 @@ def _check_estimator_params(section: dict[str, Any]) -> None:
         # what runs is the preset with the table's own values over it (service, reload, live)
         section["params"] = {**preset, **section["params"]}
     try:
+        defaults = estimators.create(section["name"]).get_params()
         estimators.create(section["name"], **section["params"])
     except (ValueError, TypeError, OverflowError) as exc:
         raise ConfigError(f"estimator.params: {exc}") from None
+    _check_param_ranges(section["params"], defaults)
+
+
+def _check_param_ranges(params: dict[str, Any], defaults: dict[str, Any]) -> None:
+    """Each numeric value within ``CONFIG_RANGE_FACTOR`` of its default (mavlink_bridge's
+    bounds): a finite 1e300 passes the estimator's own checks and overflows inside it."""
+    from ahrs_service.mavlink_bridge import CONFIG_RANGE_FACTOR, estimator_param_bounds
+
+    for name, value in params.items():
+        default = defaults.get(name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or isinstance(default, bool) or not isinstance(default, (int, float)):
+            continue
+        lo, hi = estimator_param_bounds(float(default), CONFIG_RANGE_FACTOR)
+        if not lo <= value <= hi:
+            raise ConfigError(f"estimator.params.{name} = {value!r}: must be within {lo:g} … {hi:g} "
+                              f"({CONFIG_RANGE_FACTOR:g} × its default {default:g})")
 
 
 def _check_source(section: dict[str, Any]) -> None:

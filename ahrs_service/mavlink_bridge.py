@@ -144,16 +144,21 @@ STALE_NS = 250_000_000
 EST_RANGE_FACTOR = 1000.0
 
 
-def estimator_param_bounds(default: float) -> tuple[float, float]:
-    """[minimum, maximum] of an ``EST_*`` parameter: from 0 to ``EST_RANGE_FACTOR`` times its
-    default on the default's side (a gain, a time constant, a noise level); ±EST_RANGE_FACTOR
-    around a default of 0. Keeps PARAM_SET from putting 3e38 into a filter over the air; wider
-    changes go through the configuration file (``estimator.params``)."""
+#: how far the configuration file's ``estimator.params`` may move a value from its default:
+#: wider than over the air, short of values no filter survives (``beta = 1e300``)
+CONFIG_RANGE_FACTOR = 1e6
+
+
+def estimator_param_bounds(default: float, factor: float = EST_RANGE_FACTOR) -> tuple[float, float]:
+    """[minimum, maximum] of an estimator parameter: from 0 to ``factor`` times its default
+    on the default's side (a gain, a time constant, a noise level); ±factor around a default
+    of 0. ``EST_RANGE_FACTOR`` keeps PARAM_SET from putting 3e38 into a filter over the air;
+    the configuration file (``estimator.params``) gets ``CONFIG_RANGE_FACTOR``."""
     if default > 0:
-        return 0.0, default * EST_RANGE_FACTOR
+        return 0.0, default * factor
     if default < 0:
-        return default * EST_RANGE_FACTOR, 0.0
-    return -EST_RANGE_FACTOR, EST_RANGE_FACTOR
+        return default * factor, 0.0
+    return -factor, factor
 
 
 def estimator_param_names(names: list[str]) -> dict[str, str]:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -181,6 +182,24 @@ class SensorClock:
         p = self.period_ns
         return int(math.floor((host_ns - seg.h0 - self._offset_rel()) / p)) + seg.i0
 
+    @property
+    def last_time_ns(self) -> int | None:
+        """The time handed out last (the newest sample stamped), None before any."""
+        return self._last_t
+
+    def offset_range_ns(self) -> float:
+        """How wide the range of offsets the current segment's reads allow is, ns (a period
+        and the read's transfer after one read; it narrows as reads fall at other phases)."""
+        seg, p = self._current, self.period_ns
+        after = seg.after
+        earliest = max((-y - x * p for x, y in zip(after.x, after.y)), default=None)
+        return 0.0 if earliest is None else max(0.0, self._offset_rel() - earliest)
+
+    def shift_indices(self, n: int) -> None:
+        """The current segment's indices are ``n`` further on than it was told (a loss
+        counted after its first read): its times stay, its indices move."""
+        self._current.i0 += n
+
     # the fit ---------------------------------------------------------------------------------
 
     def _add(self, index: int, start_ns: int, done_ns: int, two_sided: bool) -> None:
@@ -275,6 +294,15 @@ class SensorClock:
         return 0.5 * (prior_low + prior_high)
 
 
+@dataclass(frozen=True)
+class _PendingGap:
+    """An overflow reset whose loss waits for the first sample after it to be timed."""
+
+    last_ns: int  # the time of the last sample read before the reset
+    at_least: int  # 1 when the part flagged the overflow
+    counted: int  # what was counted from the reset's host time
+
+
 class FifoTimeline:
     """One FIFO part's samples on its own clock: indices, times and the losses between them.
 
@@ -285,10 +313,13 @@ class FifoTimeline:
     are counted by cause: in ``diagnostics.lost`` when found, and in the ``lost`` of the next
     block (:meth:`take_loss`), so the gap shows as one long dt before that block's first row.
 
-    The loss of an overflow is ``produced − read``: the index the sensor clock gives the
-    host time of the FIFO reset, minus the samples read — it does not depend on when the
-    overflow flag was noticed or how long since the last read (a flag seen one read late, or
-    a stop between the status and the data reads, cost no accuracy).
+    The loss of an overflow is counted from the sensor clock on both sides of the FIFO
+    reset: counted when found from the reset's host time, then corrected from the periods
+    between the last sample read before it and the first one after, less one — which does
+    not depend on when the overflow flag was noticed, how long since the last read, or when
+    the host sent the reset (a host preempted around any of them costs no accuracy). Drivers
+    take a block's loss (:meth:`take_loss`) after stamping it, so the block after the gap
+    carries the corrected count.
     """
 
     def __init__(self, rate_hz: float, diagnostics: SourceDiagnostics,
@@ -306,6 +337,7 @@ class FifoTimeline:
         self.rows = rows
         self.events_key = events_key
         diagnostics.extra.setdefault(events_key, 0)
+        self._gap: _PendingGap | None = None  # an overflow reset whose loss is not counted yet
         #: where the part's tracked output rate (Hz) is reported: ``sensor_rate_hz`` for the
         #: row part, ``acc_sensor_rate_hz`` beside ``acc_fifo_overflows``
         self.rate_key = events_key.replace("fifo_overflows", "sensor_rate_hz")
@@ -334,6 +366,8 @@ class FifoTimeline:
         latch_latest = max(end - self.latch_before_end_ns, latch_earliest)
         t = self.clock.stamp(latch_earliest, self.next_index, n, anchor=not full,
                              read_end_ns=latch_latest, newest_index=newest)
+        if self._gap is not None and n:
+            self._correct_gap(int(t[0]), timely=not full)
         self.next_index += n
         self.started |= n > 0
         self.diagnostics.extra[self.rate_key] = round(self.clock.rate_hz, 3)
@@ -341,14 +375,38 @@ class FifoTimeline:
 
     def overflowed(self, reset_host_ns: int, flagged: bool = True) -> int:
         """The FIFO was reset at ``reset_host_ns`` after an overflow: the samples produced
-        since the last one read are lost (at least one when the part flagged the overflow).
-        Returns the count; the offset is anchored afresh by the next reads."""
+        between the last one read and the first one after the reset are lost (at least one
+        when the part flagged the overflow). Counted now from the reset's host time, and
+        corrected at the next read from the first new sample's time against the last old
+        one's (:meth:`_correct_gap`): a host preempted around the reset command moves the
+        first count by the preemption, never the second. Returns the first count; the
+        offset is anchored afresh by the next reads."""
         self.diagnostics.extra[self.events_key] += 1
-        produced = self.clock.index_at(reset_host_ns) + 1
-        n = max(1 if flagged else 0, produced - self.next_index)
+        at_least = 1 if flagged else 0
+        n = max(at_least, self.clock.index_at(reset_host_ns) + 1 - self.next_index)
+        last = self.clock.last_time_ns
+        if last is not None and self.clock.anchored:
+            self._gap = _PendingGap(last, at_least, n)
         self._lose(n, "fifo_overflow")
         self.clock.forget_offset()
         return n
+
+    def _correct_gap(self, first_new_ns: int, timely: bool) -> None:
+        """The pending overflow gap, once the first sample after the reset has a time: the
+        periods between it (placed in the middle of what its read allows) and the last
+        sample before, less one. A first read from a full FIFO says too little: the
+        reset's count stays. A correction is never more than the loss not yet handed out."""
+        gap, self._gap = self._gap, None
+        if not timely:
+            return
+        p = self.clock.period_ns
+        first = first_new_ns - 0.5 * self.clock.offset_range_ns()
+        # the middle of a range one period wide is off by [−½, ½) of a period: floor(x + ½)
+        n = max(gap.at_least, math.floor((first - gap.last_ns) / p + 0.5) - 1)
+        delta = max(n - gap.counted, -self._pending.fifo_overflow) if self.rows else n - gap.counted
+        if delta:
+            self.clock.shift_indices(delta)
+            self._lose(delta, "fifo_overflow")
 
     def overran(self, host_ns: int, n: int) -> int:
         """A stream FIFO found filled at ``host_ns`` holds the newest ``n`` samples, its
@@ -364,6 +422,7 @@ class FifoTimeline:
     def missed(self, host_ns: int) -> int:
         """The part was unreachable and has been configured again (its FIFO reset) at
         ``host_ns``: what it produced since the last sample read is lost to bus errors."""
+        self._gap = None
         if not self.clock.anchored:
             return 0
         n = max(0, self.clock.index_at(host_ns) + 1 - self.next_index)

@@ -61,6 +61,7 @@ def test_every_key_refuses_hostile_values_with_one_line_naming_it(section, key):
     ({"source": {"board_options": {"gyro_rate_hz": float("nan")}}}, "source.board_options.gyro_rate_hz"),
     ({"source": {"type": "recorded", "recorded_path": "/nope/none.mcap"}}, "source.recorded_path"),
     ({"estimator": {"params": {"beta": float("inf")}}}, "estimator.params.beta"),
+    ({"estimator": {"name": "madgwick", "params": {"beta": 1e300}}}, "estimator.params.beta"),
     ({"log": {"directory": ""}}, "log.directory"),
     ({"calibration": {"gyro_bias": [1e300, 0.0, 0.0]}}, "calibration.gyro_bias"),
 ])
@@ -68,6 +69,17 @@ def test_defects_of_the_issue_are_refused_naming_the_key(doc, key):
     with pytest.raises(config_mod.ConfigError) as exc:
         config_mod.validate(doc)
     assert str(exc.value).startswith(key), str(exc.value)
+
+
+def test_estimator_params_within_a_million_times_their_default_pass():
+    from ahrs_service import estimators
+
+    beta = estimators.create("madgwick").get_params()["beta"]
+    for value in (0.0, beta * 0.5, beta * 999_999.0):
+        cfg = config_mod.validate({"estimator": {"name": "madgwick", "params": {"beta": value}}})
+        assert cfg.estimator["params"]["beta"] == value
+    with pytest.raises(config_mod.ConfigError, match=r"estimator\.params\.beta = .*1e\+06 × its default"):
+        config_mod.validate({"estimator": {"name": "madgwick", "params": {"beta": beta * 1.01e6}}})
 
 
 def test_valid_endpoints_pass():

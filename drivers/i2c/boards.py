@@ -693,8 +693,8 @@ class MPU9250Board(I2CFifoBoard):
             self._restart_fifo_schedule()
             self._sim_dropped_base = self._sim_dropped()
             return SampleBlock.empty()
-        lost = timeline.take_loss()
         t_ns = timeline.stamp(t_read, n, full=overflow, read_end_ns=t_level_done) if n else np.empty(0, np.int64)
+        lost = timeline.take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow:  # counted when found; the next block carries it before its first row
             timeline.overflowed(t_reset, flagged=status.overflow)
         return self._fifo_block(t_ns, acc_c, gyr_c, temp, truth, lost)

@@ -265,10 +265,10 @@ class ICM42688PBoard(FifoBoard):
         ok = ((header & 0xFC) == icm42688p.HIRES_HEADER) & \
             (pk["acc20"] != icm42688p.INVALID_20BIT).all(axis=1) & \
             (pk["gyr20"] != icm42688p.INVALID_20BIT).all(axis=1)
-        lost = self._take_loss()
         # a full FIFO's newest sample is older than the read: timed from the clock's fit
         t = self.timeline.stamp(host, len(header), full=overflow, read_end_ns=host_done,
                                 level=count // icm42688p.PACKET)[ok]
+        lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and drained:
             part.flush()
             self._overflow_pending = False
@@ -388,8 +388,8 @@ class BMI088Board(FifoBoard):
         if overflow and self._stale_start(gyro):
             _twin(self.transport).take_popped_truth()
             return SampleBlock.empty()
-        lost = self._take_loss()
         t = self.timeline.stamp(host, take, full=overflow, read_end_ns=host_done, level=frames)
+        lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and take == frames:
             gyro.flush()
             self._overflow_pending = False
@@ -465,9 +465,9 @@ class ICM20948Board(FifoBoard):
         overflow = self._overflow_pending
         if overflow and self._stale_start(part):
             return SampleBlock.empty()
-        lost = self._take_loss()
         t = self.timeline.stamp(host, packets, full=overflow, read_end_ns=host_done,
                                 level=count // icm.PACKET)
+        lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and drained:
             part.flush()
             self._overflow_pending = False
