@@ -67,9 +67,12 @@ class _Segment:
     at its start (``t_{i+1} > start``, kept in ``after``: the upper hull of ``(i + 1, start)``,
     stored negated as a lower hull). A FIFO that had filled gives only the first bound."""
 
-    def __init__(self, index: int, host_ns: int) -> None:
+    def __init__(self, index: int, host_ns: int, continues: "_Segment | None" = None) -> None:
         self.i0 = index
         self.h0 = host_ns
+        #: the segment this one took over from without a reset (indices run on), while the
+        #: new one has few reads of its own
+        self.continues = continues
         self.before = _LowerHull()
         self.after = _LowerHull()  # of (i + 1, −start)
         self.reads = 0
@@ -99,14 +102,17 @@ class SensorClock:
     :class:`_Segment`), however late the host was: a read delayed by a stall only gives a
     looser bound, never a wrong one. The period is the middle of the range of periods that
     satisfy every bound of the reads of the last ``horizon_s`` (at the period that satisfies
-    them best when none does: a part whose rate drifts); ``offset`` is the middle of the
-    latest offset the current segment's reads allow at that period (:meth:`_offset_rel`). This is the two-sided version
-    of the convex-hull skew estimate of network clock synchronisation (Moon, Skelly and
-    Towsley, "Estimation and removal of clock skew from network delay measurements", 1999).
+    them best when none does: a part whose rate drifts); ``offset`` is the latest the
+    current segment's reads allow at that period (:meth:`_offset_rel`). This is the
+    two-sided version of the convex-hull skew estimate of network clock synchronisation
+    (Moon, Skelly and Towsley, "Estimation and removal of clock skew from network delay
+    measurements", 1999; the method only, no code).
 
     A FIFO reset starts a new segment (:meth:`forget_offset`): the indices across it are an
     estimate (the samples lost are counted with this clock), so segments share the period
-    but each has its own offset — a loss miscounted by one never tilts the period.
+    but each has its own offset — a loss miscounted by one never tilts the period. A segment
+    also ends after ``segment_s`` (10 s) without one, so the line follows a rate that drifts
+    with temperature.
     """
 
     #: periods searched: the nominal one ±10 % (a part further off is broken)
@@ -119,17 +125,21 @@ class SensorClock:
     #: bisection steps of the period search (the range shrinks by 0.618 each)
     STEPS = 48
 
-    def __init__(self, nominal_rate_hz: float, horizon_s: float = 60.0, refit_s: float = 0.25,
-                 max_segments: int = 64) -> None:
+    def __init__(self, nominal_rate_hz: float, horizon_s: float = 20.0, refit_s: float = 0.25,
+                 max_segments: int = 64, segment_s: float = 10.0, overlap_s: float = 5.0) -> None:
         self.nominal_period_ns = 1e9 / nominal_rate_hz
         self.period_ns = self.nominal_period_ns
         self._horizon_ns = horizon_s * 1e9
+        # a part's rate drifts with its temperature: a segment ends after segment_s even
+        # without a reset, so no straight line is fitted to more than that; the next one
+        # carries the last one's offset bound for its first overlap_s
+        self._segment_ns = segment_s * 1e9
+        self._overlap_ns = overlap_s * 1e9
         self._refit_ns = refit_s * 1e9
         self._max_segments = max_segments
         self._segments: deque[_Segment] = deque()
         self._current: _Segment | None = None
         self._last_refit_ns: int | None = None
-        # the current segment's offset bounds at ``period_ns`` (relative to its origin)
         #: how far off the tracked period can be (half the range the reads allow), ns
         self.period_uncertainty_ns = self.nominal_period_ns * self.PRIOR
         self._last_t: int | None = None
@@ -204,11 +214,13 @@ class SensorClock:
 
     def _add(self, index: int, start_ns: int, done_ns: int, two_sided: bool) -> None:
         seg = self._current
-        if seg is None:
-            seg = self._current = _Segment(index, start_ns)
+        if seg is None or done_ns - seg.h0 > self._segment_ns:
+            seg = self._current = _Segment(index, start_ns, continues=seg)
             self._segments.append(seg)
             self._drop_old(done_ns)
         seg.add(index, start_ns, done_ns, two_sided)
+        if seg.continues is not None and done_ns - seg.h0 > self._overlap_ns:
+            seg.continues = None
         reads = seg.reads
         if (reads & (reads - 1)) == 0 or self._last_refit_ns is None \
                 or done_ns - self._last_refit_ns >= self._refit_ns:
@@ -225,9 +237,14 @@ class SensorClock:
         middle of the allowed range: a host that reads on the part's data-ready line or
         watermark reads just after a sample every time, and the earliest allowed end is then
         a whole period early."""
-        p = self.period_ns
-        hull = self._current.before
-        return min(y - x * p for x, y in zip(hull.x, hull.y))
+        p, seg = self.period_ns, self._current
+        hull = seg.before
+        best = min(y - x * p for x, y in zip(hull.x, hull.y))
+        old = seg.continues
+        if old is not None:  # its bounds in this segment's coordinates
+            dx, dy = old.i0 - seg.i0, old.h0 - seg.h0
+            best = min(best, min(y + dy - (x + dx) * p for x, y in zip(old.before.x, old.before.y)))
+        return best
 
     def _refit(self, now_ns: int) -> None:
         self._last_refit_ns = now_ns
