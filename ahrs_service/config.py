@@ -463,27 +463,37 @@ def _check_estimator_params(section: dict[str, Any]) -> None:
         # what runs is the preset with the table's own values over it (service, reload, live)
         section["params"] = {**preset, **section["params"]}
     try:
-        defaults = estimators.create(section["name"]).get_params()
+        from ahrs_service.estimators.presets import has_paper_preset, load_preset
+
+        references = [estimators.create(section["name"]).get_params()]
+        if has_paper_preset(estimators.get(section["name"]).Params):
+            references.append(load_preset(section["name"], "paper"))
+        if section["preset"]:
+            references.append(load_preset(section["name"], section["preset"]))
         estimators.create(section["name"], **section["params"])
     except (ValueError, TypeError, OverflowError) as exc:
         raise ConfigError(f"estimator.params: {exc}") from None
-    _check_param_ranges(section["params"], defaults)
+    _check_param_ranges(section["params"], references)
 
 
-def _check_param_ranges(params: dict[str, Any], defaults: dict[str, Any]) -> None:
-    """Each numeric value within ``CONFIG_RANGE_FACTOR`` of its default (mavlink_bridge's
-    bounds): a finite 1e300 passes the estimator's own checks and overflows inside it."""
+def _check_param_ranges(params: dict[str, Any], references: list[dict[str, Any]]) -> None:
+    """Each numeric value within ``CONFIG_RANGE_FACTOR`` of its reference: the largest of its
+    default, its paper value (a paper's 1e9 for "gate off") and its preset's, with mavlink_bridge's
+    bounds. A finite 1e300 passes the estimator's own checks and overflows inside it."""
     from ahrs_service.mavlink_bridge import CONFIG_RANGE_FACTOR, estimator_param_bounds
 
+    def number(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
     for name, value in params.items():
-        default = defaults.get(name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                or isinstance(default, bool) or not isinstance(default, (int, float)):
+        refs = [r[name] for r in references if number(r.get(name))]
+        if not number(value) or not refs:
             continue
-        lo, hi = estimator_param_bounds(float(default), CONFIG_RANGE_FACTOR)
+        reference = max(refs, key=abs)
+        lo, hi = estimator_param_bounds(float(reference), CONFIG_RANGE_FACTOR)
         if not lo <= value <= hi:
             raise ConfigError(f"estimator.params.{name} = {value!r}: must be within {lo:g} … {hi:g} "
-                              f"({CONFIG_RANGE_FACTOR:g} × its default {default:g})")
+                              f"({CONFIG_RANGE_FACTOR:g} × its default {reference:g})")
 
 
 def _check_source(section: dict[str, Any]) -> None:

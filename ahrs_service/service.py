@@ -522,8 +522,11 @@ class Service:
         """One line of rate and health (systemd STATUS=, logs); ``st``: stats already taken."""
         st = st or self.scheduler.stats()
         mode = "reduced" if self.pipeline.reduced else "full"
+        # a FIFO board's rows come at its sensor's rate, the loop wakes at its drain rate
+        sensor_hz = self.source.diagnostics.extra.get("sensor_rate_hz") if self.source is not None else None
+        rows = f"rows at {sensor_hz:.0f} Hz, " if isinstance(sensor_hz, (int, float)) else ""
         return (
-            f"{self.estimator.name} ({mode}) at {st.rate_hz:.0f} Hz, load {st.load_percent:.1f}%, "
+            f"{self.estimator.name} ({mode}) {rows}loop at {st.rate_hz:.0f} Hz, load {st.load_percent:.1f}%, "
             f"jitter p99 {st.period_jitter_p99_us:.0f} us, overruns {st.overruns}, samples {self.pipeline.samples}, "
             f"lost {self._loss_text()}"
         )

@@ -71,10 +71,12 @@ def test_defects_of_the_issue_are_refused_naming_the_key(doc, key):
     assert str(exc.value).startswith(key), str(exc.value)
 
 
-def test_estimator_params_within_a_million_times_their_default_pass():
+def test_estimator_params_within_a_million_times_their_default_or_paper_value_pass():
     from ahrs_service import estimators
+    from ahrs_service.estimators.presets import load_preset
 
-    beta = estimators.create("madgwick").get_params()["beta"]
+    # the reference is the larger of the default and the paper's value
+    beta = max(estimators.create("madgwick").get_params()["beta"], load_preset("madgwick", "paper")["beta"])
     for value in (0.0, beta * 0.5, beta * 999_999.0):
         cfg = config_mod.validate({"estimator": {"name": "madgwick", "params": {"beta": value}}})
         assert cfg.estimator["params"]["beta"] == value
