@@ -62,8 +62,6 @@ from ahrs_service.drivers.i2c.lsm303dlhc import (
 )
 from ahrs_service.drivers.i2c.mpu9250 import FIFO_LAYOUT as MPU9250_FIFO, MPU9250, SimulatedMPU9250
 
-
-
 #: what :meth:`I2CBoard._read_inertial` gives: (t_ns, gyr, acc, flags, raw, temperature_c)
 _Inertial = tuple[int, np.ndarray, np.ndarray, int, dict[str, Any], float | None]
 
