@@ -140,6 +140,7 @@ class SensorClock:
         self._segments: deque[_Segment] = deque()
         self._current: _Segment | None = None
         self._last_refit_ns: int | None = None
+        self._reads = 0  # reads so far, all segments
         #: how far off the tracked period can be (half the range the reads allow), ns
         self.period_uncertainty_ns = self.nominal_period_ns * self.PRIOR
         self._last_t: int | None = None
@@ -221,8 +222,12 @@ class SensorClock:
         seg.add(index, start_ns, done_ns, two_sided)
         if seg.continues is not None and done_ns - seg.h0 > self._overlap_ns:
             seg.continues = None
-        reads = seg.reads
-        if (reads & (reads - 1)) == 0 or self._last_refit_ns is None \
+        # the period while it is young at every doubling of the reads, then every refit_s
+        # (a new segment needs none: the period is shared, and at 8 kHz with overflows
+        # segments come many a second)
+        self._reads += 1
+        reads = self._reads
+        if (reads <= 4096 and (reads & (reads - 1)) == 0) or self._last_refit_ns is None \
                 or done_ns - self._last_refit_ns >= self._refit_ns:
             self._refit(done_ns)
 
