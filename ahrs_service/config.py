@@ -451,25 +451,25 @@ def read_toml(path: Path) -> dict[str, Any]:
 
 def _check_estimator_params(section: dict[str, Any]) -> None:
     from ahrs_service import estimators
+    from ahrs_service.estimators.presets import has_paper_preset, load_preset
 
+    try:
+        # the values a parameter's range is taken from (_check_param_ranges)
+        references = [estimators.create(section["name"]).get_params()]
+        if has_paper_preset(estimators.get(section["name"]).Params):
+            references.append(load_preset(section["name"], "paper"))
+    except (ValueError, TypeError, OverflowError) as exc:
+        raise ConfigError(f"estimator.params: {exc}") from None
     if section["preset"]:
-        from ahrs_service.estimators.presets import load_preset
-
         try:
             preset = load_preset(section["name"], section["preset"])
             estimators.create(section["name"], **preset)
         except (ValueError, TypeError, OverflowError) as exc:
             raise ConfigError(f"estimator.preset: {exc}") from None
+        references.append(preset)
         # what runs is the preset with the table's own values over it (service, reload, live)
         section["params"] = {**preset, **section["params"]}
     try:
-        from ahrs_service.estimators.presets import has_paper_preset, load_preset
-
-        references = [estimators.create(section["name"]).get_params()]
-        if has_paper_preset(estimators.get(section["name"]).Params):
-            references.append(load_preset(section["name"], "paper"))
-        if section["preset"]:
-            references.append(load_preset(section["name"], section["preset"]))
         estimators.create(section["name"], **section["params"])
     except (ValueError, TypeError, OverflowError) as exc:
         raise ConfigError(f"estimator.params: {exc}") from None

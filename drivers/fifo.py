@@ -141,8 +141,6 @@ class SensorClock:
         self._current: _Segment | None = None
         self._last_refit_ns: int | None = None
         self._reads = 0  # reads so far, all segments
-        #: how far off the tracked period can be (half the range the reads allow), ns
-        self.period_uncertainty_ns = self.nominal_period_ns * self.PRIOR
         self._last_t: int | None = None
 
     @property
@@ -253,18 +251,17 @@ class SensorClock:
 
     def _refit(self, now_ns: int) -> None:
         self._last_refit_ns = now_ns
-        bx, by, ax, ay, b_seg, a_seg = [], [], [], [], [], []
-        for k, seg in enumerate(self._segments):
+        bx, by, ax, ay = [], [], [], []
+        for seg in self._segments:
             sbx, sby, sax, say = seg.arrays()
             if len(sax) == 0:
                 continue  # no two-sided bound: says nothing about the period
             bx.append(sbx), by.append(sby), ax.append(sax), ay.append(say)
-            b_seg.append(np.full(len(sbx), k)), a_seg.append(np.full(len(sax), k))
         if bx:
+            # where each segment's points start in the joined arrays (for reduceat)
+            b_first = np.cumsum([0] + [len(v) for v in bx[:-1]])
+            a_first = np.cumsum([0] + [len(v) for v in ax[:-1]])
             bx, by, ax, ay = (np.concatenate(v) for v in (bx, by, ax, ay))
-            b_seg, a_seg = np.concatenate(b_seg), np.concatenate(a_seg)
-            _, b_first = np.unique(b_seg, return_index=True)
-            _, a_first = np.unique(a_seg, return_index=True)
 
             def room(p: float) -> float:
                 """The least room any segment leaves its offset at period p (ns)."""
@@ -312,7 +309,6 @@ class SensorClock:
         prior_high = min(high, self.nominal_period_ns * (1.0 + self.PRIOR))
         if prior_low > prior_high:
             prior_low, prior_high = low, high
-        self.period_uncertainty_ns = 0.5 * (prior_high - prior_low)
         return 0.5 * (prior_low + prior_high)
 
 
@@ -493,6 +489,14 @@ def wire_time_ns(kind: str, clock_hz: float, data_bytes: int | None = None) -> i
         return 0
     clocks = COMMAND_CLOCKS[kind] if data_bytes is None else DATA_BYTE_CLOCKS[kind] * data_bytes
     return int(clocks * 1e9 / clock_hz)
+
+
+def latch_bounds(kind: str, clock_hz: float, level_bytes: int = 0) -> dict[str, int]:
+    """:class:`FifoTimeline`'s ``latch_after_ns`` / ``latch_before_end_ns`` for a level read
+    of ``level_bytes`` data bytes on a ``kind`` bus at ``clock_hz``: the part latches after
+    the read's command phase and before its data bytes."""
+    return {"latch_after_ns": wire_time_ns(kind, clock_hz),
+            "latch_before_end_ns": wire_time_ns(kind, clock_hz, level_bytes) if level_bytes else 0}
 
 
 def burst_flags(gyr_counts: np.ndarray, acc_counts: np.ndarray, gyro_full_scale: int,

@@ -79,13 +79,14 @@ def test_a_stop_inside_a_drain_shorter_than_the_fifo_loses_nothing(where):
     assert board.diagnostics.lost.total == 0
     assert twin.fifo_overflowed == 0 and twin.fifo_discarded == 0
     assert len(t_ns) + len(twin.fifo) // 12 == twin.samples_latched == twin.samples_due
-    # every period, one row each: each dt one period to within 1 % (the tracked period
-    # settles from the reads' bounds: 0.2 % off in the first 0.1 s, 2e-5 after 1 s); a
-    # missing or doubled row would be a whole period off
-    assert np.all(np.abs(np.diff(t_ns) - 1_000_000) < 10_000)
+    # every period, one row each: each dt one period to within 0.5 % (the tracked period
+    # settles from the reads' bounds: measured 0.18 % off in the first 0.1 s, 2e-5 after
+    # 1 s); a missing or doubled row would be a whole period off
+    assert np.all(np.abs(np.diff(t_ns) - 1_000_000) < 5_000)
     # on the sensor clock: each row within its read latency (under a period) after its
-    # sample, or before it by the tracked period's error carried over the run (µs here)
-    assert np.all((t_ns - truth > -20_000) & (t_ns - truth < 1_000_000))
+    # sample, or before it by the tracked period's error carried over the run (measured
+    # 6.2 µs at most here)
+    assert np.all((t_ns - truth > -10_000) & (t_ns - truth < 1_000_000))
 
 
 @pytest.mark.parametrize("where", POSITIONS)

@@ -210,9 +210,10 @@ def test_board_fifo_rows_every_gyro_sample_on_its_clock(name):
     # the rows are on the truth and the tracked rate on the part's
     err = t - np.rint(truth[:, 1] * 1e9)
     period = 1e9 / spec["rate"]
+    # (measured on this simulated clock: settled within 2.2 % of a period, rate within 2.3e-5)
     assert np.all(np.abs(err) < period)
-    assert np.max(np.abs(err[len(err) // 2:])) < 0.05 * period
-    assert abs(board.timeline.clock.rate_hz / spec["rate"] - 1.0) < 5e-4
+    assert np.max(np.abs(err[len(err) // 2:])) < 0.03 * period
+    assert abs(board.timeline.clock.rate_hz / spec["rate"] - 1.0) < 1e-4
     assert board.diagnostics.lost.total == 0
     mags = sum(int(np.isfinite(b.mag[:, 0]).sum()) for b in blocks)
     assert mags > 0 and all(np.isfinite(b.mag[:-1]).sum() == 0 for b in blocks if len(b))

@@ -47,7 +47,7 @@ from ahrs_service.drivers.base import (
 from ahrs_service.drivers.i2c.adxl345 import RATES_HZ as ADXL345_RATES_HZ, ADXL345, SimulatedADXL345
 from ahrs_service.drivers.i2c.ak8963 import AK8963, SimulatedAK8963
 from ahrs_service.drivers.i2c.bus import I2CBus, SimulatedI2CBus, SMBusI2C
-from ahrs_service.drivers.fifo import FifoTimeline, burst_flags, hold_pairing, wire_time_ns
+from ahrs_service.drivers.fifo import FifoTimeline, burst_flags, hold_pairing, latch_bounds
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, I2CDevice, I2CDeviceError, watermark_frames
 from ahrs_service.drivers.i2c.st_fifo import FIFO_FRAMES as ST_FIFO_FRAMES
 from ahrs_service.drivers.i2c.hmc5883l import HMC5883L, SimulatedHMC5883L
@@ -251,12 +251,6 @@ class I2CFifoBoard(I2CBoard):
     #: the roles whose FIFO gives the rows (a loss of one of them is a loss of rows)
     FIFO_ROLES: frozenset[str] = frozenset({"gyro"})
 
-    def _latch_bounds(self, level_bytes: int) -> dict[str, int]:
-        """Where in a FIFO level read of ``level_bytes`` the part latches its level: after
-        the read's command phase, before its data bytes (the bounds of drivers/fifo.py)."""
-        return {"latch_after_ns": wire_time_ns("i2c", self.i2c_speed_hz),
-                "latch_before_end_ns": wire_time_ns("i2c", self.i2c_speed_hz, level_bytes)}
-
     def __init__(self, bus: I2CBus, *, fifo: bool = True, fifo_read_hz: float = 100.0,
                  **kw: Any) -> None:
         super().__init__(bus, **kw)
@@ -445,7 +439,7 @@ class _PairedFifoBoard(I2CFifoBoard):
 
     def _new_timelines(self) -> None:
         gyro, acc = self.parts["gyro"], self.parts["acc"]
-        latch = self._latch_bounds(level_bytes=1)  # FIFO_SRC_REG, FIFO_STATUS
+        latch = latch_bounds("i2c", self.i2c_speed_hz, level_bytes=1)  # FIFO_SRC_REG, FIFO_STATUS
         self.timeline = FifoTimeline(gyro.rate_hz, self.diagnostics, **latch)  # type: ignore[attr-defined]
         self.acc_timeline = FifoTimeline(acc.rate_hz, self.diagnostics, **latch,  # type: ignore[attr-defined]
                                          events_key="acc_fifo_overflows", rows=False)
@@ -635,7 +629,7 @@ class MPU9250Board(I2CFifoBoard):
 
     def _new_timelines(self) -> None:
         self.timeline = FifoTimeline(self.mpu.rate_hz, self.diagnostics,
-                                     **self._latch_bounds(level_bytes=2))  # FIFO_COUNTH/L
+                                     **latch_bounds("i2c", self.i2c_speed_hz, level_bytes=2))  # FIFO_COUNTH/L
 
     def _timelines(self) -> list[FifoTimeline]:
         return [self.timeline]

@@ -29,7 +29,7 @@ from ahrs_service.drivers.base import (
     LossCounts,
     SampleBlock,
 )
-from ahrs_service.drivers.fifo import FifoTimeline, SensorClock, burst_flags, hold_pairing, wire_time_ns
+from ahrs_service.drivers.fifo import FifoTimeline, SensorClock, burst_flags, hold_pairing, latch_bounds
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, watermark_frames
 from ahrs_service.drivers.imu import icm42688p
 from ahrs_service.drivers.transport import RegisterTransport, check_bus_rate
@@ -77,10 +77,11 @@ class FifoBoard(ImuSource):
     def _kw(self) -> dict[str, Any]:
         return {"diagnostics": self.diagnostics, "retries": self.retries}
 
-    def _latch_after_ns(self, transport: RegisterTransport | None = None) -> int:
-        """How soon after a level read starts the part can latch it: its command phase."""
+    def _latch(self, transport: RegisterTransport | None = None) -> dict[str, int]:
+        """Where in a level read the part latches it: after its command phase (SPI: the
+        data phase after it is a µs or two, not counted)."""
         transport = self.transport if transport is None else transport
-        return wire_time_ns(transport.kind, transport.clock_hz)
+        return latch_bounds(transport.kind, transport.clock_hz)
 
     # ------------------------------------------------------------------ life cycle
     def open(self) -> None:
@@ -239,7 +240,7 @@ class ICM42688PBoard(FifoBoard):
     def _configure(self) -> None:
         self.part.configure()
         if self.timeline is None:
-            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics, latch_after_ns=self._latch_after_ns())
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics, **self._latch())
 
     def _burst(self, max_samples: int) -> SampleBlock:
         part = self.part
@@ -348,11 +349,11 @@ class BMI088Board(FifoBoard):
         self.acc.configure()
         self.gyro.configure()
         if self.timeline is None:
-            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics, latch_after_ns=self._latch_after_ns())
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics, **self._latch())
             # the accelerometer's samples are held by the pairing rule: its overflows cost
             # no rows, they are counted as events
             self.acc_timeline = FifoTimeline(self.acc.odr_hz, self.diagnostics,
-                                             latch_after_ns=self._latch_after_ns(self.acc_transport),
+                                             **self._latch(self.acc_transport),
                                              events_key="acc_fifo_overflows", rows=False)
             self._acc_t = np.empty(0, np.int64)
             self._acc_c = np.empty((0, 3), np.int64)
@@ -443,7 +444,7 @@ class ICM20948Board(FifoBoard):
     def _configure(self) -> None:
         self.part.configure()
         if self.timeline is None:
-            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics, latch_after_ns=self._latch_after_ns())
+            self.timeline = FifoTimeline(self.odr_hz, self.diagnostics, **self._latch())
 
     def _burst(self, max_samples: int) -> SampleBlock:
         from ahrs_service.drivers.base import MAG_NEW, MAG_SATURATED, MAG_VALID
