@@ -83,6 +83,20 @@ def twin_cost_us(recording: RecordedImu, odr: float, n_samples: int) -> float:
     return cost
 
 
+def thread_cpu_s() -> dict[str, float]:
+    """CPU seconds (user + system) of each live thread of this process, by name (Linux)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for t in threading.enumerate():
+        try:
+            with open(f"/proc/self/task/{t.native_id}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        out[t.name] = (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0)
@@ -121,9 +135,22 @@ def main(argv: list[str] | None = None) -> int:
     stalls: list[tuple[float, bool]] = []  # (host time without a FIFO read, s; overflowed)
     others: list[tuple[float, float]] = []  # overflows outside the injected stalls: (gap, s since the stall)
 
+    simulated_ns = [0]  # CPU of the thread that ran them, inside the simulated bus and part
+
     def make_source(source_cfg, estimation_hz, system_id=1):  # sources.make_source's signature
         board = make_transport_board("icm42688p", "spi", simulated_imu=recording,
                                      odr_hz=args.odr, fifo_read_hz=args.loop_hz)
+        bus = board.transport.bus
+        transfer = bus.transfer
+
+        def timed_transfer(cs, data):  # what a real spidev ioctl would replace: measured apart
+            c = time.thread_time_ns()
+            try:
+                return transfer(cs, data)
+            finally:
+                simulated_ns[0] += time.thread_time_ns() - c
+
+        bus.transfer = timed_transfer
         if args.drdy:
             board.data_ready_line = SimulatedDataReadyLine(_twin(board.transport), clock)
         boards.append(board)
@@ -143,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         sources.make_source = make_source
         svc = service_mod.Service(cfg, duration_s=args.seconds)
         svc.start()
-        listener = threading.Thread(target=listen, daemon=True)
+        listener = threading.Thread(target=listen, daemon=True, name="gcs-peer")
         listener.start()
         if args.stall_ms > 0:
             # a host stall: the loop thread is held inside the source's read once a second
@@ -183,10 +210,14 @@ def main(argv: list[str] | None = None) -> int:
         produced0 = twin.samples_latched + twin.samples_unseen
         est0 = svc.pipeline.samples
         read0 = board.diagnostics.samples
+        threads0 = thread_cpu_s()
+        sim0 = simulated_ns[0]
         c0, w0 = time.process_time(), time.monotonic()
         svc.run()
         cpu = 100 * (time.process_time() - c0) / (time.monotonic() - w0)
         wall = time.monotonic() - w0
+        threads = {name: 100 * (s - threads0.get(name, 0.0)) / wall for name, s in thread_cpu_s().items()}
+        sim_pct = 100 * (simulated_ns[0] - sim0) / 1e9 / wall
         diag = board.diagnostics
         twin.update(clock.now())
         produced = twin.samples_latched + twin.samples_unseen - produced0 - twin.fifo.level // 20
@@ -197,6 +228,9 @@ def main(argv: list[str] | None = None) -> int:
         stop.set()
         listener.join(1.0)
     twin_pct = twin_us * real_rate / 1e4
+    loop_pct = threads.get("MainThread", 0.0) - sim_pct
+    writer_pct = threads.get("flight-log-writer", 0.0)
+    peer_pct = threads.get("gcs-peer", 0.0)
     print()
     print(f"| {args.odr:.0f} Hz ICM-42688-P, simulated SPI, {args.estimator}, publish {args.publish:.0f} Hz, "
           f"{'data-ready line' if args.drdy else f'timer {args.loop_hz:.0f} Hz'}"
@@ -204,8 +238,13 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|")
     print(f"| wall time of the run, s | {wall:.1f} |")
     print(f"| CPU of the process (service + twin), % of one core | {cpu:.1f} |")
-    print(f"| the twin alone (pack + FIFO per sample, measured apart: {twin_us:.1f} µs/sample), % | {twin_pct:.1f} |")
-    print(f"| **the service's own work**, % of one core | **{cpu - twin_pct:.1f}** |")
+    print(f"| the twin alone, measured on its own (pack + FIFO: {twin_us:.1f} µs/sample), % | {twin_pct:.1f} |")
+    print(f"| in the run: inside the simulated SPI bus and part (the loop thread's CPU there), % | {sim_pct:.1f} |")
+    print(f"| in the run: the benchmark's ground-station peer (its thread), % | {peer_pct:.1f} |")
+    print(f"| **the service's own work** (process − simulated bus and part − peer), % of one core | "
+          f"**{cpu - sim_pct - peer_pct:.1f}** |")
+    print(f"| of which: loop thread (outside the bus) / log writer thread / others, % | {loop_pct:.1f} / "
+          f"{writer_pct:.1f} / {cpu - sim_pct - peer_pct - loop_pct - writer_pct:.1f} |")
     print(f"| samples the part produced during the loop / read by the driver / estimated and logged | "
           f"{produced} / {diag.samples - read0} / {estimated} |")
     print(f"| lost: FIFO overflow / bus error (overflow events: {lost[2]}) | {lost[0]} / {lost[1]} |")
