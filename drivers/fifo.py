@@ -1,21 +1,20 @@
 """FIFO acquisition shared by today's IMUs: decoded bursts, the sensor clock, simulated FIFOs.
 
-* :class:`SensorClock` — each sample's time from its index on the part's own output clock,
-  with the part's real rate tracked against the host's monotonic clock: timestamps neither
-  jitter with the host's read times nor drift from the host clock.
 * :class:`FifoTimeline` — one FIFO part's sample indices, times and losses: every FIFO
   board stamps its bursts and counts its overflows and outages through it (one place).
 * :class:`SimulatedFifo` and :class:`SimulatedFifoDevice` — the twins' side: a byte FIFO of
   the part's depth (stop-on-full or stream), filled with every sample due on a clock that
   runs ``clock_error`` off nominal (real parts are 0.5–2 % off).
 
-Bursts are handed out as :class:`~ahrs_service.drivers.base.SampleBlock` (the sample-block
+Each sample's time comes from its index on the part's own output clock, with the part's real
+rate tracked against the host's monotonic clock (:class:`ahrs_service.sample_clock.SensorClock`,
+the sample-clock package's bounded fit): timestamps neither jitter with the host's read times
+nor drift from the host clock. Bursts are handed out as :class:`~ahrs_service.drivers.base.SampleBlock` (the sample-block
 interface in ``drivers/base.py``).
 """
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -30,286 +29,7 @@ from ahrs_service.drivers.base import (
     SourceDiagnostics,
 )
 from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice
-
-
-class _LowerHull:
-    """The lower convex hull of integer points added in increasing x (Andrew's monotone
-    chain, one point at a time): the only points that can be the minimum of ``y − x·p`` for
-    any slope ``p``. Exact integer arithmetic, so hours of nanoseconds lose nothing."""
-
-    __slots__ = ("x", "y")
-
-    def __init__(self) -> None:
-        self.x: list[int] = []
-        self.y: list[int] = []
-
-    def add(self, x: int, y: int) -> None:
-        xs, ys = self.x, self.y
-        if xs and x <= xs[-1]:
-            if y >= ys[-1] or x < xs[-1]:
-                return  # the same index again, no lower: nothing new
-            xs.pop()
-            ys.pop()
-        while len(xs) >= 2 and (xs[-1] - xs[-2]) * (y - ys[-2]) - (ys[-1] - ys[-2]) * (x - xs[-2]) <= 0:
-            xs.pop()
-            ys.pop()
-        xs.append(x)
-        ys.append(y)
-
-
-class _Segment:
-    """Reads between two FIFO resets: within one, sample indices are counted, not estimated.
-
-    Each read gives two bounds on the line ``t_i = offset + i·period`` (times and indices
-    relative to the segment's first read, integers): the newest sample ``i`` in the FIFO
-    when its level was latched was produced by the end of that transfer (``t_i ≤ done``,
-    kept in ``before``: a lower hull of ``(i, done)``), and the next one was not yet produced
-    at its start (``t_{i+1} > start``, kept in ``after``: the upper hull of ``(i + 1, start)``,
-    stored negated as a lower hull). A FIFO that had filled gives only the first bound."""
-
-    def __init__(self, index: int, host_ns: int, continues: "_Segment | None" = None) -> None:
-        self.i0 = index
-        self.h0 = host_ns
-        #: the segment this one took over from without a reset (indices run on), while the
-        #: new one has few reads of its own
-        self.continues = continues
-        self.before = _LowerHull()
-        self.after = _LowerHull()  # of (i + 1, −start)
-        self.reads = 0
-        self.last_ns = host_ns
-
-    def add(self, index: int, start_ns: int, done_ns: int, two_sided: bool) -> None:
-        x = index - self.i0
-        self.before.add(x, done_ns - self.h0)
-        if two_sided:
-            self.after.add(x + 1, self.h0 - start_ns)
-        self.reads += 1
-        self.last_ns = max(self.last_ns, done_ns)
-
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(x, y) of both hulls as float arrays, y relative to the segment's origin."""
-        return (np.array(self.before.x, float), np.array(self.before.y, float),
-                np.array(self.after.x, float), -np.array(self.after.y, float))
-
-
-class SensorClock:
-    """Sample times from sample indices on the part's clock, mapped onto the host clock.
-
-    A part's samples are evenly spaced on its own oscillator: sample ``i`` is at
-    ``offset + i · period``, where the real period is off the nominal one by the
-    oscillator's error. Every FIFO level read bounds that line from both sides (the newest
-    sample counted existed when the level was latched, the one after it did not yet; see
-    :class:`_Segment`), however late the host was: a read delayed by a stall only gives a
-    looser bound, never a wrong one. The period is the middle of the range of periods that
-    satisfy every bound of the reads of the last ``horizon_s`` (at the period that satisfies
-    them best when none does: a part whose rate drifts); ``offset`` is the latest the
-    current segment's reads allow at that period (:meth:`_offset_rel`). This is the
-    two-sided version of the convex-hull skew estimate of network clock synchronisation
-    (Moon, Skelly and Towsley, "Estimation and removal of clock skew from network delay
-    measurements", 1999; the method only, no code).
-
-    A FIFO reset starts a new segment (:meth:`forget_offset`): the indices across it are an
-    estimate (the samples lost are counted with this clock), so segments share the period
-    but each has its own offset — a loss miscounted by one never tilts the period. A segment
-    also ends after ``segment_s`` (10 s) without one, so the line follows a rate that drifts
-    with temperature.
-    """
-
-    #: periods searched: the nominal one ±10 % (a part further off is broken)
-    SEARCH = 0.10
-    #: where a part's period is before its reads say more: the nominal one ±2 % (datasheets
-    #: give ±0.5–2 % for these oscillators); a uniform prior, so the estimate is the middle
-    #: of the periods both it and the reads allow, or of those the reads allow when a part
-    #: turns out further off
-    PRIOR = 0.02
-    #: bisection steps of the period search (the range shrinks by 0.618 each)
-    STEPS = 48
-
-    def __init__(self, nominal_rate_hz: float, horizon_s: float = 20.0, refit_s: float = 0.25,
-                 max_segments: int = 64, segment_s: float = 10.0, overlap_s: float = 5.0) -> None:
-        self.nominal_period_ns = 1e9 / nominal_rate_hz
-        self.period_ns = self.nominal_period_ns
-        self._horizon_ns = horizon_s * 1e9
-        # a part's rate drifts with its temperature: a segment ends after segment_s even
-        # without a reset, so no straight line is fitted to more than that; the next one
-        # carries the last one's offset bound for its first overlap_s
-        self._segment_ns = segment_s * 1e9
-        self._overlap_ns = overlap_s * 1e9
-        self._refit_ns = refit_s * 1e9
-        self._max_segments = max_segments
-        self._segments: deque[_Segment] = deque()
-        self._current: _Segment | None = None
-        self._last_refit_ns: int | None = None
-        self._reads = 0  # reads so far, all segments
-        self._last_t: int | None = None
-
-    @property
-    def rate_hz(self) -> float:
-        """The part's tracked real output rate, Hz."""
-        return 1e9 / self.period_ns
-
-    @property
-    def anchored(self) -> bool:
-        """True once a read has tied the part's sample indices to the host clock."""
-        return self._current is not None and self._current.reads > 0
-
-    def stamp(self, host_ns: int, first_index: int, n: int, anchor: bool = True,
-              read_end_ns: int | None = None, newest_index: int | None = None) -> np.ndarray:
-        """Times (int64 ns, oldest first) of samples ``first_index … first_index + n − 1``,
-        read from a FIFO whose level was latched by a transfer from ``host_ns`` to
-        ``read_end_ns`` (``host_ns`` when not given).
-
-        newest_index: the newest sample in the FIFO at that latch (default the newest one
-        read; more when the read took fewer than the level). anchor: False when the FIFO was
-        full (samples after its newest were turned away): only the "it existed" bound holds.
-        """
-        done = host_ns if read_end_ns is None else max(int(read_end_ns), host_ns)
-        newest = first_index + n - 1 if newest_index is None else int(newest_index)
-        self._add(newest, host_ns, done, two_sided=anchor)
-        p = self.period_ns
-        seg = self._current
-        t = (seg.h0 + self._offset_rel()) + p * np.arange(first_index - seg.i0, first_index - seg.i0 + n,
-                                                          dtype=np.float64)
-        t = np.rint(t).astype(np.int64)
-        # a new estimate may move the offset back a little: never hand out a time twice
-        if n and self._last_t is not None and t[0] <= self._last_t:
-            t += self._last_t + int(p / 2) - t[0]
-        if n:
-            self._last_t = int(t[-1])
-        return t
-
-    def forget_offset(self) -> None:
-        """After a FIFO reset: the next reads start a new segment (a fresh offset), the
-        period keeps what every segment so far says."""
-        self._current = None
-
-    def index_at(self, host_ns: int) -> int:
-        """The index of the newest sample the part has produced by ``host_ns``."""
-        if not self.anchored:
-            return -1
-        seg = self._current
-        p = self.period_ns
-        return int(math.floor((host_ns - seg.h0 - self._offset_rel()) / p)) + seg.i0
-
-    @property
-    def last_time_ns(self) -> int | None:
-        """The time handed out last (the newest sample stamped), None before any."""
-        return self._last_t
-
-    def offset_range_ns(self) -> float:
-        """How wide the range of offsets the current segment's reads allow is, ns (a period
-        and the read's transfer after one read; it narrows as reads fall at other phases)."""
-        seg, p = self._current, self.period_ns
-        after = seg.after
-        earliest = max((-y - x * p for x, y in zip(after.x, after.y)), default=None)
-        return 0.0 if earliest is None else max(0.0, self._offset_rel() - earliest)
-
-    def shift_indices(self, n: int) -> None:
-        """The current segment's indices are ``n`` further on than it was told (a loss
-        counted after its first read): its times stay, its indices move."""
-        self._current.i0 += n
-
-    # the fit ---------------------------------------------------------------------------------
-
-    def _add(self, index: int, start_ns: int, done_ns: int, two_sided: bool) -> None:
-        seg = self._current
-        if seg is None or done_ns - seg.h0 > self._segment_ns:
-            seg = self._current = _Segment(index, start_ns, continues=seg)
-            self._segments.append(seg)
-            self._drop_old(done_ns)
-        seg.add(index, start_ns, done_ns, two_sided)
-        if seg.continues is not None and done_ns - seg.h0 > self._overlap_ns:
-            seg.continues = None
-        # the period while it is young at every doubling of the reads, then every refit_s
-        # (a new segment needs none: the period is shared, and at 8 kHz with overflows
-        # segments come many a second)
-        self._reads += 1
-        reads = self._reads
-        if (reads <= 4096 and (reads & (reads - 1)) == 0) or self._last_refit_ns is None \
-                or done_ns - self._last_refit_ns >= self._refit_ns:
-            self._refit(done_ns)
-
-    def _drop_old(self, now_ns: int) -> None:
-        while len(self._segments) > 1 and (len(self._segments) > self._max_segments
-                                           or now_ns - self._segments[0].last_ns > self._horizon_ns):
-            self._segments.popleft()
-
-    def _offset_rel(self) -> float:
-        """The latest offset the current segment's reads allow: each sample at the latest
-        time it can have been taken, never before it was (with the period right). Not the
-        middle of the allowed range: a host that reads on the part's data-ready line or
-        watermark reads just after a sample every time, and the earliest allowed end is then
-        a whole period early."""
-        p, seg = self.period_ns, self._current
-        hull = seg.before
-        best = min(y - x * p for x, y in zip(hull.x, hull.y))
-        old = seg.continues
-        if old is not None:  # its bounds in this segment's coordinates
-            dx, dy = old.i0 - seg.i0, old.h0 - seg.h0
-            best = min(best, min(y + dy - (x + dx) * p for x, y in zip(old.before.x, old.before.y)))
-        return best
-
-    def _refit(self, now_ns: int) -> None:
-        self._last_refit_ns = now_ns
-        bx, by, ax, ay = [], [], [], []
-        for seg in self._segments:
-            sbx, sby, sax, say = seg.arrays()
-            if len(sax) == 0:
-                continue  # no two-sided bound: says nothing about the period
-            bx.append(sbx), by.append(sby), ax.append(sax), ay.append(say)
-        if bx:
-            # where each segment's points start in the joined arrays (for reduceat)
-            b_first = np.cumsum([0] + [len(v) for v in bx[:-1]])
-            a_first = np.cumsum([0] + [len(v) for v in ax[:-1]])
-            bx, by, ax, ay = (np.concatenate(v) for v in (bx, by, ax, ay))
-
-            def room(p: float) -> float:
-                """The least room any segment leaves its offset at period p (ns)."""
-                latest = np.minimum.reduceat(by - bx * p, b_first)
-                earliest = np.maximum.reduceat(ay - ax * p, a_first)
-                return float(np.min(latest - earliest))
-
-            self.period_ns = self._middle_of_feasible(room)
-
-    def _middle_of_feasible(self, room) -> float:
-        """The middle of the periods at which ``room`` (concave) is ≥ 0 (within the prior
-        when it overlaps), else the period of its maximum (the bounds disagree)."""
-        lo = self.nominal_period_ns * (1.0 - self.SEARCH)
-        hi = self.nominal_period_ns * (1.0 + self.SEARCH)
-        g = 0.5 * (math.sqrt(5.0) - 1.0)
-        a, b = lo, hi
-        c, d = b - g * (b - a), a + g * (b - a)
-        fc, fd = room(c), room(d)
-        for _ in range(self.STEPS):
-            if fc < fd:
-                a, c, fc = c, d, fd
-                d = a + g * (b - a)
-                fd = room(d)
-            else:
-                b, d, fd = d, c, fc
-                c = b - g * (b - a)
-                fc = room(c)
-        best = 0.5 * (a + b)
-        if room(best) < 0.0:
-            return best
-
-        def edge(inside: float, outside: float) -> float:
-            if room(outside) >= 0.0:
-                return outside
-            for _ in range(self.STEPS):
-                mid = 0.5 * (inside + outside)
-                if room(mid) >= 0.0:
-                    inside = mid
-                else:
-                    outside = mid
-            return 0.5 * (inside + outside)
-
-        low, high = edge(best, lo), edge(best, hi)
-        prior_low = max(low, self.nominal_period_ns * (1.0 - self.PRIOR))
-        prior_high = min(high, self.nominal_period_ns * (1.0 + self.PRIOR))
-        if prior_low > prior_high:
-            prior_low, prior_high = low, high
-        return 0.5 * (prior_low + prior_high)
+from ahrs_service.sample_clock import SensorClock, whole_periods
 
 
 @dataclass(frozen=True)
@@ -420,7 +140,7 @@ class FifoTimeline:
         p = self.clock.period_ns
         first = first_new_ns - 0.5 * self.clock.offset_range_ns()
         # the middle of a range one period wide is off by [−½, ½) of a period: floor(x + ½)
-        n = max(gap.at_least, math.floor((first - gap.last_ns) / p + 0.5) - 1)
+        n = max(gap.at_least, whole_periods(first - gap.last_ns, p) - 1)
         delta = max(n - gap.counted, -self._pending.fifo_overflow) if self.rows else n - gap.counted
         if delta:
             self.clock.shift_indices(delta)

@@ -22,7 +22,8 @@ import pytest
 
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID
 from ahrs_service.drivers.can.sim_node import SimulatedDroneCanImuNode
-from ahrs_service.drivers.can.source import DroneCanConfig, DroneCanImuSource, SensorClockMap
+from ahrs_service.drivers.can.source import DroneCanConfig, DroneCanImuSource
+from ahrs_service.sample_clock import SensorClockMap
 from ahrs_service.protocols import dronecan as dc
 
 F16_RTOL = 2.0**-11  # float16 keeps 11 significant bits: half an ulp relative error at most

@@ -185,3 +185,31 @@ def test_a_block_read_early_never_goes_back_in_time():
     clock.stamp(10_000_000, 10)
     early = clock.stamp(12_000_000, 10)  # ten samples claimed 2 ms later: impossible at 1 kHz
     assert early[0] > 10_000_000 and np.all(np.diff(early) > 0)
+
+
+def test_whole_periods_rounds_to_the_nearest_with_halves_up():
+    from ahrs_service.sample_clock import whole_periods
+
+    assert [whole_periods(d, 2.0) for d in (0.0, 0.99, 1.0, 2.9, 3.0, -1.0, -1.01, 1e9 + 1.0)] == \
+        [0, 0, 1, 1, 2, 0, -1, 500_000_001]
+
+
+def test_every_source_kind_gets_its_times_from_the_sample_clock_package():
+    """One place for sample times (#21): the FIFO boards' clock and the CAN node's clock map
+    are the package's classes, not copies of their own."""
+    from ahrs_service import sample_clock
+    from ahrs_service.drivers.boards import make_transport_board
+    from ahrs_service.drivers.can.source import DroneCanImuSource
+
+    from test_icm42688p import ConstantImu
+
+    imu = ConstantImu()
+    board = make_transport_board("icm42688p", "spi", simulated_imu=imu, odr_hz=1000)
+    try:
+        board.open()
+        imu.clock.advance(0.05)
+        assert len(board.read_block()) > 0
+        assert type(board.clock) is sample_clock.SensorClock
+    finally:
+        board.close()
+    assert type(DroneCanImuSource(bus=lambda: None).clock_map) is sample_clock.SensorClockMap

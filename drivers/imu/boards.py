@@ -2,7 +2,7 @@
 
 A :class:`FifoBoard` reads its part's FIFO in bursts (status + count in one transfer, the
 packets in transfers of at most what the transport carries), timestamps each row on the
-sensor's clock (:class:`~ahrs_service.drivers.fifo.SensorClock`), and hands the rows out
+sensor's clock (:class:`~ahrs_service.sample_clock.SensorClock`), and hands the rows out
 as a :class:`~ahrs_service.drivers.base.SampleBlock` (``read_block``) or one
 :class:`~ahrs_service.drivers.base.ImuSample` per row (``read``, ``may_have_backlog``).
 
@@ -29,10 +29,11 @@ from ahrs_service.drivers.base import (
     LossCounts,
     SampleBlock,
 )
-from ahrs_service.drivers.fifo import FifoTimeline, SensorClock, burst_flags, hold_pairing, latch_bounds
+from ahrs_service.drivers.fifo import FifoTimeline, burst_flags, hold_pairing, latch_bounds
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, watermark_frames
 from ahrs_service.drivers.imu import icm42688p
 from ahrs_service.drivers.transport import RegisterTransport, check_bus_rate
+from ahrs_service.sample_clock import SensorClock
 
 
 class FifoBoard(ImuSource):

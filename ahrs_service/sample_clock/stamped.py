@@ -1,4 +1,4 @@
-"""Sample-clock recovery: each sample's time on the sensor's steady clock, from host stamps.
+"""Sample times from host stamps that jitter, come in bursts and skip (no FIFO level to bound them).
 
 A sensor samples on its own oscillator: sample k is taken at ``t0 + k·T`` (T drifts slowly
 with temperature). The host only sees when a sample (or a FIFO block of them) *arrived*:
@@ -34,6 +34,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from ahrs_service.sample_clock.model import whole_periods
 
 
 @dataclass(frozen=True)
@@ -245,7 +247,7 @@ class _Recovery:
         self.pending.append((self.k, y, e))
         if len(self.pending) < self.confirm:
             return 0.0
-        m = int(round(float(np.median([p[2] for p in self.pending])) / period))
+        m = whole_periods(float(np.median([p[2] for p in self.pending])), period)
         if m != 0:
             # the held stamps came after the gap: their indices move on by m
             self.pending = [(x + m, yy, ee) for x, yy, ee in self.pending]
