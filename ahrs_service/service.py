@@ -157,6 +157,7 @@ class Service:
             self.scheduler = DataReadyScheduler(line, self.source.wakeup_rate_hz)
         else:
             self.scheduler = FixedRateScheduler(self.loop_rate_hz(cfg))
+        self._ticks_missed_counted = 0  # the scheduler's missed ticks already counted as lost
         self._use_source_calibration()
         self._open_log(cfg)
         self._open_mavlink(cfg)
@@ -440,6 +441,8 @@ class Service:
         schedule = LoopSchedule(self._periodic_jobs(), time.monotonic_ns())
         while not self._stop:
             now = self.scheduler.wait()
+            if self.source.skipped_ticks_lose_samples:
+                self._count_skipped_ticks()
             self._estimate(self.source.read_block(MAX_SAMPLES_PER_TICK if self.source.may_have_backlog else 1))
             # one attribute test per tick while no fit runs; done() takes a lock only during one
             if self._live_fit is not None and self._live_fit.done():
@@ -458,6 +461,16 @@ class Service:
             if getattr(self.source, "finished", False):
                 break
         return 0
+
+    def _count_skipped_ticks(self) -> None:
+        """A source polled once per tick without FIFO (``skipped_ticks_lose_samples``): the
+        ticks the scheduler skipped (an overrun, a host stall) are samples its part
+        overwrote unread, counted in ``lost.host_stall`` so that the summary, /loop,
+        SYS_STATUS and ``log info`` report them as lost samples, not only as overruns."""
+        missed = self.scheduler.missed_ticks
+        if missed > self._ticks_missed_counted:
+            self.source.diagnostics.lost.host_stall += missed - self._ticks_missed_counted
+        self._ticks_missed_counted = missed
 
     def _periodic_jobs(self) -> list[PeriodicJob]:
         """The loop's timers: what runs when, in this order within a tick (0 ns: off)."""

@@ -287,6 +287,11 @@ class ImuSource(abc.ABC):
     #: bursts per second a source that reads blocks (a FIFO) is drained at: the service's
     #: loop wakes at this rate (Hz); None: one sample per tick at the estimation rate
     wakeup_rate_hz: float | None = None
+    #: whether each tick the loop skips loses a sample: a part without FIFO polled once per
+    #: tick keeps only its newest sample in its data registers, so the samples of a host
+    #: stall are overwritten unread; the service counts the skipped ticks in
+    #: ``diagnostics.lost.host_stall`` (loop periods: the estimation rate the part is read at)
+    skipped_ticks_lose_samples: bool = False
 
     def __init__(self) -> None:
         self.diagnostics = SourceDiagnostics()

@@ -114,3 +114,25 @@ def test_icm42688p_at_1khz_a_longer_stop_counts_what_the_part_turned_away(tmp_pa
     assert source["sim_fifo_dropped"] >= 500 - 102 - 10
     assert abs(_periods(log, ICM_PERIOD_NS) - (len(log) + lost["total"])) <= 2
     assert np.sum(np.diff(log.t_ns) > 2 * ICM_PERIOD_NS) >= 1
+
+
+# issue 18: a source without FIFO polled once per tick (the MPU-9250 with ``fifo = false``,
+# the default simulated IMU) loses the samples of a stall: counted as lost (host_stall),
+# not only as overruns
+MPU9250_POLLED = ('type = "simulated_i2c"\nboard = "mpu9250"\n'
+                  'board_options = { rate_hz = 200, fifo = false }\n')
+SIMULATED = 'type = "simulated"\n'
+
+
+@pytest.mark.parametrize("source, port", [(MPU9250_POLLED, 14985), (SIMULATED, 14986)], ids=["mpu9250-polled", "simulated"])
+def test_a_stall_of_a_polled_source_counts_its_lost_samples(tmp_path, source, port):
+    log, diag = _run_with_stall(tmp_path, port, 0.5, source)
+    lost = diag["lost"]
+    assert lost["total"] == lost["host_stall"]
+    # stopped 0.5 s at 200 Hz: about 100 − 1 periods went unread (more on a loaded host; the
+    # loop's grid and the stop's edges cost a period or two)
+    assert lost["host_stall"] >= 97
+    # logged + counted = every loop period the log spans (read times: ±1 period at each end,
+    # and a polled read time jitters by up to a period)
+    assert abs(_periods(log, 5e6) - (len(log) + lost["total"])) <= 3
+    assert np.sum(np.diff(log.t_ns) > 50e6) >= 1  # the gap is a long dt in the log

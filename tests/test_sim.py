@@ -351,6 +351,7 @@ def test_source_never_delivers_twice():
     clock.advance(0.055)  # late: samples at 20…60 ms due, only the newest is delivered
     s = src.read()
     assert s.t_ns == 60_000_000 and src.diagnostics.dropped_frames == 4
+    assert src.diagnostics.lost.host_stall == 4  # lost to the late read, counted by cause
     assert src.read() is None
     assert src.diagnostics.samples == 3
 

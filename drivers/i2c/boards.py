@@ -75,6 +75,8 @@ class I2CBoard(ImuSource):
     NAME = ""
     #: part → part it needs (reconfigured first, lost with it)
     DEPENDS: dict[str, str] = {}
+    #: polled once per tick, the newest sample of each part's data registers
+    skipped_ticks_lose_samples = True
 
     def __init__(self, bus: I2CBus, *, retries: int = 2, reinit_period_s: float = 0.05,
                  own_bus: bool = False, i2c_speed_hz: float = 400_000) -> None:
@@ -258,6 +260,7 @@ class I2CFifoBoard(I2CBoard):
             raise ValueError(f"{self.NAME} fifo_read_hz must be > 0 Hz, got {fifo_read_hz!r}")
         self.fifo = bool(fifo)
         self.may_have_backlog = self.fifo
+        self.skipped_ticks_lose_samples = not self.fifo  # a FIFO keeps them (or counts them)
         self.times_on_sensor_clock = self.fifo  # FIFO rows timed on the part's own clock
         self.fifo_read_hz = float(fifo_read_hz)
         #: bursts per second (the service's loop may wake at this rate), None when polled

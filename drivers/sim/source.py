@@ -2,8 +2,9 @@
 
 Samples fall on a fixed grid t_k = k / rate_hz of the simulation clock. ``read`` returns the
 newest grid sample not delivered yet, or None when the clock has not reached a new one, so
-no sample is ever handed out twice; samples skipped because ``read`` came late are counted
-in ``diagnostics.dropped_frames``.
+no sample is ever handed out twice; samples skipped because ``read`` came late (a host
+stall: the simulated part, like a real one without FIFO, keeps only its newest sample) are
+counted as lost in ``diagnostics.lost.host_stall`` (and in ``diagnostics.dropped_frames``).
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ class SimulatedSource(ImuSource):
             raise ValueError(f"mag_rate_hz must be 0 … rate_hz ({rate_hz}), got {mag_rate_hz!r}")
         self.has_mag = self.mag_every > 0
         self._next = 0  # index of the first grid sample not delivered yet
+        self._delivered = False  # a sample has been read: later skips are losses
         self._mag: np.ndarray | None = None
         self._mag_saturated = False
         self._open = False
@@ -82,7 +84,10 @@ class SimulatedSource(ImuSource):
             k = min(k, math.floor(tr.duration * self.rate_hz + 1e-9))
         if k < self._next:
             return None
-        self.diagnostics.dropped_frames += k - self._next
+        if self._delivered:  # what the part made before the first read was never due
+            self.diagnostics.dropped_frames += k - self._next
+            self.diagnostics.lost.host_stall += k - self._next
+        self._delivered = True
         self._next = k + 1
         return self._sample(k)
 
