@@ -78,6 +78,9 @@ class FixedRateScheduler:
         self._period = np.zeros(_WINDOW)
         self._busy = np.zeros(_WINDOW)
         self._wake = 0  # the last wake-up, ns
+        #: when the loop wakes next (monotonic ns), None before the first tick: other threads
+        #: read it to leave the interpreter free then (the log writer, ``logs/writer.py``)
+        self.next_wake_ns: int | None = None
 
     def set_rate(self, rate_hz: float) -> None:
         """Changes the rate; the new schedule starts at the next tick."""
@@ -115,6 +118,7 @@ class FixedRateScheduler:
         self._wake = now
         self.ticks += 1
         self._k += 1
+        self.next_wake_ns = self._start + self._k * self.period_ns
         return now
 
     def done(self) -> None:
@@ -161,6 +165,7 @@ class DataReadyScheduler(FixedRateScheduler):
         super().__init__(rate_hz)
         self.line = line
         self.timeout_periods = float(timeout_periods)
+        # next_wake_ns stays None: the line's edge, not a timetable, wakes this loop
 
     def wait(self) -> int:
         self.line.wait(self.timeout_periods / self.rate_hz)

@@ -303,6 +303,7 @@ class Service:
             rotate_bytes=int(mb * 1e6) if mb else None,
             rotate_seconds=minutes * 60 if minutes else None,
             first_sample_index=self.pipeline.samples,
+            loop=self.scheduler,  # the writer leaves the interpreter free at the loop's wake-ups
         )
         self.log_writer.write_config(time.monotonic_ns(), self.effective_config())
 

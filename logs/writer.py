@@ -52,7 +52,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Protocol
 
 import numpy as np
 
@@ -245,6 +245,18 @@ class _Rotation(enum.IntEnum):
 
 
 _IDLE_WAIT_S = 0.2  # longest sleep of an idle writer thread, s
+#: how long after the loop's wake-up the writer thread stays asleep, ns: time for the loop's
+#: thread to take the interpreter
+_AFTER_WAKE_NS = 50_000
+
+
+class LoopWakeups(Protocol):
+    """What the writer reads of the service loop's scheduler (``scheduler.FixedRateScheduler``)."""
+
+    #: the loop's next wake-up, monotonic ns; None when not known ahead (a data-ready line)
+    next_wake_ns: int | None
+    #: the loop's period, ns
+    period_ns: int
 
 
 def _tolist(x: Any) -> list[float]:
@@ -281,6 +293,11 @@ class FlightLogWriter:
     first_sample_index: number given to the first ``write_raw`` sample (the /imu/raw
         ``index`` that /params ``sample_index`` refers to): pass the estimator's sample count
         when a writer is (re)opened mid-run.
+    loop: the service loop's scheduler. The writer thread then does not start a record it
+        cannot finish (by its recent records' durations) before the loop's next wake-up, and
+        sleeps until just after it: one interpreter runs both threads, and a wake-up that
+        has to wait for the writer to give up the interpreter is late by up to the
+        interpreter's switch interval and more (the loop's wake-up jitter).
 
     The ``write_*`` methods never raise because of the disk and never block; see ``status``,
     ``last_error``, ``dropped`` and :meth:`stats`.
@@ -303,6 +320,7 @@ class FlightLogWriter:
         retry_max_s: float = 30.0,
         fsync: bool = True,
         first_sample_index: int = 0,
+        loop: LoopWakeups | None = None,
     ) -> None:
         self.directory = Path(directory)
         self.prefix = prefix
@@ -358,6 +376,9 @@ class FlightLogWriter:
         self._rotation = _Rotation.IDLE
         self._rotation_lock = threading.Lock()
         self._rotation_since = 0.0
+        self._loop = loop
+        #: a record's handling time, ns: the recent largest, decaying by 1/16 a record
+        self._record_ns = 0.0
         self._thread = threading.Thread(target=self._run, name="flight-log-writer", daemon=True)
         self._thread.start()
         atexit.register(self.close)
@@ -622,14 +643,21 @@ class FlightLogWriter:
         q = self._q
         while True:
             if q:
+                if self._loop is not None:
+                    pause = self._pause_for_the_loop(time.monotonic_ns())
+                    if pause:
+                        time.sleep(pause)
                 item = q.popleft()
                 if type(item) is _Close:
                     break
+                started = time.monotonic_ns()
                 try:
                     self._handle(item)
                 except Exception as exc:  # noqa: BLE001 - a bad message must not end the recording
                     self._dropped_io += 1
                     self._fail(exc) if isinstance(exc, OSError) else self._note(exc)
+                took = time.monotonic_ns() - started
+                self._record_ns = max(float(took), self._record_ns * (15 / 16))
             else:
                 self._wake.wait(self._idle_wait_s)
                 self._wake.clear()
@@ -639,6 +667,19 @@ class FlightLogWriter:
                 self._last_flush = now
                 self._flush()
         self._finish()
+
+    def _pause_for_the_loop(self, now_ns: int) -> float:
+        """How long (s) the writer thread sleeps before its next record at ``now_ns``: past
+        the loop's next wake-up when the record might not be done by then (twice the recent
+        records' duration), else 0. At most half the loop's period is given up, so the
+        writer keeps up."""
+        wake = self._loop.next_wake_ns
+        if wake is None:
+            return 0.0
+        ahead = wake - now_ns
+        if 0 < ahead < min(2.0 * self._record_ns + _AFTER_WAKE_NS, 0.5 * self._loop.period_ns):
+            return (ahead + _AFTER_WAKE_NS) * 1e-9
+        return 0.0
 
     def _flush(self) -> None:
         f = self._file

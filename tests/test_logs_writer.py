@@ -598,3 +598,54 @@ def test_a_write_that_drops_the_file_loses_the_rest_of_its_record_counted(tmp_pa
     # the sample the given-up file held, and /tf and /monitor of the record (the write that
     # raised inside the file layer is not counted: it never reached the file's counters)
     assert w.dropped == 1 + 2 and w.samples_not_logged == 1
+
+
+class _Loop:
+    """A service loop's scheduler as the writer sees it: its next wake-up and period."""
+
+    def __init__(self, next_wake_ns, period_ns):
+        self.next_wake_ns, self.period_ns = next_wake_ns, period_ns
+
+
+def test_the_writer_thread_leaves_the_loops_wake_up_free(tmp_path):
+    # the writer does not start a record it may not finish before the loop wakes: it sleeps
+    # until just after the wake-up, so the loop's thread finds the interpreter free
+    loop = _Loop(None, 1_000_000)
+    w = FlightLogWriter(tmp_path, fsync=False, loop=loop)
+    try:
+        w._record_ns = 100_000.0  # recent records took 100 µs
+        now = 5_000_000_000
+        assert w._pause_for_the_loop(now) == 0.0  # wake-up unknown (a data-ready line)
+        loop.next_wake_ns = now + 200_000  # wakes in 200 µs: 2 × 100 µs + 50 µs would not fit
+        assert w._pause_for_the_loop(now) == pytest.approx(250e-6)
+        loop.next_wake_ns = now + 300_000  # 300 µs is room enough
+        assert w._pause_for_the_loop(now) == 0.0
+        loop.next_wake_ns = now - 10_000  # the loop is late already: nothing to keep free
+        assert w._pause_for_the_loop(now) == 0.0
+        w._record_ns = 5_000_000.0  # records slower than the period: never more than half of it
+        loop.next_wake_ns = now + 600_000
+        assert w._pause_for_the_loop(now) == 0.0
+        loop.next_wake_ns = now + 400_000
+        assert w._pause_for_the_loop(now) == pytest.approx(450e-6)
+    finally:
+        w.close()
+
+
+def test_a_paced_writer_records_every_sample_beside_a_running_scheduler(tmp_path):
+    from ahrs_service.scheduler import FixedRateScheduler
+
+    sched = FixedRateScheduler(1000.0)
+    w = FlightLogWriter(tmp_path, fsync=False, loop=sched)
+    n = 0
+    for _ in range(300):  # 0.3 s of a 1 kHz loop, a block of 8 rows a tick
+        woke = sched.wait()
+        # what the writer reads: the next deadline, at most a period after this wake-up
+        assert sched.next_wake_ns - woke <= sched.period_ns
+        rows = _rows(8)
+        t = np.arange(n, n + 8, dtype=np.int64) * 125_000 + 1_000_000_000
+        w.write_block(t, rows, np.full(8, GYR_VALID | ACC_VALID), q=np.tile([1.0, 0, 0, 0], (8, 1)), estimator="m")
+        n += 8
+        sched.done()
+    w.close()
+    log = read_log(w.files[0])
+    assert len(log) == n and w.dropped == 0
