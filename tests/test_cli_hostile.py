@@ -55,3 +55,21 @@ def test_one_line_naming_the_problem_and_nothing_written(tmp_path, capsys, log_p
     assert rc == 2 and "\n" not in err and "Traceback" not in err, err
     assert expected.format(**fill) in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]  # no empty output left
+
+
+def test_no_writable_numba_cache_is_one_line_not_a_traceback():
+    """Issue 14 re-probe: as a user who cannot write __pycache__ beside the package (and without
+    NUMBA_CACHE_DIR), every command, `config --check` included, ended in numba's RuntimeError
+    traceback ("cannot cache function 'quat_mul': no locator available") at import. Here numba
+    is left with no cache locator at all, in a fresh interpreter (the kernels are decorated on
+    import)."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nimport numba.core.caching as c\nc.CacheImpl._locator_classes = []\n"
+            "from ahrs_service.cli import main\nsys.exit(main(['config', '--print-default']))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    err = proc.stderr.strip()
+    assert "Traceback" not in err and "\n" not in err
+    assert err.startswith("ahrs-service: cannot cache the estimator kernels") and "NUMBA_CACHE_DIR" in err
