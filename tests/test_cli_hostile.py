@@ -73,3 +73,26 @@ def test_no_writable_numba_cache_is_one_line_not_a_traceback():
     err = proc.stderr.strip()
     assert "Traceback" not in err and "\n" not in err
     assert err.startswith("ahrs-service: cannot cache the estimator kernels") and "NUMBA_CACHE_DIR" in err
+
+
+@pytest.mark.parametrize("duration", ["nan", "inf", "1e308", "-1", "0"])
+def test_run_duration_that_is_no_time_span_is_refused_before_anything_starts(tmp_path, capsys, duration):
+    """Issue 14 re-probe: `run --duration inf` (or 1e308) ended in an OverflowError traceback
+    (exit 1), `nan` started the service, wrote a log and then failed, 0 and -1 ran for no time
+    and exited 0."""
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "--log-dir", str(tmp_path / "logs"), "--duration", duration])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"ahrs-service run: error: argument --duration: '{duration}': accepted: a number of seconds above 0")
+    assert not any("Traceback" in line for line in err)
+    assert not (tmp_path / "logs").exists()  # nothing started
+
+
+def test_run_log_dir_empty_is_refused_not_ignored(tmp_path, capsys, monkeypatch):
+    """`run --log-dir ""` was ignored (the log went to log.directory); the override is now
+    checked as log.directory is."""
+    monkeypatch.chdir(tmp_path)
+    rc, err = _run(capsys, ["run", "--log-dir", "", "--duration", "0.1"])
+    assert rc == 2 and err == "ahrs-service: configuration error: log.directory: '' is empty; accepted: a folder path (e.g. \"flight-logs\")"
+    assert not (tmp_path / "flight-logs").exists()
