@@ -96,3 +96,10 @@ def test_run_log_dir_empty_is_refused_not_ignored(tmp_path, capsys, monkeypatch)
     rc, err = _run(capsys, ["run", "--log-dir", "", "--duration", "0.1"])
     assert rc == 2 and err == "ahrs-service: configuration error: log.directory: '' is empty; accepted: a folder path (e.g. \"flight-logs\")"
     assert not (tmp_path / "flight-logs").exists()
+
+
+def test_calibrate_on_a_directory_says_it_is_a_directory(tmp_path, capsys):
+    """`ahrs-service calibrate gyro /tmp` said "/tmp: no such file" (it exists)."""
+    assert main(["calibrate", "gyro", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"error: {tmp_path}: is a directory, not a file"
