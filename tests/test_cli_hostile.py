@@ -103,3 +103,18 @@ def test_calibrate_on_a_directory_says_it_is_a_directory(tmp_path, capsys):
     assert main(["calibrate", "gyro", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"error: {tmp_path}: is a directory, not a file"
+
+
+def test_run_of_a_recorded_log_without_samples_says_so(tmp_path, capsys):
+    """Issue 14 re-probe: source.type = "recorded" on a log cut after its first bytes started,
+    stopped at once and exited 0 ("samples 0"), not saying that there was nothing to play."""
+    empty = tmp_path / "cut.mcap"
+    empty.write_bytes(b"\x89MCAP0\r\n\x01\x02\x03")
+    cfg = tmp_path / "ahrs.toml"
+    cfg.write_text(f'[source]\ntype = "recorded"\nrecorded_path = "{empty}"\n'
+                   '[mavlink]\nendpoints = ["udpout:127.0.0.1:15599"]\n')
+    rc, err = _run(capsys, ["run", "-c", str(cfg), "--log-dir", str(tmp_path / "logs"), "--duration", "1"])
+    assert rc == 1
+    assert err.startswith(f"ahrs-service: cannot start: recorded log {empty}: no samples to play (damaged at byte")
+    assert "\n" not in err and "Traceback" not in err
+    assert not list(tmp_path.glob("logs/*.mcap"))  # no flight log opened for a run that never started
