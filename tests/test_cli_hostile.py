@@ -118,3 +118,14 @@ def test_run_of_a_recorded_log_without_samples_says_so(tmp_path, capsys):
     assert err.startswith(f"ahrs-service: cannot start: recorded log {empty}: no samples to play (damaged at byte")
     assert "\n" not in err and "Traceback" not in err
     assert not list(tmp_path.glob("logs/*.mcap"))  # no flight log opened for a run that never started
+
+
+def test_log_recover_of_a_log_without_one_complete_message_writes_nothing(tmp_path, capsys, log_path):
+    """Issue 14 re-probe: a log cut 40 bytes in gave "recovered 0 messages into
+    cut.recovered.mcap", exit 0, and left that empty file."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(log_path.read_bytes()[:40])
+    rc, err = _run(capsys, ["log", "recover", str(cut)])
+    assert rc == 2
+    assert err.startswith(f"ahrs-service log: error: {cut}: no complete message (damaged at byte") and err.endswith(": nothing to recover")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.mcap"]
