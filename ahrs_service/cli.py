@@ -84,10 +84,17 @@ def missing_extra(exc: ModuleNotFoundError) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     """Runs one subcommand. A path that cannot be opened (missing, a directory where a file is
-    expected, no permission), a missing extra, or an execution layer that cannot start (a
-    Dask scheduler out of reach, a bad ``--workers``) ends any command with one line, exit
-    status 2."""
-    args = build_parser().parse_args(argv)
+    expected, no permission), a missing extra, an execution layer that cannot start (a
+    Dask scheduler out of reach, a bad ``--workers``) or no folder numba can cache the kernels
+    in ends any command with one line, exit status 2."""
+    try:
+        parser = build_parser()  # imports the command modules, whose numba kernels set up their cache
+    except RuntimeError as exc:
+        if not str(exc).startswith("cannot cache function"):
+            raise
+        print(f"ahrs-service: {numba_cache_error(exc)}", file=sys.stderr)
+        return 2
+    args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except ModuleNotFoundError as exc:
@@ -106,10 +113,28 @@ def main(argv: list[str] | None = None) -> int:
     except RunnerError as exc:
         print(f"ahrs-service {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except RuntimeError as exc:  # a kernel module imported only by this command (lazy_command)
+        if not str(exc).startswith("cannot cache function"):
+            raise
+        print(f"ahrs-service: {numba_cache_error(exc)}", file=sys.stderr)
+        return 2
     except ValueError as exc:  # bad input a command found (an unknown estimator, a bad value)
         text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"ahrs-service {args.command}: error: {text}", file=sys.stderr)
         return 2
+
+
+def numba_cache_error(exc: RuntimeError) -> str:
+    """One line for numba's "cannot cache function ...: no locator available": no folder numba
+    may cache the estimator kernels in is writable for this user (``__pycache__`` beside the
+    installed sources, ``$NUMBA_CACHE_DIR``, numba's per-user cache folder)."""
+    import os
+
+    where = os.environ.get("NUMBA_CACHE_DIR")
+    tried = f"NUMBA_CACHE_DIR={where}" if where else "NUMBA_CACHE_DIR is not set"
+    return (f"cannot cache the estimator kernels: no writable cache folder for this user "
+            f"({tried}; __pycache__ beside the installed package is not writable); set "
+            f"NUMBA_CACHE_DIR to a folder this user can write (docs/systemd.md)")
 
 
 def path_error(exc: OSError) -> str:

@@ -181,12 +181,25 @@ def _endpoints(key: str, v: Any) -> list[str]:
     if not v:
         raise ConfigError(f"{key}: [] is empty; accepted: a non-empty list of {_ENDPOINT_HELP}")
     out = [_endpoint(f"{key}[{i}]", x) for i, x in enumerate(v)]
-    seen: set[str] = set()
+    seen: dict[Any, str] = {}
     for x in out:
-        if x in seen:
+        if x in seen.values():
             raise ConfigError(f"{key}: {x!r} is listed twice; accepted: distinct endpoints")
-        seen.add(x)
+        port = _listening_port(x)
+        if port is not None and port in seen:
+            raise ConfigError(f"{key}: {x!r} listens on the same port as {seen[port]!r}; accepted: "
+                              f"one listening endpoint per port")
+        seen[port if port is not None else x] = x
     return out
+
+
+def _listening_port(endpoint: str) -> tuple[str, int] | None:
+    """("udp", PORT) or ("tcp", PORT) for an endpoint that binds a local port (``udpin``, and
+    ``udp``, which mavutil opens as udpin; ``tcpin``), whatever its host: two of them on one port
+    share it with SO_REUSEADDR, and each gets part of the datagrams."""
+    scheme, _, rest = endpoint.partition(":")
+    proto = {"udpin": "udp", "udp": "udp", "tcpin": "tcp"}.get(scheme)
+    return None if proto is None else (proto, int(rest.rpartition(":")[2]))
 
 
 def _check_keys(prefix: str, keys: dict[str, tuple[Any, Checker]], given: dict[str, Any], out: dict[str, Any]) -> None:
@@ -524,8 +537,101 @@ def _check_source(section: dict[str, Any]) -> None:
             parse_raw_scale(section["mavlink_raw_scale"])
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
-    if section["type"] == "recorded" and not section["recorded_path"]:
-        raise ConfigError("source.recorded_path: required when source.type = 'recorded' (an .mcap log or a BROAD .hdf5 file)")
+    if section["type"] == "recorded":
+        _check_recorded_path(section["recorded_path"])
+    if section["type"] in ("can", "simulated_can"):
+        _check_can_interface(section["can_interface"])
+
+
+#: the first bytes of an MCAP file (logs/recover.py's MAGIC) and of an HDF5 file at offset 0
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+_RECORDED_HELP = "accepted: an .mcap flight log or a BROAD .hdf5 file"
+
+
+def _check_recorded_path(path: str) -> None:
+    """``source.recorded_path`` for ``source.type = "recorded"``: a readable regular file that
+    starts like the format its suffix names (MCAP magic; HDF5 signature for .hdf5/.h5), so a
+    directory or a file that is no log is refused here, not at start or by a run that plays
+    nothing and exits 0."""
+    key = "source.recorded_path"
+    if not path:
+        raise ConfigError(f"{key}: required when source.type = 'recorded'; {_RECORDED_HELP}")
+    p = Path(path)
+    hdf5 = p.suffix.lower() in (".hdf5", ".h5")
+    try:
+        with p.open("rb") as f:
+            head = f.read(8)
+    except FileNotFoundError:
+        raise ConfigError(f"{key}: {path!r} does not exist; {_RECORDED_HELP}") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{key}: {path!r} is a directory, not a file; {_RECORDED_HELP}") from None
+    except PermissionError:
+        raise ConfigError(f"{key}: {path!r}: permission denied (cannot read it); {_RECORDED_HELP}") from None
+    except OSError as exc:
+        raise ConfigError(f"{key}: {path!r}: cannot read it: {exc.strerror or exc}; {_RECORDED_HELP}") from None
+    if not p.is_file():
+        raise ConfigError(f"{key}: {path!r} is not a regular file; {_RECORDED_HELP}")
+    if hdf5 and not _has_hdf5_signature(p, head):
+        raise ConfigError(f"{key}: {path!r} is not an HDF5 file (no HDF5 signature); {_RECORDED_HELP}")
+    if not hdf5 and head != _MCAP_MAGIC:
+        raise ConfigError(f"{key}: {path!r} is not an MCAP log (bad magic); {_RECORDED_HELP}")
+
+
+def _has_hdf5_signature(path: Path, head: bytes) -> bool:
+    """The HDF5 signature at offset 0 (``head``) or after a user block (512, 1024, 2048 … bytes)."""
+    if head == _HDF5_MAGIC:
+        return True
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        offset = 512
+        while offset + 8 <= size:
+            f.seek(offset)
+            if f.read(8) == _HDF5_MAGIC:
+                return True
+            offset *= 2
+    return False
+
+
+def _check_can_interface(name: str) -> None:
+    """``source.can_interface``: one of python-can's interface names (what ``can.Bus`` opens)."""
+    from can.interfaces import VALID_INTERFACES
+
+    if name not in VALID_INTERFACES:
+        raise ConfigError(f"source.can_interface: {name!r} is not a python-can interface; accepted: "
+                          f"{', '.join(sorted(VALID_INTERFACES))}")
+
+
+def _option_kind(param: inspect.Parameter) -> str | None:
+    """"an integer" or "a number" for a board option whose signature says so (its annotation,
+    ``int | None`` included, else the type of its default); None for any other option."""
+    annotation = param.annotation
+    if isinstance(annotation, str):
+        annotation = annotation.replace(" ", "").removesuffix("|None").removeprefix("None|")
+    if annotation in (int, "int"):
+        return "an integer"
+    if annotation in (float, "float"):
+        return "a number"
+    default = param.default
+    if isinstance(default, (int, float)) and not isinstance(default, bool):
+        return "an integer" if isinstance(default, int) else "a number"
+    return None
+
+
+def _check_option_types(board: str, options: dict[str, Any], inits: tuple[Callable, ...]) -> None:
+    """Each option's type against the board constructors' signatures (``inits``, later ones
+    first): ``source.board_options.NAME: VALUE is not a number`` before any driver divides by it.
+    Unknown names are left to the board's own check, which lists the valid ones."""
+    params: dict[str, inspect.Parameter] = {}
+    for init in inits:
+        params.update(inspect.signature(init).parameters)
+    for name, value in options.items():
+        kind = _option_kind(params[name]) if name in params else None
+        if kind is None:
+            continue
+        integer = kind == "an integer"
+        if isinstance(value, bool) or not isinstance(value, int if integer else (int, float)):
+            raise ConfigError(f"source.board_options.{name}: {value!r} is not {kind} (board {board!r})")
 
 
 def _check_board_options(board: str, options: dict[str, Any], i2c_speed_hz: float = 400_000) -> None:
@@ -538,13 +644,7 @@ def _check_board_options(board: str, options: dict[str, Any], i2c_speed_hz: floa
         cls = board_class(board, options)
     except ValueError as exc:
         raise ConfigError(f"source.board_options: {exc}") from None
-    params = {**inspect.signature(I2CBoard.__init__).parameters, **inspect.signature(cls.__init__).parameters}
-    for name, value in options.items():
-        default = params[name].default
-        if isinstance(default, (int, float)) and not isinstance(default, bool):
-            want = "an integer" if params[name].annotation in (int, "int") else "a number"
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or (want == "an integer" and not isinstance(value, int)):
-                raise ConfigError(f"source.board_options.{name}: {value!r} is not {want} (board {board!r})")
+    _check_option_types(board, options, (I2CBoard.__init__, cls.__init__))
     try:
         cls(None, i2c_speed_hz=i2c_speed_hz, **options)  # type: ignore[arg-type]
     except (ValueError, TypeError, OverflowError) as exc:
@@ -564,6 +664,18 @@ def _check_fifo_board(section: dict[str, Any], bus: str) -> None:
         def physics(t: float) -> dict:
             return {"gyr": (0.0, 0.0, 0.0), "acc": (0.0, 0.0, 0.0), "mag": (0.0, 0.0, 0.0)}
 
+    from ahrs_service.drivers.boards import transport_board_class
+    from ahrs_service.drivers.imu.boards import FifoBoard
+
+    options = dict(section["board_options"])
+    try:
+        cls = transport_board_class(section["board"], options)
+    except ValueError as exc:
+        raise ConfigError(f"source.board_options: {exc}") from None
+    _check_option_types(section["board"], options, (FifoBoard.__init__, cls.__init__))
+    cs = options.get("gyro_spi_device")  # bmi088's second chip select: an integer, like spi_device
+    if cs is not None and (isinstance(cs, bool) or not isinstance(cs, int)):
+        raise ConfigError(f"source.board_options.gyro_spi_device: {cs!r} is not an integer (board {section['board']!r})")
     try:
         real = not section["type"].startswith("simulated")
         name = (f"/dev/spidev{section['spi_bus']}" if bus == "spi" else f"/dev/i2c-{section['i2c_bus']}")

@@ -317,7 +317,9 @@ class MavlinkBridge:
             time_usec=(est.t_ns - link.boot_ns) // 1000,
             attitude_fresh=fresh,
             gyro=SensorStatus(True, True, h.gyro_healthy and fresh),
-            accel=SensorStatus(True, True, h.accel_healthy),
+            # no new estimate for STALE_NS: nothing of the IMU arrives (an autopilot that stopped
+            # its IMU stream but beats on), the accelerometer no more than the gyroscope
+            accel=SensorStatus(True, True, h.accel_healthy and fresh),
             mag_status=SensorStatus(h.mag_present, est.mag_used, h.mag_healthy),
             estimator=link.estimator,
             # a stale estimate is an unhealthy AHRS, as ArduPilot's GCS::update_sensor_status_flags

@@ -10,10 +10,30 @@ import sys
 from ahrs_service import config as config_mod
 
 
+#: the longest ``run --duration``, s (ten years): beyond it the deadline in ns overflows
+MAX_DURATION_S = 10 * 365 * 86400.0
+
+
+def duration_s(text: str) -> float:
+    """``run --duration``: a finite number of seconds in (0, MAX_DURATION_S]. NaN started the
+    service and then failed ("cannot convert float NaN to integer"), inf and 1e308 ended in an
+    OverflowError traceback, 0 and negative values ran for no time and exited 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (0.0 < value <= MAX_DURATION_S):  # False for NaN too
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: accepted: a number of seconds above 0 and at most {MAX_DURATION_S:g} (ten years); "
+            f"leave --duration out to run until SIGTERM/SIGINT")
+    return value
+
+
 def add_subcommands(sub: argparse._SubParsersAction) -> None:
     run = sub.add_parser("run", help="run the service (embedded default: simulated GY-80, MAVLink UDP 127.0.0.1:14550)")
     run.add_argument("-c", "--config", help="TOML configuration file (default: the embedded default)")
-    run.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run until SIGTERM/SIGINT)")
+    run.add_argument("--duration", type=duration_s, default=None,
+                     help="stop after this many seconds, > 0 (default: run until SIGTERM/SIGINT)")
     run.add_argument("--log-dir", help="override log.directory")
     run.add_argument("--no-log", action="store_true", help="do not write an MCAP log")
     run.add_argument("--live", action="store_true", help="serve the Foxglove live view (sets live.enabled; extra 'live')")
@@ -91,7 +111,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     try:
         log_overrides: dict[str, object] = {}
-        if args.log_dir:
+        if args.log_dir is not None:  # "" too: log.directory's check refuses it rather than ignoring it
             log_overrides["directory"] = args.log_dir
         if args.no_log:
             log_overrides["enabled"] = False

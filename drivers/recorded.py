@@ -4,7 +4,8 @@ The samples are handed out as recorded (for a log: the calibrated body-frame val
 service fed its estimator; for BROAD: the sensor axes), with the recorded ground truth when
 there is one. ``realtime=True`` paces them on ``time.monotonic`` as they were recorded;
 ``realtime=False`` gives one sample per ``read`` call, as fast as the caller asks.
-``finished`` turns True after the last sample.
+``finished`` turns True after the last sample. A flight log without a single sample is a
+ValueError at ``open`` (naming the damage, if any): there is nothing to play.
 """
 
 from __future__ import annotations
@@ -76,6 +77,10 @@ class RecordedSource(ImuSource):
             from ahrs_service.logs.reader import read_log
 
             log = read_log(self.path)
+            if len(log.t_ns) == 0:
+                # a run that plays nothing would start, stop at once and exit 0 ("samples 0")
+                damage = f" ({log.damage})" if log.damage else ""
+                raise ValueError(f"recorded log {self.path}: no samples to play{damage}")
             self.rows, self.t_ns, self.truth, self.flags = log.rows, log.t_ns, log.truth, log.flags
             self.damage = log.damage
             self.calibrated = True

@@ -202,7 +202,8 @@ def recover(path: str | os.PathLike, out_path: str | os.PathLike | None = None) 
     Schemas, channels, metadata and attachments are kept; message bytes, log and publish times
     and sequence numbers are copied unchanged. The output (default ``NAME.recovered.mcap``
     beside the input) has a summary and chunk/message indexes, and a metadata record
-    "recovery" describing the damage.
+    "recovery" describing the damage. ValueError, and no output file, when there is nothing to
+    recover (no MCAP magic, or not one complete message).
     """
     src = Path(path)
     out = Path(out_path) if out_path is not None else default_output(src)
@@ -264,4 +265,8 @@ def recover(path: str | os.PathLike, out_path: str | os.PathLike | None = None) 
             },
         )
         w.finish()
+    if report.total_messages == 0:  # a "recovered" file with nothing in it is no recovery
+        out.unlink()
+        damage = f" ({report.damage})" if report.damage else ""
+        raise ValueError(f"{src}: no complete message{damage}: nothing to recover")
     return report

@@ -55,3 +55,77 @@ def test_one_line_naming_the_problem_and_nothing_written(tmp_path, capsys, log_p
     assert rc == 2 and "\n" not in err and "Traceback" not in err, err
     assert expected.format(**fill) in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]  # no empty output left
+
+
+def test_no_writable_numba_cache_is_one_line_not_a_traceback():
+    """Issue 14 re-probe: as a user who cannot write __pycache__ beside the package (and without
+    NUMBA_CACHE_DIR), every command, `config --check` included, ended in numba's RuntimeError
+    traceback ("cannot cache function 'quat_mul': no locator available") at import. Here numba
+    is left with no cache locator at all, in a fresh interpreter (the kernels are decorated on
+    import)."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nimport numba.core.caching as c\nc.CacheImpl._locator_classes = []\n"
+            "from ahrs_service.cli import main\nsys.exit(main(['config', '--print-default']))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    err = proc.stderr.strip()
+    assert "Traceback" not in err and "\n" not in err
+    assert err.startswith("ahrs-service: cannot cache the estimator kernels") and "NUMBA_CACHE_DIR" in err
+
+
+@pytest.mark.parametrize("duration", ["nan", "inf", "1e308", "-1", "0"])
+def test_run_duration_that_is_no_time_span_is_refused_before_anything_starts(tmp_path, capsys, duration):
+    """Issue 14 re-probe: `run --duration inf` (or 1e308) ended in an OverflowError traceback
+    (exit 1), `nan` started the service, wrote a log and then failed, 0 and -1 ran for no time
+    and exited 0."""
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "--log-dir", str(tmp_path / "logs"), "--duration", duration])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"ahrs-service run: error: argument --duration: '{duration}': accepted: a number of seconds above 0")
+    assert not any("Traceback" in line for line in err)
+    assert not (tmp_path / "logs").exists()  # nothing started
+
+
+def test_run_log_dir_empty_is_refused_not_ignored(tmp_path, capsys, monkeypatch):
+    """`run --log-dir ""` was ignored (the log went to log.directory); the override is now
+    checked as log.directory is."""
+    monkeypatch.chdir(tmp_path)
+    rc, err = _run(capsys, ["run", "--log-dir", "", "--duration", "0.1"])
+    assert rc == 2 and err == "ahrs-service: configuration error: log.directory: '' is empty; accepted: a folder path (e.g. \"flight-logs\")"
+    assert not (tmp_path / "flight-logs").exists()
+
+
+def test_calibrate_on_a_directory_says_it_is_a_directory(tmp_path, capsys):
+    """`ahrs-service calibrate gyro /tmp` said "/tmp: no such file" (it exists)."""
+    assert main(["calibrate", "gyro", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"error: {tmp_path}: is a directory, not a file"
+
+
+def test_run_of_a_recorded_log_without_samples_says_so(tmp_path, capsys):
+    """Issue 14 re-probe: source.type = "recorded" on a log cut after its first bytes started,
+    stopped at once and exited 0 ("samples 0"), not saying that there was nothing to play."""
+    empty = tmp_path / "cut.mcap"
+    empty.write_bytes(b"\x89MCAP0\r\n\x01\x02\x03")
+    cfg = tmp_path / "ahrs.toml"
+    cfg.write_text(f'[source]\ntype = "recorded"\nrecorded_path = "{empty}"\n'
+                   '[mavlink]\nendpoints = ["udpout:127.0.0.1:15599"]\n')
+    rc, err = _run(capsys, ["run", "-c", str(cfg), "--log-dir", str(tmp_path / "logs"), "--duration", "1"])
+    assert rc == 1
+    assert err.startswith(f"ahrs-service: cannot start: recorded log {empty}: no samples to play (damaged at byte")
+    assert "\n" not in err and "Traceback" not in err
+    assert not list(tmp_path.glob("logs/*.mcap"))  # no flight log opened for a run that never started
+
+
+def test_log_recover_of_a_log_without_one_complete_message_writes_nothing(tmp_path, capsys, log_path):
+    """Issue 14 re-probe: a log cut 40 bytes in gave "recovered 0 messages into
+    cut.recovered.mcap", exit 0, and left that empty file."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(log_path.read_bytes()[:40])
+    rc, err = _run(capsys, ["log", "recover", str(cut)])
+    assert rc == 2
+    assert err.startswith(f"ahrs-service log: error: {cut}: no complete message (damaged at byte") and err.endswith(": nothing to recover")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.mcap"]

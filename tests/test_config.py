@@ -173,3 +173,97 @@ def test_a_sub_table_s_keys_are_checked_like_a_section_s(value, key):
 def test_a_sub_table_fills_in_its_defaults():
     assert config_mod.validate({"mavlink": {"odometry": {"rate_hz": 30}}}).mavlink["odometry"] == {"rate_hz": 30.0, "rules": "px4"}
     assert config_mod.validate({}).mavlink["odometry"] == {"rate_hz": 0.0, "rules": "px4"}
+
+
+# --- re-probe of issue 14 (probe14): what `config --check` still passed and `run` refused -----
+
+
+def _check_and_run(path, capsys) -> list[tuple[int, str]]:
+    """``config --check`` then ``run`` of ``path``: (exit code, stderr) of each."""
+    out = []
+    for argv in (["config", "--check", str(path)], ["run", "-c", str(path), "--no-log", "--duration", "0.1"]):
+        rc = cli.main(argv)
+        out.append((rc, capsys.readouterr().err))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["directory", "not_a_log", "not_hdf5"])
+def test_a_recorded_path_that_is_no_log_is_refused_by_check_and_run_naming_the_key(tmp_path, capsys, kind):
+    """A directory was passed by `config --check` and `run` said only "cannot start: [Errno 21]
+    Is a directory" (exit 1); a file that is no MCAP log was passed by both, and `run` played
+    nothing and exited 0 ("samples 0")."""
+    if kind == "directory":
+        recorded = tmp_path / "flights"
+        recorded.mkdir()
+        want = "is a directory"
+    elif kind == "not_a_log":
+        recorded = tmp_path / "notes.mcap"
+        recorded.write_text("not a flight log\n")
+        want = "not an MCAP log"
+    else:
+        recorded = tmp_path / "trial.hdf5"
+        recorded.write_bytes(b"\x89MCAP0\r\n" + bytes(600))
+        want = "not an HDF5 file"
+    path = tmp_path / "ahrs.toml"
+    path.write_text(f'[source]\ntype = "recorded"\nrecorded_path = "{recorded}"\n'
+                    '[mavlink]\nendpoints = ["udpout:127.0.0.1:15599"]\n')
+    for rc, err in _check_and_run(path, capsys):
+        assert rc == 2, err
+        assert err.count("\n") == 1 and "Traceback" not in err
+        assert "source.recorded_path" in err and want in err and str(recorded) in err
+
+
+def test_an_mcap_log_and_a_broad_file_pass_as_recorded_path(tmp_path):
+    mcap = tmp_path / "flight.mcap"
+    mcap.write_bytes(b"\x89MCAP0\r\n")  # truncated after the magic: the reader reports the damage
+    cfg = config_mod.validate({"source": {"type": "recorded", "recorded_path": str(mcap)}})
+    assert cfg.source["recorded_path"] == str(mcap)
+    h5 = tmp_path / "trial.h5"
+    h5.write_bytes(bytes(512) + b"\x89HDF\r\n\x1a\n" + bytes(64))  # after a 512-byte user block
+    assert config_mod.validate({"source": {"type": "recorded", "recorded_path": str(h5)}}).source["recorded_path"] == str(h5)
+
+
+@pytest.mark.parametrize("kind", ["can", "simulated_can"])
+def test_an_unknown_can_interface_is_refused_by_check_and_run_naming_the_key(tmp_path, capsys, kind):
+    """`config --check` passed can_interface = "x"; `run` said "cannot start: cannot open CAN bus
+    interface='x' …: Unknown interface type" (exit 1, no key)."""
+    path = tmp_path / "ahrs.toml"
+    path.write_text(f'[source]\ntype = "{kind}"\ncan_interface = "x"\n'
+                    '[mavlink]\nendpoints = ["udpout:127.0.0.1:15599"]\n')
+    for rc, err in _check_and_run(path, capsys):
+        assert rc == 2, err
+        assert err.count("\n") == 1 and "Traceback" not in err
+        assert "source.can_interface: 'x'" in err and "socketcan" in err
+
+
+@pytest.mark.parametrize("board,options,key", [
+    ("icm42688p", {"odr_hz": "x"}, "source.board_options.odr_hz"),
+    ("icm42688p", {"watermark": 1.5}, "source.board_options.watermark"),
+    ("icm42688p", {"fifo_read_hz": [100]}, "source.board_options.fifo_read_hz"),
+    ("icm20948", {"gyro_range_dps": "2000"}, "source.board_options.gyro_range_dps"),
+    ("bmi088", {"acc_odr_hz": {"a": 1}}, "source.board_options.acc_odr_hz"),
+    ("bmi088", {"gyro_spi_device": "1"}, "source.board_options.gyro_spi_device"),
+    ("icm42688p", {"retries": True}, "source.board_options.retries"),
+])
+def test_fifo_board_options_of_the_wrong_type_name_the_option(board, options, key):
+    """A FIFO board's option of the wrong type gave "source.board_options: unsupported operand
+    type(s) for /: 'str' and 'int'" (Python's words, no option named)."""
+    with pytest.raises(config_mod.ConfigError) as exc:
+        config_mod.validate({"source": {"type": "simulated_spi", "board": board, "board_options": options}})
+    msg = str(exc.value)
+    assert msg.startswith(key) and "is not" in msg and "\n" not in msg, msg
+
+
+@pytest.mark.parametrize("endpoints", [
+    ["udpin:127.0.0.1:14551", "udp:127.0.0.1:14551"],  # mavutil opens udp: as udpin
+    ["udpin:0.0.0.0:14551", "udpin:127.0.0.1:14551"],
+    ["tcpin:127.0.0.1:5760", "tcpin:0.0.0.0:5760"],
+])
+def test_two_listening_endpoints_on_one_port_are_refused(endpoints):
+    """Two links bound to one port (SO_REUSEADDR) each get part of the datagrams; only the same
+    string twice was refused."""
+    with pytest.raises(config_mod.ConfigError, match=r"^mavlink\.endpoints: .* listens on the same port as"):
+        config_mod.validate({"mavlink": {"endpoints": endpoints}})
+    # one listener and one sender on a port, or UDP and TCP on the same number, are fine
+    config_mod.validate({"mavlink": {"endpoints": ["udpin:127.0.0.1:14551", "udpout:127.0.0.1:14551",
+                                                   "tcpin:127.0.0.1:14551"]}})

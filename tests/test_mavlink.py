@@ -961,6 +961,47 @@ def test_udpin_peers_are_well_formed_senders_capped_and_expired(params, monkeypa
         c.close()
 
 
+def test_udpin_peers_a_flood_of_new_addresses_does_not_push_out_a_live_ground_station():
+    """Issue 14 re-probe: with the cap replacing the least recently heard peer, 60 addresses
+    sending in rounds starved a ground station beating at 1 Hz (2 of ~150 ATTITUDE reached it
+    in 3 s). A newcomer now replaces a one-frame peer or one silent PEER_STALE_S, else it is
+    not served (fake clock)."""
+    from ahrs_service.protocols.mavlink import endpoints as ep_mod
+
+    peers = ep_mod.UdpPeers()
+    gcs, t = ("127.0.0.1", 14550), 10**12
+    peers.heard(gcs, t)
+    flood = [("127.0.0.1", 20000 + i) for i in range(60)]
+    served = 0
+    for step in range(1000):  # 10 s in 10 ms steps; each step every flooding address sends once
+        t += 10_000_000
+        if step % 100 == 0:
+            peers.heard(gcs, t)
+        for addr in flood:
+            peers.heard(addr, t)
+        live = peers.live(t)
+        assert len(live) <= ep_mod.MAX_PEERS
+        served += gcs in live
+    assert served == 1000
+    assert peers.evicted > 50_000  # the flood churns the other slots among itself
+    # addresses that keep sending hold the slots they have; a newcomer is then not served
+    held = ep_mod.UdpPeers(max_peers=2)
+    held.heard(gcs, t), held.heard(flood[0], t), held.heard(gcs, t), held.heard(flood[0], t)
+    held.heard(flood[1], t + 1)
+    assert held.live(t + 1) == {gcs, flood[0]} and held.refused == 1
+    # the ground station goes quiet: after PEER_STALE_S its slot goes to a newcomer
+    t += int(ep_mod.PEER_STALE_S * 1e9)
+    for addr in flood:
+        peers.heard(addr, t)
+    assert gcs not in peers.live(t)
+    # one-frame senders are replaced at once: a new ground station gets in among them
+    peers = ep_mod.UdpPeers()
+    for i in range(3 * ep_mod.MAX_PEERS):
+        peers.heard(("127.0.0.1", 30000 + i), t)
+    peers.heard(gcs, t)
+    assert gcs in peers.live(t) and peers.refused == 0
+
+
 def _hostile_frames(rng: random.Random, n: int) -> list[bytes]:
     """Random bytes, truncated and bad-CRC frames, and valid frames with hostile contents
     (non-finite or out-of-range PARAM_SET values, unknown names, impossible intervals, NaN

@@ -131,3 +131,26 @@ def test_the_loop_schedule_runs_each_named_job_on_its_period():
     assert publish == [0, 5, 10, 23, 28, 33, 38]
     assert [t for name, t in runs if name == "housekeeping"] == [0]
     assert runs[0] == ("publish", 0) and runs[1] == ("housekeeping", 0)  # in the order given
+
+
+def test_without_new_estimates_the_accelerometer_is_unhealthy_like_the_gyroscope():
+    """Issue 14 re-probe: an autopilot (source.type = "mavlink") that stops its HIGHRES_IMU
+    stream and keeps beating gave SYS_STATUS gyro unhealthy but accelerometer healthy, though
+    neither arrived: both come in the same message. (A board that loses its gyroscope already
+    marked both, the service's health() counting it as an IMU loss.)"""
+    from ahrs_service.mavlink_bridge import STALE_NS
+
+    cfg = config_mod.validate({"mavlink": {"endpoints": ["udpout:127.0.0.1:15598"]}})
+    fake = FakeService()
+    bridge = MavlinkBridge(fake.link(), cfg, io_period_ns=5_000_000)
+    try:
+        fake.samples, now = 10, 10**12
+        t = bridge.telemetry(now, fake.latest())
+        assert t.gyro.healthy and t.accel.healthy and t.ahrs_healthy
+        t = bridge.telemetry(now + STALE_NS + 1, fake.latest())  # no sample estimated since
+        assert not t.gyro.healthy and not t.accel.healthy and not t.ahrs_healthy
+        fake.samples += 1  # the stream is back
+        t = bridge.telemetry(now + STALE_NS + 2, fake.latest())
+        assert t.gyro.healthy and t.accel.healthy and t.ahrs_healthy
+    finally:
+        bridge.close()

@@ -33,6 +33,37 @@ def test_stamps_in_another_unit_name_the_unit(scale, unit, factor):
         estimators.run("madgwick", gyr, acc, None, timestamps=t)
 
 
+@pytest.mark.parametrize(
+    "scale, unit, factor",
+    [(1e9, "nanoseconds", "1e+09"), (1e6, "microseconds", "1e+06"), (1e3, "milliseconds", "1000")],
+)
+def test_stamps_in_another_unit_read_in_bursts_name_the_unit(scale, unit, factor):
+    """Issue 14 re-probe: host stamps of FIFO reads (ten samples a read, one stamp each) in
+    nanoseconds ran without a word: nine steps in ten are 0, so the median step was 0."""
+    gyr, acc = still()
+    t = (np.arange(N) // 10) * (10 / RATE) * scale
+    with pytest.raises(ValueError, match=re.escape(f"look like {unit}, expected seconds (divide by {factor})")):
+        estimators.run("madgwick", gyr, acc, None, timestamps=t)
+
+
+@pytest.mark.parametrize("per_read", [2, 10, 40])
+def test_stamps_read_in_bursts_recover_positive_steps_without_a_nominal_rate(per_read):
+    """Issue 14 re-probe: bursts in seconds without rate_hz: the starting period was the 1 Hz
+    fallback (the median step is 0) and a quarter of the steps came out negative (to -1.2 s)."""
+    t = (np.arange(N) // per_read) * (per_read / RATE)
+    dt = time_steps(N, None, t)
+    assert np.all(dt > 0)
+    if per_read <= 10:  # 40 a read: ten reads in all, the causal fit is still settling
+        assert np.mean(dt) == pytest.approx(1 / RATE, rel=0.03)
+
+
+def test_stamps_that_are_all_equal_are_an_error():
+    """All stamps equal (a clock read once, a truncated cast) ran with made-up steps of ~0.5 s."""
+    gyr, acc = still()
+    with pytest.raises(ValueError, match=r"^timestamps: all 400 are equal \(12 s\): no time passes"):
+        estimators.run("madgwick", gyr, acc, None, timestamps=np.full(N, 12.0))
+
+
 def test_non_monotonic_stamps_are_an_error():
     gyr, acc = still()
     t = np.arange(N) / RATE

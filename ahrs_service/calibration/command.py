@@ -159,8 +159,12 @@ def load_mcap(path: Path) -> RawRecording:
 def load_input(path: str | Path) -> RawRecording:
     """An .npz or .mcap input (see the module docstring); InputError when unusable."""
     p = Path(path)
-    if not p.is_file():
+    if p.is_dir():
+        raise InputError(f"{p}: is a directory, not a file")
+    if not p.exists():
         raise InputError(f"{p}: no such file")
+    if not p.is_file():
+        raise InputError(f"{p}: not a regular file")
     suffix = p.suffix.lower()
     if suffix == ".npz":
         return load_npz(p)

@@ -249,8 +249,9 @@ MAX_STEP_S = 1.0
 def check_timestamps(t: np.ndarray, *, allow_equal: bool = False) -> None:
     """ValueError naming the problem when ``t`` (s) cannot be an IMU's sample times: NaN or
     infinite stamps, stamps that go backwards (or repeat, unless ``allow_equal``: a burst of
-    samples read at once, which clock recovery spreads out), or a median step over a second
-    (milliseconds, microseconds or nanoseconds given where seconds are expected)."""
+    samples read at once, which clock recovery spreads out, but not all of them), or a median
+    step between distinct stamps over a second (milliseconds, microseconds or nanoseconds given
+    where seconds are expected, bursts included)."""
     if t.size == 0:
         return
     bad = ~np.isfinite(t)
@@ -272,7 +273,15 @@ def check_timestamps(t: np.ndarray, *, allow_equal: bool = False) -> None:
             f"timestamps: not increasing at sample {i + 1} ({float(t[i]):.9g} s then {float(t[i + 1]):.9g} s), "
             f"{int(back.sum())} step(s) {what}; expected {order} sample times in seconds"
         )
-    median = float(np.median(steps))
+    # the unit from the steps between distinct stamps: with bursts (a FIFO read's samples share
+    # one host stamp) most steps are 0, and their median said nothing about the unit
+    moving = steps[steps > 0]
+    if moving.size == 0:
+        raise ValueError(
+            f"timestamps: all {t.size} are equal ({float(t[0]):.9g} s): no time passes; "
+            "expected sample times in seconds"
+        )
+    median = float(np.median(moving))
     if median > MAX_STEP_S:
         guess = "nanoseconds" if median > 1e5 else ("microseconds" if median > 100 else "milliseconds")
         raise ValueError(

@@ -400,6 +400,10 @@ def recover_times(t_s, nominal_rate_hz: float | None = None, **tuning: float) ->
         return t.copy()
     if nominal_rate_hz is None:
         step = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+        if step <= 0 and t.size > 1 and t[-1] > t[0]:
+            # bursts (several samples per stamp: most steps are 0): the mean step over the
+            # recording, not the 1 Hz fallback that sent the recovered times backwards by ~1 s
+            step = float(t[-1] - t[0]) / (t.size - 1)
         nominal_rate_hz = 1.0 / step if step > 0 else 1.0
     clock = SampleClock(nominal_rate_hz, unit="s", **tuning)
     out = np.empty_like(t)

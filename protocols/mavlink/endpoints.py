@@ -12,9 +12,14 @@ pymavlink's ``mavutil`` opens the link; this module adds what a long-running ser
 
 * a ``udpin`` link sends to its *peers*: addresses that sent a well-formed MAVLink frame (a
   datagram of garbage or a bad CRC makes nobody a peer), each forgotten ``PEER_TIMEOUT_S``
-  after its last frame, at most ``MAX_PEERS`` of them (a new one replaces the one heard least
-  recently). mavutil on its own sends every frame to every address that ever sent a datagram
-  and never forgets one, so anyone able to reach the port could load the loop without limit.
+  after its last frame, at most ``MAX_PEERS`` of them. At the cap a new one replaces the
+  least recently heard peer that has sent one frame only, or failing that one silent for
+  ``PEER_STALE_S``; when every peer is an established one (two frames or more) heard within
+  ``PEER_STALE_S``, the newcomer is not served (``refused``). So one-datagram senders cost
+  nothing lasting and a flood of new addresses cannot push out a ground station that
+  beats at 1 Hz. mavutil on its own sends every frame to every address that ever sent a
+  datagram and never forgets one, so anyone able to reach the port could load the loop without
+  limit.
 
 Connection strings (mavutil's): ``udpout:HOST:PORT`` (send to a listener such as
 QGroundControl on 14550), ``udpin:HOST:PORT`` (listen; replies go to the peers above —
@@ -37,6 +42,9 @@ _STREAM_READ = 4096  # bytes per read on TCP/serial
 _UDP_MAX = 65535  # bytes per datagram
 PEER_TIMEOUT_S = 10.0  # a udpin peer silent this long is forgotten (ground stations beat at 1 Hz)
 MAX_PEERS = 16  # udpin peers served at once
+#: at the cap, an established peer (two frames or more) silent this long may be replaced by a
+#: new one; a ground station beating at 1 Hz never is
+PEER_STALE_S = 3.0
 
 
 class UdpPeers:
@@ -44,21 +52,36 @@ class UdpPeers:
 
     Time is the monotonic clock in ns, passed in (tests drive it)."""
 
-    def __init__(self, timeout_s: float = PEER_TIMEOUT_S, max_peers: int = MAX_PEERS) -> None:
+    def __init__(self, timeout_s: float = PEER_TIMEOUT_S, max_peers: int = MAX_PEERS,
+                 stale_s: float = PEER_STALE_S) -> None:
         self.timeout_ns = int(timeout_s * 1e9)
+        self.stale_ns = int(stale_s * 1e9)
         self.max_peers = int(max_peers)
-        self._last: OrderedDict[Any, int] = OrderedDict()
+        self._last: OrderedDict[Any, int] = OrderedDict()  # address -> last frame, oldest first
+        self._frames: dict[Any, int] = {}  # address -> frames heard (capped at 2: "established")
         self.expired = 0  # peers forgotten after their timeout
         self.evicted = 0  # peers replaced by a newer one while at the cap
+        self.refused = 0  # frames from new addresses not served: every slot held by a live peer
 
     def heard(self, addr: Any, now_ns: int) -> None:
         """A well-formed frame came from ``addr``."""
         if addr in self._last:
             self._last.move_to_end(addr)
-        elif len(self._last) >= self.max_peers:
-            self._last.popitem(last=False)
+            self._frames[addr] = 2
+            self._last[addr] = now_ns
+            return
+        if len(self._last) >= self.max_peers:
+            self.live(now_ns)  # the expired ones first: replacing them evicts nobody
+        if len(self._last) >= self.max_peers:
+            victim = next((a for a, t in self._last.items()
+                           if self._frames[a] < 2 or now_ns - t >= self.stale_ns), None)
+            if victim is None:
+                self.refused += 1
+                return
+            del self._last[victim], self._frames[victim]
             self.evicted += 1
         self._last[addr] = now_ns
+        self._frames[addr] = 1
 
     def live(self, now_ns: int) -> set:
         """The peers heard within the timeout (older ones are forgotten now)."""
@@ -67,6 +90,7 @@ class UdpPeers:
             if now_ns - t <= self.timeout_ns:
                 break
             self._last.popitem(last=False)
+            del self._frames[addr]
             self.expired += 1
         return set(self._last)
 
