@@ -440,22 +440,27 @@ def load(path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = 
     return cfg
 
 
+def _unreadable(exc: OSError) -> str:
+    """What is wrong with a path that could not be read, as a phrase after its name."""
+    if isinstance(exc, FileNotFoundError):
+        return "does not exist"
+    if isinstance(exc, IsADirectoryError):
+        return "is a directory, not a file"
+    if isinstance(exc, PermissionError):
+        return "is not readable: permission denied"
+    return f"cannot be read: {exc.strerror or exc}"
+
+
 def read_toml(path: Path) -> dict[str, Any]:
     """The parsed TOML document at ``path``; every way of not being readable is a one-line
     :class:`ConfigError` (missing, a directory, no permission, not UTF-8, not TOML)."""
     try:
         text = path.read_bytes().decode("utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"configuration file {path} does not exist") from None
-    except IsADirectoryError:
-        raise ConfigError(f"configuration file {path} is a directory, not a file") from None
-    except PermissionError:
-        raise ConfigError(f"configuration file {path}: permission denied (cannot read it)") from None
     except UnicodeDecodeError as exc:
         raise ConfigError(f"configuration file {path}: not UTF-8 text (byte {exc.start}: "
                           f"{exc.object[exc.start:exc.start + 1]!r}); TOML files are UTF-8") from None
     except OSError as exc:
-        raise ConfigError(f"configuration file {path}: cannot read it: {exc.strerror or exc}") from None
+        raise ConfigError(f"configuration file {path} {_unreadable(exc)}") from None
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -562,14 +567,8 @@ def _check_recorded_path(path: str) -> None:
     try:
         with p.open("rb") as f:
             head = f.read(8)
-    except FileNotFoundError:
-        raise ConfigError(f"{key}: {path!r} does not exist; {_RECORDED_HELP}") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{key}: {path!r} is a directory, not a file; {_RECORDED_HELP}") from None
-    except PermissionError:
-        raise ConfigError(f"{key}: {path!r}: permission denied (cannot read it); {_RECORDED_HELP}") from None
     except OSError as exc:
-        raise ConfigError(f"{key}: {path!r}: cannot read it: {exc.strerror or exc}; {_RECORDED_HELP}") from None
+        raise ConfigError(f"{key}: {path!r} {_unreadable(exc)}; {_RECORDED_HELP}") from None
     if not p.is_file():
         raise ConfigError(f"{key}: {path!r} is not a regular file; {_RECORDED_HELP}")
     if hdf5 and not _has_hdf5_signature(p, head):
