@@ -124,6 +124,7 @@ class SensorClock:
         self._max_segments = max_segments
         self._segments: deque[_Segment] = deque()
         self._current: _Segment | None = None
+        self._first_segment: _Segment | None = None  # the run's first (see _offset_rel)
         self._last_refit_ns: int | None = None
         self._reads = 0  # reads so far, all segments
         self._last_t: int | None = None
@@ -198,6 +199,8 @@ class SensorClock:
         seg = self._current
         if seg is None or done_ns - seg.h0 > self._segment_ns:
             seg = self._current = _Segment(index, start_ns, continues=seg)
+            if self._reads == 0:
+                self._first_segment = seg
             self._segments.append(seg)
             self._drop_old(done_ns)
         seg.add(index, start_ns, done_ns, two_sided)
@@ -227,9 +230,15 @@ class SensorClock:
         than a period after the earliest: while a young segment's only reads had long
         transfers (a first transfer that took 3 ms, a read preempted halfway), the latest
         bound is that much too late, and the next, tighter read would pull the times back
-        by more than the period between two samples already handed out. A range no wider
-        than a period (every segment after a few reads) leaves the latest bound."""
+        by more than the period between two samples already handed out. Only in the run's
+        first segment, whose first transfers carry one-time costs (first calls, page faults)
+        before or after the latch, where no bound tells which: after a FIFO reset the first
+        new sample's time counts the samples lost (``FifoTimeline``), and placing it at the
+        start of a long transfer when the part latched late in it miscounts them. A range no
+        wider than a period (every segment after a few reads) leaves the latest bound."""
         latest = self._latest_offset_rel()
+        if self._current is not self._first_segment:
+            return latest
         earliest = self._earliest_offset_rel()
         return latest if earliest is None else min(latest, earliest + self.period_ns)
 
