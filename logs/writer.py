@@ -643,21 +643,22 @@ class FlightLogWriter:
         q = self._q
         while True:
             if q:
-                if self._loop is not None:
+                paced = self._loop is not None
+                if paced:
                     pause = self._pause_for_the_loop(time.monotonic_ns())
                     if pause:
                         time.sleep(pause)
+                    started = time.monotonic_ns()
                 item = q.popleft()
                 if type(item) is _Close:
                     break
-                started = time.monotonic_ns()
                 try:
                     self._handle(item)
                 except Exception as exc:  # noqa: BLE001 - a bad message must not end the recording
                     self._dropped_io += 1
                     self._fail(exc) if isinstance(exc, OSError) else self._note(exc)
-                took = time.monotonic_ns() - started
-                self._record_ns = max(float(took), self._record_ns * (15 / 16))
+                if paced:
+                    self._record_ns = max(float(time.monotonic_ns() - started), self._record_ns * (15 / 16))
             else:
                 self._wake.wait(self._idle_wait_s)
                 self._wake.clear()

@@ -187,6 +187,17 @@ def _check_and_run(path, capsys) -> list[tuple[int, str]]:
     return out
 
 
+def _refused_by_check_and_run(path, capsys) -> list[str]:
+    """The stderr of ``config --check`` and of ``run`` of ``path``, each asserted to be a
+    refusal: exit 2, one line, no traceback."""
+    errors = []
+    for rc, err in _check_and_run(path, capsys):
+        assert rc == 2, err
+        assert err.count("\n") == 1 and "Traceback" not in err
+        errors.append(err)
+    return errors
+
+
 @pytest.mark.parametrize("kind", ["directory", "not_a_log", "not_hdf5"])
 def test_a_recorded_path_that_is_no_log_is_refused_by_check_and_run_naming_the_key(tmp_path, capsys, kind):
     """A directory was passed by `config --check` and `run` said only "cannot start: [Errno 21]
@@ -207,9 +218,7 @@ def test_a_recorded_path_that_is_no_log_is_refused_by_check_and_run_naming_the_k
     path = tmp_path / "ahrs.toml"
     path.write_text(f'[source]\ntype = "recorded"\nrecorded_path = "{recorded}"\n'
                     '[mavlink]\nendpoints = ["udpout:127.0.0.1:15599"]\n')
-    for rc, err in _check_and_run(path, capsys):
-        assert rc == 2, err
-        assert err.count("\n") == 1 and "Traceback" not in err
+    for err in _refused_by_check_and_run(path, capsys):
         assert "source.recorded_path" in err and want in err and str(recorded) in err
 
 
@@ -230,9 +239,7 @@ def test_an_unknown_can_interface_is_refused_by_check_and_run_naming_the_key(tmp
     path = tmp_path / "ahrs.toml"
     path.write_text(f'[source]\ntype = "{kind}"\ncan_interface = "x"\n'
                     '[mavlink]\nendpoints = ["udpout:127.0.0.1:15599"]\n')
-    for rc, err in _check_and_run(path, capsys):
-        assert rc == 2, err
-        assert err.count("\n") == 1 and "Traceback" not in err
+    for err in _refused_by_check_and_run(path, capsys):
         assert "source.can_interface: 'x'" in err and "socketcan" in err
 
 

@@ -52,12 +52,16 @@ class _Segment:
     at its start (``t_{i+1} > start``, kept in ``after``: the upper hull of ``(i + 1, start)``,
     stored negated as a lower hull). A FIFO that had filled gives only the first bound."""
 
-    def __init__(self, index: int, host_ns: int, continues: "_Segment | None" = None) -> None:
+    def __init__(self, index: int, host_ns: int, continues: "_Segment | None" = None,
+                 first_of_run: bool = False) -> None:
         self.i0 = index
         self.h0 = host_ns
         #: the segment this one took over from without a reset (indices run on), while the
         #: new one has few reads of its own
         self.continues = continues
+        #: the run's first segment: its first transfers carry one-time costs (see
+        #: SensorClock._offset_rel)
+        self.first_of_run = first_of_run
         self.before = _LowerHull()
         self.after = _LowerHull()  # of (i + 1, −start)
         self.reads = 0
@@ -124,7 +128,6 @@ class SensorClock:
         self._max_segments = max_segments
         self._segments: deque[_Segment] = deque()
         self._current: _Segment | None = None
-        self._first_segment: _Segment | None = None  # the run's first (see _offset_rel)
         self._last_refit_ns: int | None = None
         self._reads = 0  # reads so far, all segments
         self._last_t: int | None = None
@@ -198,9 +201,7 @@ class SensorClock:
     def _add(self, index: int, start_ns: int, done_ns: int, two_sided: bool) -> None:
         seg = self._current
         if seg is None or done_ns - seg.h0 > self._segment_ns:
-            seg = self._current = _Segment(index, start_ns, continues=seg)
-            if self._reads == 0:
-                self._first_segment = seg
+            seg = self._current = _Segment(index, start_ns, continues=seg, first_of_run=self._reads == 0)
             self._segments.append(seg)
             self._drop_old(done_ns)
         seg.add(index, start_ns, done_ns, two_sided)
@@ -237,7 +238,7 @@ class SensorClock:
         start of a long transfer when the part latched late in it miscounts them. A range no
         wider than a period (every segment after a few reads) leaves the latest bound."""
         latest = self._latest_offset_rel()
-        if self._current is not self._first_segment:
+        if not self._current.first_of_run:
             return latest
         earliest = self._earliest_offset_rel()
         return latest if earliest is None else min(latest, earliest + self.period_ns)
