@@ -108,6 +108,7 @@ def _info(args: argparse.Namespace) -> int:
         "truth": log.truth is not None,
         "metadata": log.metadata,
         "damage": log.damage.as_dict() if log.damage else None,
+        "loop_damage": losses.damage,  # a /loop message whose counters could not be read
         # IMU samples that never reached the host, by cause (the source's running totals at
         # the last /loop), and samples that reached it but not the disk (the writer's)
         "lost_samples": None if losses.last is None else losses.last.as_dict(),
@@ -131,8 +132,8 @@ def _info(args: argparse.Namespace) -> int:
             print(f"  lost samples in this file (first to last /loop): {losses.in_file.summary()}")
     if losses.not_logged_samples:
         print(f"  not logged (disk errors): {losses.not_logged_samples} samples, {losses.outage_s:.1f} s")
-    print(f"  damage: {log.damage or 'none'}")
-    return 1 if log.damage else 0
+    print(f"  damage: {log.damage or losses.damage or 'none'}")
+    return 1 if log.damage or losses.damage else 0
 
 
 def _import_broad(args: argparse.Namespace) -> int:
@@ -224,6 +225,10 @@ def _replay(args: argparse.Namespace) -> int:
             print("ahrs-service replay: error: the log names no estimator (no /config or /attitude); give --estimator NAME",
                   file=sys.stderr)
         return 2
+    if not len(log):  # nothing to run an estimator over: say so rather than "replayed 0 samples"
+        why = f" ({log.damage})" if log.damage is not None else ""
+        print(f"ahrs-service replay: error: {log.path}: no sample to replay{why}", file=sys.stderr)
+        return 2
     follow = not args.no_param_changes
     blend = _blend_time(args)
     if blend is not None:
@@ -243,7 +248,9 @@ def _replay(args: argparse.Namespace) -> int:
     mode = " (offline, forward-backward)" if blend is not None else ""
     print(f"replayed {result['samples']} samples of {log.path.name} with {name} {params or ''}{mode}")
     rec = result["vs_recorded"]
-    if rec:
+    if rec and not rec["samples"]:  # a recorded estimate, but none finite at a sample's time
+        print("  vs recorded estimate: no sample has both a finite recorded and a finite new estimate")
+    elif rec:
         same = "bit-exact" if rec["identical"] else f"max component difference {rec['max_abs_diff']:.3g}"
         print(
             f"  vs recorded estimate ({rec['samples']} samples): RMS {rec['rms_deg']:.3g}°, "

@@ -17,15 +17,16 @@ from __future__ import annotations
 
 import os
 import struct
-import zlib
 from dataclasses import dataclass
 from typing import Callable
+
+from ahrs_service.logs.recover import chunk_bytes
 
 _MAGIC = b"\x89MCAP0\r\n"
 _HEAD = struct.Struct("<BQ")
 _CHUNK = struct.Struct("<QQQI")  # message start, message end, uncompressed size, uncompressed CRC
 _MSG = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
-_CHANNEL, _MESSAGE, _CHUNK_OP, _FOOTER = 0x04, 0x05, 0x06, 0x02
+_SCHEMA, _CHANNEL, _MESSAGE, _CHUNK_OP, _FOOTER = 0x03, 0x04, 0x05, 0x06, 0x02
 
 
 @dataclass
@@ -54,7 +55,6 @@ def scan_messages(path: str | os.PathLike, handlers: dict[str, Callable[[int, by
             result.damage = "not an MCAP file (bad magic)"
             return result
         pos = 8
-        zstd = None
         while True:
             head = f.read(9)
             if len(head) < 9:
@@ -80,34 +80,33 @@ def scan_messages(path: str | os.PathLike, handlers: dict[str, Callable[[int, by
                 p = 32 + n
                 rec_len = int.from_bytes(body[p : p + 8], "little")
                 data = body[p + 8 : p + 8 + rec_len]
-                if compression == "zstd":
-                    if zstd is None:
-                        import zstandard
-
-                        zstd = zstandard.ZstdDecompressor()
-                    try:
-                        records = zstd.decompress(data, max_output_size=raw_size)
-                    except Exception as exc:  # noqa: BLE001 - a damaged chunk
-                        result.damage = f"chunk at byte {pos} does not decompress: {exc}"
-                        return result
-                elif compression == "":
-                    records = data
-                else:
+                if compression not in ("zstd", ""):
                     raise ValueError(f"chunk compression {compression!r} not handled by the fast scan")
-                if crc and zlib.crc32(records) != crc:
-                    result.damage = f"chunk at byte {pos} fails its CRC"
+                try:  # bounded: a chunk never decompresses past the size it states (logs/recover.py)
+                    records = chunk_bytes(compression, data, raw_size, crc)
+                except ValueError as exc:  # a damaged or hostile chunk
+                    result.damage = f"chunk at byte {pos}: {exc}"
                     return result
-                result.messages += _chunk_messages(records, channels, wanted, handlers)
+                count, bad = _chunk_messages(records, channels, wanted, handlers)
+                result.messages += count
+                if bad is not None:
+                    result.damage = f"chunk at byte {pos}: {bad}"
+                    return result
             pos += 9 + length
 
 
-def _chunk_messages(records: bytes, channels: dict[int, str], wanted: dict, handlers: dict) -> int:
+def _chunk_messages(records: bytes, channels: dict[int, str], wanted: dict, handlers: dict) -> tuple[int, str | None]:
+    """Messages handed out, and what is wrong with the chunk's records (None: sound)."""
     pos, end, count = 0, len(records), 0
     unpack_head, unpack_msg = _HEAD.unpack_from, _MSG.unpack_from
-    while pos + 9 <= end:
+    while pos < end:
+        if pos + 9 > end:
+            return count, f"record header cut short at byte {pos} of the chunk"
         op, length = unpack_head(records, pos)
         start = pos + 9
         pos = start + length
+        if pos > end or (op == _MESSAGE and length < _MSG.size):
+            return count, f"record (opcode 0x{op:02x}) at byte {start - 9} of the chunk needs {length} bytes, {end - start} left"
         if op == _MESSAGE:
             cid, _, log_time, _ = unpack_msg(records, start)
             handler = wanted.get(cid, False)
@@ -119,4 +118,6 @@ def _chunk_messages(records: bytes, channels: dict[int, str], wanted: dict, hand
         elif op == _CHANNEL:
             _channel(records[start:pos], channels)
             wanted.pop(int.from_bytes(records[start : start + 2], "little"), None)
-    return count
+        elif op != _SCHEMA and not 0x80 <= op <= 0xFF:
+            return count, f"invalid opcode 0x{op:02x} at byte {start - 9} of the chunk"
+    return count, None

@@ -99,6 +99,8 @@ def replay_one(job: ReplayJob) -> FleetRow:
         if not name:
             return FleetRow(**empty | {"log": job.path, "damage": damage, "samples": len(log),
                                        "error": "the log names no estimator; give --estimator NAME"})
+        if not len(log):
+            return FleetRow(**empty | {"log": job.path, "damage": damage, "samples": 0, "error": "no sample to replay"})
         if job.blend_time_s is not None:
             q = replay_offline(log, name, job.params, job.follow_param_changes, blend_time_s=job.blend_time_s).q
         else:

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from ahrs_service.drivers.base import LossCounts
+from ahrs_service.logs.fields import BadMessage, decoded, integer, number, obj
 from ahrs_service.logs.reader import MessageSource
-from ahrs_service.logs.schemas import decode
 
 CAUSES = ("fifo_overflow", "bus_error", "gap", "host_stall")
 
@@ -23,7 +23,10 @@ CAUSES = ("fifo_overflow", "bus_error", "gap", "host_stall")
 def _counts(lost: Any) -> LossCounts | None:
     if not isinstance(lost, dict):
         return None
-    return LossCounts(**{c: int(lost.get(c) or 0) for c in CAUSES})
+    counts = {c: integer(lost, c, optional=True) or 0 for c in CAUSES}
+    if any(v < 0 for v in counts.values()):
+        raise BadMessage("$.source.lost", f"negative count in {counts}")
+    return LossCounts(**counts)
 
 
 @dataclass
@@ -34,6 +37,8 @@ class LogLosses:
     (running totals since the service started; None when the log has no such counters).
     not_logged_samples, outage_s: the writer's running totals at the last /loop (None when not
     recorded); a file that follows an outage carries the samples it could not hold.
+    damage: the first /loop message whose counters are not numbers of the right kind (the
+    totals are those before it), or None.
     """
 
     loops: int = 0
@@ -41,6 +46,8 @@ class LogLosses:
     last: LossCounts | None = None
     not_logged_samples: int | None = None
     outage_s: float | None = None
+    #: the /loop message the counters could not be read from (reading stopped there), or None
+    damage: str | None = None
 
     @property
     def in_file(self) -> LossCounts | None:
@@ -53,18 +60,24 @@ class LogLosses:
 def log_losses(path: str | os.PathLike) -> LogLosses:
     """The loss counters of the log at ``path`` (read up to any damage)."""
     out = LogLosses()
-    for topic, _, _, data in MessageSource(path):
+    for topic, log_time, _, data in MessageSource(path):
         if topic != "/loop":
             continue
-        m = decode(data)
+        try:
+            m = decoded(data)
+            lost = _counts(obj(m, "source", optional=True).get("lost"))
+            log = m.get("log")
+            snl = integer(log, "samples_not_logged", optional=True) if isinstance(log, dict) else None
+            outage = number(log.get("outage_s"), "$.log.outage_s") if snl is not None else None
+        except BadMessage as exc:  # a foreign or damaged /loop: the totals stop before it
+            out.damage = f"/loop message {out.loops + 1} (log time {log_time} ns) is not a valid ahrs.LoopStats: {exc}"
+            break
         out.loops += 1
-        lost = _counts((m.get("source") or {}).get("lost"))
         if lost is not None:
             if out.first is None:
                 out.first = lost
             out.last = lost
-        log = m.get("log")
-        if isinstance(log, dict) and log.get("samples_not_logged") is not None:
-            out.not_logged_samples = int(log["samples_not_logged"])
-            out.outage_s = float(log.get("outage_s") or 0.0)
+        if snl is not None:
+            out.not_logged_samples = snl
+            out.outage_s = 0.0 if outage != outage else outage  # null: none recorded
     return out

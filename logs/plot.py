@@ -25,12 +25,12 @@ from typing import Any
 import numpy as np
 
 from ahrs_service.logs.fast_scan import scan_messages
+from ahrs_service.logs.fields import BadMessage, decoded, number, obj, scalar, vector
 from ahrs_service.logs.reader import MessageSource
-from ahrs_service.logs.schemas import decode
+from ahrs_service.logs.schemas import CHANNELS
 
 DRAW_BINS = 2000  # envelope bins per series: a few per pixel column of a wide figure
 FORMATS = (".png", ".pdf", ".svg")
-_NAN3 = [math.nan] * 3
 
 
 @dataclass
@@ -60,8 +60,8 @@ class LogSeries:
     messages: int = 0
 
 
-def _num(v: Any) -> float:
-    return math.nan if v is None else float(v)
+class _Stop(Exception):
+    """Reading stops at a message that is not what its schema says (the text says which)."""
 
 
 def read_series(path: str | Path, progress: bool = True) -> LogSeries:
@@ -73,58 +73,82 @@ def read_series(path: str | Path, progress: bool = True) -> LogSeries:
     count = [0]
 
     def on_raw(log_time: int, data: bytes) -> None:
-        m = decode(data)
+        m = decoded(data)
+        row = (vector(m, "gyr", 3), vector(m, "acc", 3), vector(m, "mag", 3, nullable=True))
         raw_t.append(log_time)
-        gyr.append(m["gyr"])
-        acc.append(m["acc"])
-        mag.append(m["mag"] or _NAN3)
+        gyr.append(row[0])
+        acc.append(row[1])
+        mag.append(row[2])
         count[0] += 1
         if bar is not None and count[0] % 8192 == 0:
             bar.update(8192)
 
     def on_attitude(log_time: int, data: bytes) -> None:
-        m = decode(data)
+        m = decoded(data)
+        euler = tuple(scalar(m, k) for k in ("roll", "pitch", "yaw"))
+        d = obj(m, "diagnostics", optional=True)
         att_t.append(log_time)
-        att.append((m["roll"], m["pitch"], m["yaw"]))
-        d = m.get("diagnostics")
+        att.append(euler)
         if d:
             diag_t.append(log_time)
             rej.append(bool(d.get("mag_disturbed", False)))
             red.append(bool(d.get("reduced", False)))
 
     def on_truth(log_time: int, data: bytes) -> None:
-        m = decode(data)
+        m = decoded(data)
+        euler = tuple(number(m.get(k), f"$.{k}") for k in ("roll", "pitch", "yaw"))
         tr_t.append(log_time)
-        tr.append((m.get("roll"), m.get("pitch"), m.get("yaw")))
+        tr.append(euler)
 
     def on_loop(log_time: int, data: bytes) -> None:
-        m = decode(data)
+        m = decoded(data)
+        values = [number(m.get(k), f"$.{k}") for k in ("period_jitter_p99_us", "lateness_p99_us", "missed_ticks", "overruns")]
+        source_lost = obj(m, "source", optional=True).get("lost")
+        total = number(source_lost.get("total"), "$.source.lost.total") if isinstance(source_lost, dict) else math.nan
         loop_t.append(log_time)
-        jit.append(_num(m.get("period_jitter_p99_us")))
-        late.append(_num(m.get("lateness_p99_us")))
-        missed.append(_num(m.get("missed_ticks")))
-        source_lost = (m.get("source") or {}).get("lost")
-        lost.append(_num(source_lost.get("total")) if isinstance(source_lost, dict) else math.nan)
-        over.append(_num(m.get("overruns")))
+        jit.append(values[0])
+        late.append(values[1])
+        missed.append(values[2])
+        lost.append(total)
+        over.append(values[3])
 
     def on_log(log_time: int, data: bytes) -> None:
-        m = decode(data)
-        events.append((log_time, int(m.get("level", 0)), str(m.get("message", ""))))
+        m = decoded(data)
+        level = m.get("level", 0)
+        if not isinstance(level, int) or isinstance(level, bool):
+            raise BadMessage("$.level", "expected an integer")
+        events.append((log_time, level, str(m.get("message", ""))))
 
     handlers = {"/imu/raw": on_raw, "/attitude": on_attitude, "/attitude/truth": on_truth, "/loop": on_loop,
                 "/log": on_log}
-    try:
-        scan = scan_messages(path, handlers)
-        damage, n = scan.damage, scan.messages
-    except ValueError:  # a chunk compression the fast scan does not read: the mcap library's way
-        source = MessageSource(path)
-        n = 0
-        for topic, log_time, _, data in source:
-            handler = handlers.get(topic)
-            if handler is not None:
+    topics = {handler: topic for topic, handler in handlers.items()}
+
+    def checked(handler: Any) -> Any:
+        def run(log_time: int, data: bytes) -> None:
+            try:
                 handler(log_time, data)
-                n += 1
-        damage = None if source.damage is None else str(source.damage)
+            except BadMessage as exc:  # a message its schema does not describe: plotted up to it
+                raise _Stop(f"{topics[handler]} message at log time {log_time} ns is not a valid "
+                            f"{CHANNELS[topics[handler]][0]}: {exc}") from None
+        return run
+
+    handlers = {topic: checked(handler) for topic, handler in handlers.items()}
+    damage: str | None = None
+    try:
+        try:
+            scan = scan_messages(path, handlers)
+            damage, n = scan.damage, scan.messages
+        except ValueError:  # a chunk compression the fast scan does not read: the mcap library's way
+            source = MessageSource(path)
+            n = 0
+            for topic, log_time, _, data in source:
+                handler = handlers.get(topic)
+                if handler is not None:
+                    handler(log_time, data)
+                    n += 1
+            damage = None if source.damage is None else str(source.damage)
+    except _Stop as stop:
+        damage, n = str(stop), len(raw_t) + len(att_t) + len(tr_t) + len(loop_t) + len(events)
     if bar is not None:
         bar.close()
     times = [t[0] for t in (raw_t, att_t, loop_t) if t]
@@ -257,7 +281,8 @@ def cmd_plot(args: Any) -> int:
     try:
         series = read_series(args.log)
         if series.messages == 0:
-            print(f"ahrs-service: log plot: {args.log}: no readable messages", file=sys.stderr)
+            why = "" if series.damage is None else f" ({series.damage})"
+            print(f"ahrs-service: log plot: {args.log}: no readable messages{why}", file=sys.stderr)
             return 2
         build_figure(series, Path(args.log).name).savefig(out, dpi=110)
     except OSError as exc:

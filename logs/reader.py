@@ -17,8 +17,9 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata
 
-from ahrs_service.logs.recover import Damage, RecordScanner
-from ahrs_service.logs.schemas import decode
+from ahrs_service.logs.fields import BadMessage, decoded, integer, numbers, obj, scalar, string, vector
+from ahrs_service.logs.recover import MAX_CHUNK_BYTES, Damage, RecordScanner
+from ahrs_service.logs.schemas import CHANNELS
 
 
 class MessageSource:
@@ -35,6 +36,13 @@ class MessageSource:
         self.damage: Damage | None = None
         self.indexed = False
         self.metadata: dict[str, dict[str, str]] = {}
+        self._scanner: RecordScanner | None = None
+
+    @property
+    def offset(self) -> int:
+        """Byte offset of the record the message yielded last came from (its chunk's); -1 when
+        reading through the index, which does not tell."""
+        return -1 if self._scanner is None else self._scanner.record_offset
 
     def _summary_reader(self, f: Any) -> Any:
         try:
@@ -44,6 +52,9 @@ class MessageSource:
             return None
         if summary is None or not summary.chunk_indexes:
             return None
+        if any(c.uncompressed_size > MAX_CHUNK_BYTES or c.compression not in ("zstd", "lz4", "")
+               for c in summary.chunk_indexes):
+            return None  # the library would decompress it whole: the stream read bounds and reports it
         return reader
 
     def __iter__(self) -> Iterator[tuple[str, int, int, bytes]]:
@@ -60,7 +71,7 @@ class MessageSource:
                     size = self.path.stat().st_size
                     self.damage = Damage(-1, size, f"indexed read failed: {type(exc).__name__}: {exc}")
                 return
-        scanner = RecordScanner(self.path)
+        scanner = self._scanner = RecordScanner(self.path)
         topics: dict[int, str] = {}
         for rec in scanner:
             if isinstance(rec, Channel):
@@ -70,12 +81,6 @@ class MessageSource:
             elif isinstance(rec, Metadata):
                 self.metadata[rec.name] = dict(rec.metadata)
         self.damage = scanner.damage if not scanner.complete or scanner.damage else None
-
-
-def _vec(values: Any, n: int) -> list[float]:
-    if values is None:
-        return [np.nan] * n
-    return [np.nan if v is None else float(v) for v in values]
 
 
 @dataclass
@@ -171,35 +176,68 @@ def _read(source: MessageSource) -> RecordedLog:
     counts: dict[str, int] = {}
     att_estimator: str | None = None
     states: list[dict[str, Any]] = []
+    damage: Damage | None = None
     for topic, log_time, _, data in source:
         counts[topic] = counts.get(topic, 0) + 1
-        if topic == "/imu/raw":
-            m = decode(data)
-            t_ns.append(int(m["t_ns"]))
-            ts = m.get("t_source_ns")  # absent in logs before it was recorded
-            t_src.append(t_ns[-1] if ts is None else int(ts))
-            rows.append(_vec(m["gyr"], 3) + _vec(m["acc"], 3) + _vec(m["mag"], 3) + _vec([m["dt"]], 1))
-            flags.append(int(m["flags"]))
-            i = m.get("index")  # null or absent (schema allows both): the row number in this file
-            index.append(len(index) if i is None else int(i))
-        elif topic in ("/attitude", "/attitude/original"):
-            m = decode(data)
-            (att_t if topic == "/attitude" else orig_t).append(int(m["t_ns"]))
-            (att_q if topic == "/attitude" else orig_q).append(_vec(m["q"], 4))
-            if topic == "/attitude" and att_estimator is None:
-                att_estimator = m.get("estimator")
-        elif topic == "/attitude/truth":
-            m = decode(data)
-            tru_t.append(int(m["t_ns"]))
-            tru_q.append(_vec(m["q"], 4))
-            mv = m.get("movement")
-            tru_m.append(np.nan if mv is None else float(bool(mv)))
-        elif topic == "/config":
-            configs.append(decode(data))
-        elif topic == "/params":
-            changes.append(decode(data))
-        elif topic == "/estimator/state":
-            states.append(decode(data))
+        try:
+            if topic == "/imu/raw":
+                m = decoded(data)
+                t = integer(m, "t_ns")
+                ts = integer(m, "t_source_ns", optional=True)  # absent in logs before it was recorded
+                row = vector(m, "gyr", 3) + vector(m, "acc", 3) + vector(m, "mag", 3, nullable=True)
+                row.append(scalar(m, "dt"))
+                flag = integer(m, "flags")
+                i = integer(m, "index", optional=True)  # null or absent (schema allows both): the row number in this file
+                t_ns.append(t)
+                t_src.append(t if ts is None else ts)
+                rows.append(row)
+                flags.append(flag)
+                index.append(len(index) if i is None else i)
+            elif topic in ("/attitude", "/attitude/original"):
+                m = decoded(data)
+                t, q = integer(m, "t_ns"), vector(m, "q", 4)
+                name = string(m, "estimator", optional=True)
+                (att_t if topic == "/attitude" else orig_t).append(t)
+                (att_q if topic == "/attitude" else orig_q).append(q)
+                if topic == "/attitude" and att_estimator is None:
+                    att_estimator = name
+            elif topic == "/attitude/truth":
+                m = decoded(data)
+                t, q = integer(m, "t_ns"), vector(m, "q", 4)
+                mv = m.get("movement")
+                if mv is not None and not isinstance(mv, bool):
+                    raise BadMessage("$.movement", "expected a boolean or null")
+                tru_t.append(t)
+                tru_q.append(q)
+                tru_m.append(np.nan if mv is None else float(mv))
+            elif topic == "/config":
+                m = decoded(data)
+                est = obj(m, "config").get("estimator")
+                if isinstance(est, dict):  # what replay takes from it: a name and a parameter table
+                    string(est, "name", optional=True)
+                    obj(est, "params", optional=True)
+                configs.append(m)
+            elif topic == "/params":
+                m = decoded(data)
+                integer(m, "sample_index"), integer(m, "t_ns"), string(m, "name")
+                if "new" not in m:
+                    raise BadMessage("$.new", "missing")
+                changes.append(m)
+            elif topic == "/estimator/state":
+                m = decoded(data)
+                integer(m, "sample_index"), string(m, "estimator"), numbers(m, "state")
+                states.append(m)
+        except BadMessage as exc:
+            # a message its topic's schema does not describe: the file is read up to it, as up
+            # to a damaged chunk, and the damage names the message and the field
+            schema = CHANNELS.get(topic, ("",))[0]
+            size = path.stat().st_size
+            damage = Damage(source.offset, size, f"{topic} message {counts[topic]} (log time {log_time} ns) "
+                            f"is not a valid {schema}: {exc}")
+            counts[topic] -= 1
+            if not counts[topic]:
+                del counts[topic]
+            break
     t = np.asarray(t_ns, dtype=np.int64)
     config = configs[0]["config"] if configs else {}
     est_cfg = config.get("estimator") if isinstance(config.get("estimator"), dict) else {}
@@ -211,12 +249,12 @@ def _read(source: MessageSource) -> RecordedLog:
         movement = None if mv is None else (mv[:, 0] == 1.0)
     changes.sort(key=lambda c: (int(c["sample_index"]), int(c["t_ns"])))
     initial_state = None
-    if states and index and int(states[0]["sample_index"]) == index[0]:
+    if states and index and states[0]["sample_index"] == index[0]:
         st = states[0]
         initial_state = {
             "estimator": st["estimator"],
-            "sample_index": int(st["sample_index"]),
-            "state": np.asarray(_vec(st["state"], len(st["state"])), dtype=np.float64),
+            "sample_index": st["sample_index"],
+            "state": np.asarray(numbers(st, "state"), dtype=np.float64),
         }
     return RecordedLog(
         path=Path(path),
@@ -235,7 +273,7 @@ def _read(source: MessageSource) -> RecordedLog:
         configs=configs,
         counts=counts,
         metadata=source.metadata,
-        damage=source.damage,
+        damage=damage or source.damage,
         indexed=source.indexed,
         initial_state=initial_state,
         t_source_ns=np.asarray(t_src, dtype=np.int64),

@@ -13,6 +13,7 @@ import io
 import json
 import os
 import struct
+import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
@@ -36,7 +37,6 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
-from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 MAGIC = bytes([137, 77, 67, 65, 80, 48, 13, 10])
@@ -60,6 +60,48 @@ _RECORDS = {
 }
 # a record longer than this is taken as a corrupt length field, not a real record
 _MAX_RECORD = 1 << 31
+#: uncompressed bytes one chunk may hold. Writers close chunks at about 1 MiB (this project's,
+#: the mcap library's default 1 MiB, Foxglove's 4 MiB ...); a chunk that says it holds more is
+#: taken as a corrupt or hostile size field (a zstd "bomb" of zeros is a few kB per GiB), not
+#: decompressed into memory
+MAX_CHUNK_BYTES = 256 << 20
+# records a chunk may hold (the format: Schema, Channel, Message); others are damage
+_IN_CHUNK = (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE)
+
+
+def chunk_bytes(compression: str, data: bytes, uncompressed_size: int, crc: int) -> bytes:
+    """A chunk's records, decompressed: never more than ``uncompressed_size`` (itself at most
+    :data:`MAX_CHUNK_BYTES`) bytes are produced, whatever the compressed stream or its frame
+    header claim, and the result must have exactly that size and, when ``crc`` is not 0, that
+    CRC-32. ValueError saying what is wrong otherwise."""
+    if uncompressed_size > MAX_CHUNK_BYTES:
+        raise ValueError(f"chunk says it holds {uncompressed_size} bytes uncompressed, "
+                         f"over the reader's limit of {MAX_CHUNK_BYTES >> 20} MiB")
+    if compression == "zstd":
+        import zstandard
+
+        try:
+            reader = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data), read_across_frames=True)
+            out = reader.read(uncompressed_size + 1)  # one byte more tells a stream that is longer
+        except zstandard.ZstdError as exc:
+            raise ValueError(f"chunk does not decompress (zstd: {exc})") from None
+    elif compression == "lz4":
+        import lz4.frame
+
+        try:
+            out = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=uncompressed_size + 1)
+        except RuntimeError as exc:
+            raise ValueError(f"chunk does not decompress (lz4: {exc})") from None
+    elif compression == "":
+        out = data
+    else:
+        raise ValueError(f"unknown chunk compression {compression[:40]!r}")
+    if len(out) != uncompressed_size:
+        more = "more than" if len(out) > uncompressed_size else f"{len(out)} bytes, not"
+        raise ValueError(f"chunk decompresses to {more} the {uncompressed_size} bytes it states")
+    if crc and zlib.crc32(out) != crc:
+        raise ValueError("chunk fails its CRC")
+    return out
 
 
 @dataclass
@@ -99,6 +141,8 @@ class RecordScanner:
         self.damage: Damage | None = None
         self.complete = False
         self.valid_end = 0
+        #: byte offset of the record the records yielded last came from (a chunk's, for its messages)
+        self.record_offset = 0
 
     def __iter__(self) -> Iterator[Any]:
         size = self.path.stat().st_size
@@ -130,6 +174,7 @@ class RecordScanner:
                 except Exception as exc:  # noqa: BLE001 - any parse failure is damage at this record
                     self.damage = Damage(pos, size, f"record (opcode 0x{opcode:02x}) unreadable: {type(exc).__name__}: {exc}")
                     return
+                self.record_offset = pos
                 pos += 9 + length
                 self.valid_end = pos
                 for record in records:
@@ -152,9 +197,28 @@ class RecordScanner:
         if stream.count > len(body):
             raise ValueError("record fields overrun the record")
         if isinstance(record, Chunk):
-            # decompression and the uncompressed CRC catch a chunk damaged in the middle
-            return breakup_chunk(record, validate_crc=True)
+            # decompression and the uncompressed CRC catch a chunk damaged in the middle, and
+            # each record inside is checked as the file's own records are
+            return RecordScanner._chunk_records(record)
         return [record]
+
+    @staticmethod
+    def _chunk_records(chunk: Chunk) -> list[Any]:
+        data = chunk_bytes(chunk.compression, chunk.data, chunk.uncompressed_size, chunk.uncompressed_crc)
+        records: list[Any] = []
+        pos = 0
+        while pos < len(data):
+            if len(data) - pos < 9:
+                raise ValueError(f"record header cut short at byte {pos} of the chunk's {len(data)}")
+            opcode, length = struct.unpack_from("<BQ", data, pos)
+            if opcode not in _IN_CHUNK and not 0x80 <= opcode <= 0xFF:
+                raise ValueError(f"invalid opcode 0x{opcode:02x} at byte {pos} of the chunk")
+            if pos + 9 + length > len(data):
+                raise ValueError(f"record (opcode 0x{opcode:02x}) at byte {pos} of the chunk needs {length} bytes, "
+                                 f"{len(data) - pos - 9} left")
+            records += RecordScanner._parse(opcode, data[pos + 9 : pos + 9 + length])
+            pos += 9 + length
+        return records
 
 
 @dataclass

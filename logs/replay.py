@@ -36,6 +36,23 @@ def _effective_start(log: RecordedLog, name: str, params: Mapping[str, Any] | No
     return start
 
 
+def _create(log: RecordedLog, name: str, params: Mapping[str, Any] | None) -> Any:
+    """``name`` at the log's recorded start parameters (its own estimator only) with ``params``
+    over them. A name or value the log recorded that the estimator refuses (a foreign, edited
+    or damaged /config) is said to be the log's, so it is not taken for the caller's own.
+    ``estimators.get`` rather than ``create``: a recorded key ``preset`` is a parameter name
+    like any other (refused), never a file to open."""
+    start = _effective_start(log, name, params)
+    try:
+        return estimators.get(name)(**start)
+    except ValueError as exc:
+        if name == log.estimator and name not in estimators.names():
+            raise ValueError(f"{log.path}: the log's estimator {name!r} is not one of this version's; "
+                             f"give --estimator NAME") from None
+        estimators.get(name)(**dict(params or {}))  # the caller's own values: their error stands
+        raise ValueError(f"{log.path}: the parameters recorded in its /config are refused: {exc}") from None
+
+
 def replay(
     log: RecordedLog,
     estimator: str | None = None,
@@ -58,14 +75,15 @@ def replay(
     if not name:
         lost = f": its /config was lost to the damage ({log.damage})" if log.damage is not None else " (no /config or /attitude)"
         raise ValueError(f"the log names no estimator{lost}: pass one")
-    est = estimators.create(name, **_effective_start(log, name, params))
+    est = _create(log, name, params)
     snap = log.initial_state
     if use_recorded_state and snap is not None and snap["estimator"] == name:
         if snap["state"].shape != est.state.shape:
-            raise ValueError(f"recorded state has {snap['state'].shape[0]} values, {name} needs {est.state.shape[0]}")
+            raise ValueError(f"{log.path}: its /estimator/state has {snap['state'].shape[0]} values, "
+                             f"{name} needs {est.state.shape[0]}")
         est.state[:] = snap["state"]
     cuts = _param_cuts(log, name, est, params, follow_param_changes)
-    return _run_with_cuts(est, log.rows, cuts)
+    return _run_with_cuts(est, log.rows, cuts, log.path)
 
 
 def replay_offline(
@@ -88,7 +106,7 @@ def replay_offline(
     name = estimator or log.estimator
     q_forward = replay(log, name, params, follow_param_changes, use_recorded_state)
     rows = log.rows
-    est = estimators.create(name, **_effective_start(log, name, params))
+    est = _create(log, name, params)
     cuts = _param_cuts(log, name, est, params, follow_param_changes)
     n = rows.shape[0]
     # going backwards, a change made at sample k is undone when the pass steps from k to k − 1,
@@ -101,7 +119,7 @@ def replay_offline(
     est.set_params(**start)
     # in backward row order; changes made at one sample are undone last-first (stable sort)
     undo_in_order = sorted(reversed(undo), key=lambda c: c[0])
-    q_backward = _run_with_cuts(est, offline.reverse_rows(rows), undo_in_order)[::-1]
+    q_backward = _run_with_cuts(est, offline.reverse_rows(rows), undo_in_order, log.path)[::-1]
     observed = offline.heading_observed(name, rows)
     return offline.combine(q_forward, q_backward, rows, blend_time_s=blend_time_s, align=not observed)
 
@@ -123,8 +141,9 @@ def _param_cuts(
     return cuts
 
 
-def _run_with_cuts(est: Any, rows: np.ndarray, cuts: list[tuple[int, str, Any]]) -> np.ndarray:
-    """Runs ``est`` over ``rows``, setting each cut's parameter before the row it names."""
+def _run_with_cuts(est: Any, rows: np.ndarray, cuts: list[tuple[int, str, Any]], path: Path) -> np.ndarray:
+    """Runs ``est`` over ``rows``, setting each cut's parameter before the row it names. A
+    recorded value the estimator refuses is named as the log's (``path``)."""
     n = rows.shape[0]
     out = np.empty((n, 4))
     start = 0
@@ -133,7 +152,11 @@ def _run_with_cuts(est: Any, rows: np.ndarray, cuts: list[tuple[int, str, Any]])
             out[start:k] = est.run_rows(rows[start:k])
             start = k
         if pname:
-            est.set_params(**{pname: value})
+            try:
+                est.set_params(**{pname: value})
+            except ValueError as exc:
+                raise ValueError(f"{path}: its /params change of {pname} to {value!r} (before row {k}) "
+                                 f"is refused: {exc}") from None
     return out
 
 
@@ -210,17 +233,23 @@ def write_replay(
     same = estimator == log.estimator
     tf_period = int(1e9 / tf_rate_hz)
     row_of = {int(t): i for i, t in enumerate(log.t_ns.tolist())}
-    est_obj = estimators.create(estimator, **config["estimator"]["params"])
+    est_obj = estimators.get(estimator)(**config["estimator"]["params"])
     config["estimator"]["params"] = jsonable(est_obj.get_params())
     if offline_blend_s is not None:
         config["estimator"]["offline"] = {"blend_time_s": float(offline_blend_s)}
     known, pinned = set(est_obj.param_names()), set(params or {})
     last_tf: int | None = None
-    source = MessageSource(log.path)
+    # the messages the reader read, in its order, and no further: what follows a damaged
+    # chunk or a message that is not valid was neither read nor replayed
+    source = MessageSource(log.path, stream_only=not log.indexed)
+    remaining = sum(log.counts.values()) if log.damage is not None else -1
     t0 = int(log.t_ns[0]) if len(log) else 0
     with McapLogFile(out_path, metadata={"replay_of": Path(log.path).name, "estimator": label}) as f:
         f.write("/config", t0, {"t_ns": t0, "reason": "replay", "config": config})
         for topic, log_time, publish_time, data in source:
+            if remaining == 0:
+                break
+            remaining -= 1
             if topic in ("/config", "/tf", "/attitude/original") or (topic == "/estimator/state" and not same):
                 continue
             if topic == "/params":
