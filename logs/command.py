@@ -118,7 +118,7 @@ def _info(args: argparse.Namespace) -> int:
     }
     if args.json:
         print(json.dumps(info, indent=2, default=str))
-        return 0
+        return 1 if log.damage or losses.damage else 0  # as without --json (docs/logs.md)
     print(f"{log.path}  ({'indexed' if log.indexed else 'stream-read'})")
     print(f"  samples {len(log)}, duration {log.duration_s:.3f} s, estimator {log.estimator} {log.params}")
     for topic, n in sorted(log.counts.items()):

@@ -114,6 +114,8 @@ def test_a_message_that_is_not_what_its_schema_says_is_damage_named_by_field(tmp
     assert rc == 1 and "Traceback" not in err and err == "", (out, err)
     (damage,) = [line for line in out.splitlines() if line.strip().startswith("damage:")]
     assert where in damage and what in damage and str(path) in out, damage
+    rc, out, _ = _run(capsys, ["log", "info", "--json", path])  # the same exit status as without --json
+    assert rc == 1 and where in json.loads(out)["damage"]["reason"]
     log = read_log(path)
     kept = 7 if where.startswith("/imu/raw") else (0 if where.startswith("/config") else N)
     assert len(log) == kept and np.all(np.isfinite(log.rows[:, :6])) and log.damage is not None
