@@ -76,6 +76,18 @@ class Disagreement:
         return cls(int(t_ns), q_ap, q_est, total, incl, heading)
 
 
+#: how far from 1 the norm of an autopilot's quaternion may be: MAVLink's float32 fields
+#: carry a unit quaternion to about 1e-7; a norm off by more is no attitude (a zero or
+#: scaled quaternion from a corrupt or hostile message), and 0 would divide by zero
+UNIT_TOLERANCE = 0.01
+
+
+def is_rotation(q) -> bool:
+    """``q`` is finite and of unit norm within :data:`UNIT_TOLERANCE`."""
+    n2 = sum(float(v) * float(v) for v in q)
+    return math.isfinite(n2) and abs(math.sqrt(n2) - 1.0) <= UNIT_TOLERANCE
+
+
 def _unit(q) -> tuple[float, float, float, float]:
     w, x, y, z = (float(v) for v in q)
     n = math.sqrt(w * w + x * x + y * y + z * z)
@@ -187,6 +199,7 @@ class AttitudeMonitor:
         self.received = 0  # autopilot attitudes taken from the link
         self.compared = 0  # autopilot attitudes compared
         self.unmatched = 0  # autopilot attitudes outside the estimate history (too old, too new, no time map)
+        self.rejected = 0  # autopilot attitudes that are no rotation (not finite, norm not 1): never compared
         self.warnings = 0
         link.subscribe(["ATTITUDE_QUATERNION", "ATTITUDE"], self._on_attitude)
 
@@ -203,6 +216,9 @@ class AttitudeMonitor:
             return  # both streams on: the quaternion is the exact one
         else:
             q = tuple(quat_from_euler(float(msg.roll), float(msg.pitch), float(msg.yaw)))
+        if not is_rotation(q):  # a corrupt or hostile message: comparing it would mean nothing
+            self.rejected += 1
+            return
         self._inbox.append(_AutopilotAttitude(int(msg.time_boot_ms), q))  # type: ignore[arg-type]
         self.received += 1
 

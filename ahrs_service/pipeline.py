@@ -196,6 +196,7 @@ class EstimationPipeline:
         self._last_block: SampleBlock | None = None  # the last block estimated, calibrated
         self._last_t_ns = 0  # its last row's time, ns
         self._last_sample: ImuSample | None = None  # built from them when asked for
+        self._rate_gyr = [0.0, 0.0, 0.0]  # the newest valid gyro row, rad/s (body_rates)
         #: recovers host read times onto the sensor's clock (use_sample_clock), else None
         self.clock: SampleClock | None = None
         self._fill = np.zeros(FILL_STATE.end, dtype=np.int64)  # FILL_STATE slots
@@ -299,6 +300,7 @@ class EstimationPipeline:
         self.samples += n - start
         self.row = rows[-1]
         self._last_block, self._last_t_ns, self._last_sample = block, int(t_ns[-1]), None
+        self._hold_rate_gyr(rows)
         if start:
             cut = slice(start, None)
             return EstimatedBlock(
@@ -324,12 +326,24 @@ class EstimationPipeline:
     def published_euler(self) -> tuple[float, float, float]:
         return quat_to_euler(self.published_quaternion())
 
+    def _hold_rate_gyr(self, rows: np.ndarray) -> None:
+        """Keeps the newest row's gyro reading that the estimator took (finite: valid), for
+        :meth:`body_rates`. A row whose gyro was invalid (NaN in the row: non-finite, saturated
+        or implausible at the source) keeps the previous one, so no NaN or absurd rate is
+        published (without a gyroscope for long the attitude stops being fresh: health)."""
+        g = rows[:, _R.gyr]
+        if np.isfinite(g[-1]).all():
+            self._rate_gyr = g[-1].tolist()
+            return
+        ok = np.flatnonzero(np.isfinite(g).all(axis=1))
+        if ok.size:
+            self._rate_gyr = g[ok[-1]].tolist()
+
     def body_rates(self) -> list[float]:
-        """Latest bias-corrected body angular rate (p, q, r), rad/s."""
-        if self.last_sample is None:
-            return [0.0, 0.0, 0.0]
+        """Latest bias-corrected body angular rate (p, q, r), rad/s: of the newest valid gyro
+        reading the estimator took (zeros before the first)."""
         # plain floats: cheaper than a NumPy subtraction on three elements, once per publish
-        gx, gy, gz = np.asarray(self.last_sample.gyr).tolist()
+        gx, gy, gz = self._rate_gyr
         bx, by, bz = self.estimator.state[_H.bias].tolist()
         return [gx - bx, gy - by, gz - bz]
 

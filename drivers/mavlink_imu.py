@@ -49,9 +49,12 @@ from typing import Any
 import numpy as np
 
 from ahrs_service.drivers.base import (
+    ACC_SATURATED,
     ACC_VALID,
+    GYR_SATURATED,
     GYR_VALID,
     MAG_NEW,
+    MAG_SATURATED,
     MAG_VALID,
     ImuSample,
     ImuSource,
@@ -88,6 +91,16 @@ REQUEST_RETRY_S = 1.0
 #: a jump of the autopilot's time beyond this (or backwards: a reboot) is a new timeline, not
 #: lost samples; shorter gaps (a link down for minutes) are counted sample by sample
 MAX_GAP_S = 3600.0
+#: a jump of the autopilot's time that runs ahead of the messages' arrivals by more than this
+#: is its clock stepping (also a new timeline), not samples lost on the way: a link down for a
+#: minute delays the arrivals by that minute too; 30 min of autopilot time between two
+#: messages 5 ms apart counted 360 000 samples lost before. Above any burst of a queue
+#: (a stalled reader's socket buffer holds well under a second of a 1 kHz stream)
+MAX_LEAD_S = 5.0
+#: a message at most this much older than the newest (or as old) is a duplicate or was
+#: overtaken on the way (UDP, a router with two paths): skipped and counted (``out_of_order``),
+#: not a reboot — a reboot restarts the autopilot's time near zero, and it boots for longer
+REORDER_S = 0.5
 #: messages whose spacing sets the sample clock's period before the first sample is handed out
 WARMUP_MESSAGES = 16
 #: how long the first samples wait for TIMESYNC to converge, s: the offset the samples' times
@@ -99,6 +112,14 @@ SYNC_WAIT_S = 2.0
 QUEUE_SAMPLES = 4096
 
 _HIGHRES_MAG_BITS = 0b111 << 6  # HIGHRES_IMU_UPDATED_XMAG | YMAG | ZMAG
+
+#: largest reading per axis taken from the autopilot (rad/s, m/s², µT): twice the widest range
+#: of the IMUs flight controllers carry (gyroscopes ±4000 °/s — ICM-45686 —, accelerometers
+#: ±32 g, magnetometers ±4900 µT — AK09916 —). A finite value beyond it (3e38 in a float field,
+#: 1e6 rad/s) is no motion but a corrupt or hostile message: the reading is marked saturated
+#: (``diagnostics.saturated``) and the estimator skips it — 1e6 rad/s for 50 ms turned the
+#: estimate upside down before
+MAX_READING = {"gyr": 2 * math.radians(4000.0), "acc": 2 * 32 * G, "mag": 2 * 4900.0}
 
 
 @dataclass(frozen=True, slots=True)
@@ -195,6 +216,11 @@ class MavlinkImuSource(ImuSource):
         self._last_imu_rx_ns = 0  # arrival of the newest IMU message (reader thread)
         self.requests = 0  # SET_MESSAGE_INTERVAL commands sent
         self.timeline_resets = 0  # the autopilot's time jumped back or far ahead (reboot)
+        #: messages skipped: duplicates, overtaken ones, or a sample whose time on our clock
+        #: would not come after the previous sample's (across a new timeline)
+        self.out_of_order = 0
+        self._last_t_ns: int | None = None  # the newest sample's time on our clock, ns
+        self._lost_carry = 0  # samples lost before a skipped sample, counted with the next
         self.queue_overflows = 0
         self.refusals = 0  # SET_MESSAGE_INTERVAL answered with anything but ACCEPTED
         self.refusal = ""  # the last refusal, for humans
@@ -223,16 +249,22 @@ class MavlinkImuSource(ImuSource):
     def _on_message(self, msg: Any, rx_ns: int) -> None:
         """An IMU message arrived (reader thread): decode, stamp, queue."""
         r = self._decode(msg)
-        self._last_imu_rx_ns = rx_ns
-        self.link.timeline.arrival(r.remote_us, rx_ns)
+        prev_rx_ns, self._last_imu_rx_ns = self._last_imu_rx_ns, rx_ns
         last = self._last_remote_ns
         remote_ns = r.remote_us * 1000
-        if last is not None and (remote_ns <= last or remote_ns - last > MAX_GAP_S * 1e9):
-            # the autopilot rebooted (its time went back) or its clock jumped: a new timeline
-            self.timeline_resets += 1
-            self.link.timeline.reset()
-            self.link.timeline.arrival(r.remote_us, rx_ns)
-            self._clock, self._warmup = None, []
+        if last is not None:
+            if last - REORDER_S * 1e9 <= remote_ns <= last:
+                # a duplicate (a router with two paths) or a message overtaken on the way: its
+                # sample is not used (the later one counted it lost), the timeline stays
+                self.out_of_order += 1
+                return
+            ahead_ns = (remote_ns - last) - (rx_ns - prev_rx_ns)
+            if remote_ns < last or remote_ns - last > MAX_GAP_S * 1e9 or ahead_ns > MAX_LEAD_S * 1e9:
+                # the autopilot rebooted (its time went back) or its clock jumped: a new timeline
+                self.timeline_resets += 1
+                self.link.timeline.reset()
+                self._clock, self._warmup = None, []
+        self.link.timeline.arrival(r.remote_us, rx_ns)
         self._last_remote_ns = remote_ns
         if self._clock is None:
             # the stream's real rate, from its first spacings: an autopilot may not give the
@@ -282,16 +314,35 @@ class MavlinkImuSource(ImuSource):
         steady_ns = int(self._clock.stamp_indexed(remote_ns, self._index))  # type: ignore[union-attr]
         self._stamped_ns = steady_ns
         t_ns = self.link.timeline.to_local_ns(steady_ns // 1000) + steady_ns % 1000  # type: ignore[operator]
+        if self._last_t_ns is not None and t_ns <= self._last_t_ns:
+            # a new timeline mapped at or before what was already handed out: the estimator's
+            # times must increase (a dt <= 0 of -1800 s went into the estimate before)
+            self.out_of_order += 1
+            self._lost_carry += lost  # the losses before it stay counted, with the next sample
+            return
+        self._last_t_ns = t_ns
+        lost, self._lost_carry = lost + self._lost_carry, 0
         flags = GYR_VALID | ACC_VALID
         mag = r.mag
         if mag is not None and np.all(np.isfinite(mag)) and mag.any():  # all zeros: no compass
-            flags |= MAG_VALID | (MAG_NEW if r.mag_new else 0)
+            if np.abs(mag).max() > MAX_READING["mag"]:
+                mag = None
+                self.diagnostics.saturated += 1
+                flags |= MAG_SATURATED
+            else:
+                flags |= MAG_VALID | (MAG_NEW if r.mag_new else 0)
         else:
             mag = None
-        for part, bit in (("gyr", GYR_VALID), ("acc", ACC_VALID)):
-            if not np.all(np.isfinite(getattr(r, part))):
+        for part, bit, sat in (("gyr", GYR_VALID, GYR_SATURATED), ("acc", ACC_VALID, ACC_SATURATED)):
+            values = getattr(r, part)
+            if not np.all(np.isfinite(values)):
                 flags &= ~bit
                 self.diagnostics.non_finite += 1
+            elif np.abs(values).max() > MAX_READING[part]:
+                # beyond any part's range: a corrupt or hostile message, not a motion; the
+                # estimator skips it as it skips a saturated reading of our own parts
+                flags = (flags & ~bit) | sat
+                self.diagnostics.saturated += 1
         if len(self._queue) == self._queue.maxlen:
             self.queue_overflows += 1
             self.diagnostics.lost.host_stall += 1
@@ -323,7 +374,8 @@ class MavlinkImuSource(ImuSource):
         d.dropped_frames = s.bad_data
         d.last_error = self.refusal or s.last_error
         d.extra.update(link_losses=s.losses, link_recoveries=s.recoveries, stream_requests=self.requests,
-                       timeline_resets=self.timeline_resets, clock_steps=self.link.timeline.steps,
+                       timeline_resets=self.timeline_resets, out_of_order=self.out_of_order,
+                       clock_steps=self.link.timeline.steps,
                        stream_refusals=self.refusals)
 
     def _pop(self) -> _Queued | None:

@@ -1,0 +1,156 @@
+"""A hostile or broken autopilot on the link (``source.type = "mavlink"``): IMU messages with
+NaN, infinite and absurd finite values, duplicated and overtaken messages, a clock that steps
+by half an hour, and ATTITUDE_QUATERNION that is no rotation (zero, NaN).
+
+Issue 14 probe (14d), over real UDP on 127.0.0.1 with the simulated flight controller
+(tests/sim_autopilot.py). Before: a zero quaternion from the autopilot ended the service's
+loop (ZeroDivisionError in the attitude monitor); a NaN gyro reading was published as NaN
+ATTITUDE rates; 3e38 rad/s went out as the body rate and 1e6 rad/s for 50 ms turned the
+estimate upside down; a duplicated IMU message started a new timeline (its samples waited
+again for TIMESYNC); a 30-minute step of the autopilot's clock counted 900 000 samples lost;
+and across a new timeline a sample time went back by 1 799 s (dt = −1 799 s fed to the
+estimator, a log with times going backwards).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ahrs_service.drivers.mavlink_imu import MavlinkImuSource
+from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink
+from ahrs_service.service import Service
+from tests.test_autopilot import drain, free_udp_port, service_config
+from tests.test_service import make_gcs
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from sim_autopilot import Recording, SimAutopilot, UdpTransport, mavlink  # noqa: E402
+
+N = 400
+PERIOD_US = 5000
+#: rows of the stream that carry hostile values: (first row, rows, part, value, counter)
+HOSTILE_ROWS = [
+    (100, 10, "gyr", [math.nan] * 3, "non_finite"),
+    (120, 10, "acc", [math.inf, 0.0, 0.0], "non_finite"),
+    (140, 10, "gyr", [3e38, -3e38, 3e38], "saturated"),
+    (160, 10, "acc", [1e30, 1e30, -1e30], "saturated"),
+    (180, 10, "mag", [3e38, 3e38, 3e38], "saturated"),
+    (200, 10, "gyr", [1e6, 0.0, 0.0], "saturated"),
+]
+
+
+def _still() -> dict[str, np.ndarray]:
+    return {"gyr": np.tile([0.01, 0.0, 0.0], (N, 1)), "acc": np.tile([0.0, 0.0, -9.81], (N, 1)),
+            "mag": np.tile([20.0, 0.0, 45.0], (N, 1)), "q": np.tile([1.0, 0.0, 0.0, 0.0], (N, 1))}
+
+
+def test_hostile_imu_values_and_attitudes_are_counted_and_never_published(tmp_path):
+    parts = _still()
+    for first, rows, part, value, _ in HOSTILE_ROWS:
+        parts[part][first:first + rows] = value
+    parts["q"][260:300] = 0.0  # the autopilot's own attitude: a zero quaternion (10 messages at 50 Hz) …
+    parts["q"][300:340] = math.nan  # … and NaN (10 more)
+    rec = Recording.uniform(parts["gyr"], parts["acc"], parts["mag"], parts["q"], PERIOD_US)
+    gcs, gcs_port = make_gcs()
+    got: list = []
+    stop = threading.Event()
+    reader = threading.Thread(target=drain, args=(gcs, got, stop), daemon=True)
+    reader.start()
+    port = free_udp_port()
+    cfg = service_config(tmp_path, f"udpin:127.0.0.1:{port}", gcs_port, PERIOD_US,
+                         rates={"attitude_hz": 50}, monitor={"rate_hz": 10.0})
+    service = Service(cfg, duration_s=60.0)
+    service.start()
+    loop = threading.Thread(target=service.run, daemon=True)
+    loop.start()
+    sim = SimAutopilot(UdpTransport(port), rec).start()
+    try:
+        assert sim.join(30.0)
+        end = time.monotonic() + 10.0
+        while service.pipeline.samples < N and time.monotonic() < end and loop.is_alive():
+            time.sleep(0.02)
+        time.sleep(0.3)  # the last ATTITUDE and NAMED_VALUE_FLOAT
+        assert loop.is_alive(), "the service's loop ended"
+        diag = service.source.diagnostics
+        monitor = service.monitor
+    finally:
+        service.request_stop()
+        loop.join(10)
+        service.close()
+        sim.stop()
+        stop.set()
+        reader.join(2)
+        gcs.close()
+    assert service.pipeline.samples == N and diag.lost.total == 0
+    expected = {k: sum(rows for _, rows, _, _, c in HOSTILE_ROWS if c == k) for k in ("non_finite", "saturated")}
+    assert diag.non_finite == expected["non_finite"] and diag.saturated == expected["saturated"]
+    assert monitor.rejected == 20 and monitor.compared > 0
+    attitudes = [m for m in got if m.get_type() == "ATTITUDE"]
+    assert len(attitudes) > 10
+    for m in attitudes:
+        values = (m.roll, m.pitch, m.yaw, m.rollspeed, m.pitchspeed, m.yawspeed)
+        assert all(math.isfinite(v) for v in values), values
+        assert max(abs(m.rollspeed), abs(m.pitchspeed), abs(m.yawspeed)) < 0.1  # the still rate, never 3e38 or 1e6
+        assert abs(m.roll) < 0.1 and abs(m.pitch) < 0.1  # not turned over by 1e6 rad/s
+    named = [m.value for m in got if m.get_type() == "NAMED_VALUE_FLOAT"]
+    assert named and all(math.isfinite(v) for v in named)
+
+
+class _WarpedClock(SimAutopilot):
+    """The simulated autopilot, its IMU stamps rewritten per sample by ``warp(i, t_us)``: the
+    list of stamps sent for sample ``i`` (two: a duplicate or an overtaken message)."""
+
+    def __init__(self, *args, warp, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.warp = warp
+
+    def _send_imu(self, i: int) -> None:
+        g, a, m = self.rec.gyr[i], self.rec.acc[i], self.rec.mag_gauss[i]
+        for t_us in self.warp(i, self.sample_time_us(i)):
+            self.send(mavlink.MAVLink_highres_imu_message(
+                t_us, *map(float, a), *map(float, g), *map(float, m), 1013.0, 0.0, 0.0, 25.0, 0x1FFF, 0))
+            self.stats.imu_sent["HIGHRES_IMU"] = self.stats.imu_sent.get("HIGHRES_IMU", 0) + 1
+
+
+def test_duplicates_overtaken_messages_and_a_clock_step_keep_times_increasing_and_count_no_loss():
+    n, period_us, step_us = 300, 2000, 1800 * 10**6  # 500 Hz; the clock steps by 30 min at row 200
+
+    def warp(i: int, t_us: int) -> list[int]:
+        t = t_us + (step_us if i >= 200 else 0)
+        if i == 80:
+            return [t, t]  # sent twice (a router with two paths)
+        if i == 120:
+            return [t, t - period_us]  # the previous row's message again, overtaken on the way
+        return [t]
+
+    parts = _still()
+    rec = Recording.uniform(parts["gyr"][:n], parts["acc"][:n], parts["mag"][:n], parts["q"][:n], period_us)
+    port = free_udp_port()
+    link = AutopilotLink(f"udpin:127.0.0.1:{port}")
+    src = MavlinkImuSource(link, rate_hz=1e6 / period_us)
+    src.open()
+    got = []
+    sim = _WarpedClock(UdpTransport(port), rec, warp=warp).start()
+    try:
+        end = time.monotonic() + 20.0
+        while time.monotonic() < end and len(got) < n:
+            block = src.read_block()
+            got.extend(block.samples()) if len(block) else time.sleep(0.005)
+        assert sim.join(10.0)
+    finally:
+        sim.stop()
+        src.close()
+    assert src.timeline_resets == 1  # the step, not the duplicates
+    # the duplicate and the overtaken message are skipped; so is any first sample of the new
+    # timeline that TIMESYNC's drift, extrapolated over the step, maps before the last one
+    # handed out (the simulated autopilot's TIMESYNC clock does not step with its IMU stamps)
+    assert src.out_of_order >= 2 and len(got) == n - (src.out_of_order - 2)
+    assert len(got) > n - 100
+    assert src.diagnostics.lost.total == 0  # half an hour of the autopilot's clock is no loss
+    t = np.array([s.t_ns for s in got])
+    assert np.all(np.diff(t) > 0)
