@@ -37,6 +37,22 @@ ACC_SATURATED = 1 << 4
 MAG_SATURATED = 1 << 5
 MAG_NEW = 1 << 6  # the magnetometer value is a fresh reading (magnetometers run slower)
 
+#: largest reading per axis a source takes from another device's floats (the autopilot's
+#: MAVLink IMU, a DroneCAN node), rad/s, m/s², µT: twice the widest range of the IMUs flight
+#: controllers and CAN IMU nodes carry (gyroscopes ±4000 °/s — ICM-45686 —, accelerometers
+#: ±32 g, magnetometers ±4900 µT — AK09916 —). A finite value beyond it (3e38 in a float32
+#: field, 65504 in a float16 one, 1e6 rad/s) is no motion but a corrupt or hostile message: the
+#: source marks the reading saturated (``diagnostics.saturated``) and the estimator skips it.
+#: Our own parts' drivers know their full scale and flag saturation from the counts instead.
+MAX_READING = {"gyr": 2 * 4000.0 * math.pi / 180.0, "acc": 2 * 32 * 9.80665, "mag": 2 * 4900.0}
+
+
+def beyond_range(values, part: str) -> bool:
+    """Whether a finite reading of ``part`` ("gyr", "acc", "mag") has an axis beyond
+    :data:`MAX_READING`."""
+    limit = MAX_READING[part]
+    return any(abs(float(v)) > limit for v in values)
+
 
 @dataclass(slots=True)
 class ImuSample:

@@ -60,6 +60,7 @@ from ahrs_service.drivers.base import (
     ImuSource,
     LossCounts,
     SampleBlock,
+    beyond_range,
 )
 from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink
 from ahrs_service.protocols.mavlink.dialect import mavlink
@@ -113,13 +114,6 @@ QUEUE_SAMPLES = 4096
 
 _HIGHRES_MAG_BITS = 0b111 << 6  # HIGHRES_IMU_UPDATED_XMAG | YMAG | ZMAG
 
-#: largest reading per axis taken from the autopilot (rad/s, m/s², µT): twice the widest range
-#: of the IMUs flight controllers carry (gyroscopes ±4000 °/s — ICM-45686 —, accelerometers
-#: ±32 g, magnetometers ±4900 µT — AK09916 —). A finite value beyond it (3e38 in a float field,
-#: 1e6 rad/s) is no motion but a corrupt or hostile message: the reading is marked saturated
-#: (``diagnostics.saturated``) and the estimator skips it — 1e6 rad/s for 50 ms turned the
-#: estimate upside down before
-MAX_READING = {"gyr": 2 * math.radians(4000.0), "acc": 2 * 32 * G, "mag": 2 * 4900.0}
 
 
 @dataclass(frozen=True, slots=True)
@@ -325,7 +319,7 @@ class MavlinkImuSource(ImuSource):
         flags = GYR_VALID | ACC_VALID
         mag = r.mag
         if mag is not None and np.all(np.isfinite(mag)) and mag.any():  # all zeros: no compass
-            if np.abs(mag).max() > MAX_READING["mag"]:
+            if beyond_range(mag, "mag"):
                 mag = None
                 self.diagnostics.saturated += 1
                 flags |= MAG_SATURATED
@@ -338,7 +332,7 @@ class MavlinkImuSource(ImuSource):
             if not np.all(np.isfinite(values)):
                 flags &= ~bit
                 self.diagnostics.non_finite += 1
-            elif np.abs(values).max() > MAX_READING[part]:
+            elif beyond_range(values, part):
                 # beyond any part's range: a corrupt or hostile message, not a motion; the
                 # estimator skips it as it skips a saturated reading of our own parts
                 flags = (flags & ~bit) | sat

@@ -7,6 +7,7 @@ and ``udp_multicast`` between two processes in a private network namespace.
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -20,7 +21,7 @@ import dronecan
 import numpy as np
 import pytest
 
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID
+from ahrs_service.drivers.base import ACC_SATURATED, ACC_VALID, GYR_SATURATED, GYR_VALID, MAG_NEW, MAG_VALID
 from ahrs_service.drivers.can.sim_node import SimulatedDroneCanImuNode
 from ahrs_service.drivers.can.source import DroneCanConfig, DroneCanImuSource
 from ahrs_service.sample_clock import SensorClockMap
@@ -703,3 +704,24 @@ def test_service_reads_can_sources_until_empty():
     for kind in ("can", "simulated_can"):
         cfg = config_mod.validate({"source": {"type": kind, "can_interface": "virtual"}})
         assert make_source(cfg.source, 200.0).may_have_backlog, kind
+
+
+def test_float16_readings_beyond_any_imu_range_are_saturated_not_estimated(buses):
+    """Issue 14 probe (14d): a node sending 65504 rad/s (float16's largest) or NaN: the reading
+    is marked saturated (or invalid) and counted, never valid for the estimator
+    (drivers.base.MAX_READING)."""
+    tx, src, clock = make(buses, node_id=42)
+    cid = dc.build_message_id(dc.RAW_IMU_ID, 42)
+    readings = [((0.1, 0.0, 0.0), (0.0, 0.0, -9.8)), ((65504.0, 0.0, 0.0), (0.0, 0.0, -9.8)),
+                ((0.1, 0.0, 0.0), (0.0, -60000.0, -9.8)), ((math.nan, 0.0, 0.0), (0.0, 0.0, -9.8)),
+                ((-60.0, 60.0, 0.0), (300.0, 0.0, -9.8))]  # the last: fast but physical (3400 °/s, 31 g)
+    got = []
+    for k, (gyr, acc) in enumerate(readings):
+        clock.t += 10_000_000
+        send_all(tx, dc.transfer_frames(cid, dc.pack_raw_imu(EPOCH_US + k * 10_000, gyr, acc), k,
+                                        dc.transfer_crc_seed(dc.RAW_IMU_ID)))
+        got.append(src.read())
+    flags = [s.flags & (GYR_VALID | ACC_VALID | GYR_SATURATED | ACC_SATURATED) for s in got]
+    assert flags == [GYR_VALID | ACC_VALID, GYR_SATURATED | ACC_VALID, GYR_VALID | ACC_SATURATED, ACC_VALID,
+                     GYR_VALID | ACC_VALID]
+    assert src.diagnostics.saturated == 2 and src.diagnostics.non_finite == 1

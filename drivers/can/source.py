@@ -28,12 +28,16 @@ import can
 import numpy as np
 
 from ahrs_service.drivers.base import (
+    ACC_SATURATED,
     ACC_VALID,
+    GYR_SATURATED,
     GYR_VALID,
     MAG_NEW,
+    MAG_SATURATED,
     MAG_VALID,
     ImuSample,
     ImuSource,
+    beyond_range,
 )
 from ahrs_service.protocols.dronecan import (
     GAUSS_TO_UT,
@@ -255,24 +259,27 @@ class DroneCanImuSource(ImuSource):
     def _sample(self, p: list) -> ImuSample:
         t_ns, usec, gyr, acc, mag_new, mag, src = p
         flags = 0
-        if _finite(gyr):
-            flags |= GYR_VALID
-        else:
-            self.diagnostics.non_finite += 1
-        if _finite(acc):
-            flags |= ACC_VALID
-        else:
-            self.diagnostics.non_finite += 1
+        for values, part, valid, saturated in ((gyr, "gyr", GYR_VALID, GYR_SATURATED), (acc, "acc", ACC_VALID, ACC_SATURATED)):
+            if not _finite(values):
+                self.diagnostics.non_finite += 1
+            elif beyond_range(values, part):  # 65504 rad/s in a float16: no motion (drivers.base.MAX_READING)
+                flags |= saturated
+                self.diagnostics.saturated += 1
+            else:
+                flags |= valid
         mag_a = None
         if mag is not None:
             # float16 values: finite ones stay finite when scaled to µT
             mag_a = np.array(mag, dtype=np.float64) * GAUSS_TO_UT
-            if _finite(mag):
+            if not _finite(mag):
+                self.diagnostics.non_finite += 1
+            elif beyond_range(mag_a, "mag"):
+                flags |= MAG_SATURATED
+                self.diagnostics.saturated += 1
+            else:
                 flags |= MAG_VALID
                 if mag_new:
                     flags |= MAG_NEW
-            else:
-                self.diagnostics.non_finite += 1
         self.diagnostics.samples += 1
         return ImuSample(
             t_ns=t_ns, gyr=np.array(gyr, dtype=np.float64), acc=np.array(acc, dtype=np.float64),
