@@ -80,6 +80,7 @@ class LiveView:
         self._params = self._current_params()
         self.published = 0  # messages handed to the server
         self.ignored_sets = 0  # set requests for unknown names or with non-numeric values
+        self.refused_sets = 0  # set requests the estimator or the EST_* bounds refused (applied by the loop)
         self._ctx = foxglove.Context()
         self._channels = {
             topic: foxglove.Channel(
@@ -144,12 +145,26 @@ class LiveView:
 
     def _apply(self, req: _SetRequest) -> None:
         try:
+            lo, hi = self._bounds(req.name)
+            if not lo <= req.value <= hi:  # NaN too: the bounds a MAVLink PARAM_SET has
+                raise ValueError(f"outside [{lo:g}, {hi:g}]")
             self.service.set_estimator_param(req.name, req.value, source="foxglove")
         except (KeyError, ValueError, TypeError) as exc:  # a value the estimator refuses
+            self.refused_sets += 1
             log.warning("live view: parameter %s = %r refused: %s", req.name, req.value, exc)
         self._params = self._current_params()
         req.done.set()
         self._server.publish_parameter_values(self._parameters(None))
+
+    def _bounds(self, name: str) -> tuple[float, float]:
+        """[minimum, maximum] of estimator parameter ``name``: those of its MAVLink EST_*
+        parameter (``mavlink_bridge.estimator_param_bounds`` around the estimator's default),
+        so a Foxglove client cannot put into the filter what a ground station may not (1e300)."""
+        from ahrs_service import estimators
+        from ahrs_service.mavlink_bridge import estimator_param_bounds
+
+        default = estimators.create(self.service.estimator.name).get_params()[name]
+        return estimator_param_bounds(float(default))
 
     def params_changed(self) -> None:
         """The estimator's parameters changed another way (MAVLink, reload): tells the clients."""

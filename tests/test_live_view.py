@@ -194,3 +194,40 @@ def test_run_live_flag_starts_the_view(tmp_path, caplog):
     with caplog.at_level(logging.INFO, logger="ahrs_service"):
         assert main(["run", "-c", str(cfg), "--live", "--no-log", "--duration", "0.3"]) == 0
     assert any(f"ws://127.0.0.1:{port}" in r.getMessage() for r in caplog.records)
+
+
+def test_parameter_sets_outside_the_mavlink_bounds_are_refused(tmp_path):
+    """Issue 14 probe (14d): a Foxglove client could set ``estimator.beta = 1e300`` (or 3e38,
+    or -1; NaN is no JSON, which the SDK drops) — the bounds a MAVLink PARAM_SET has (``mavlink_bridge.estimator_param_bounds``)
+    did not apply to the live view's sets. Now they do; the answer carries the value in force,
+    and a set inside the bounds still works."""
+    from ahrs_service import estimators
+    from ahrs_service.mavlink_bridge import estimator_param_bounds
+
+    run = live_service(tmp_path)
+    port = run.service.live.port
+    beta0 = run.service.estimator.get_params()["beta"]
+    lo, hi = estimator_param_bounds(estimators.create("madgwick").get_params()["beta"])
+
+    async def session():
+        answers = []
+        async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS) as ws:
+            await _ops(ws, "serverInfo")
+            for i, value in enumerate((1e300, 3e38, hi * 1.01, -1.0, beta0 * 3)):
+                await ws.send(json.dumps({"op": "setParameters", "id": f"s{i}",
+                                          "parameters": [{"name": "estimator.beta", "value": value}]}))
+                answer = await _ops(ws, "parameterValues")
+                answers.append({p["name"]: p["value"] for p in answer["parameters"]}["estimator.beta"])
+        return answers
+
+    try:
+        answers = asyncio.run(session())
+        beta = run.service.estimator.get_params()["beta"]
+        refused = run.service.live.refused_sets
+    finally:
+        run.stop()
+    assert answers[:4] == [pytest.approx(beta0)] * 4 and refused == 4
+    assert answers[4] == pytest.approx(beta0 * 3) and beta == pytest.approx(beta0 * 3)
+    (path,) = (tmp_path / "logs").glob("*.mcap")
+    params = [decode(d) for topic, _, _, d in MessageSource(path) if topic == "/params"]
+    assert [p["new"] for p in params] == [pytest.approx(beta0 * 3)]  # only the set inside the bounds
