@@ -9,6 +9,7 @@ log is read up to the damage, and the damage is reported in ``RecordedLog.damage
 from __future__ import annotations
 
 import os
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
@@ -52,10 +53,22 @@ class MessageSource:
             return None
         if summary is None or not summary.chunk_indexes:
             return None
-        if any(c.uncompressed_size > MAX_CHUNK_BYTES or c.compression not in ("zstd", "lz4", "")
-               for c in summary.chunk_indexes):
+        if not all(self._chunk_as_indexed(f, c) for c in summary.chunk_indexes):
             return None  # the library would decompress it whole: the stream read bounds and reports it
         return reader
+
+    @staticmethod
+    def _chunk_as_indexed(f: Any, index: Any) -> bool:
+        """Whether the Chunk record at ``index.chunk_start_offset`` says what its index says
+        (size within :data:`MAX_CHUNK_BYTES`, a known compression): the library decompresses a
+        chunk to the size its *record* states, so an index that lies cannot hide a bomb."""
+        if index.uncompressed_size > MAX_CHUNK_BYTES or index.compression not in ("zstd", "lz4", ""):
+            return False
+        f.seek(index.chunk_start_offset)
+        head = f.read(9 + 28)  # opcode, length; message start/end time, uncompressed size, CRC
+        if len(head) < 37 or head[0] != 0x06:
+            return False
+        return struct.unpack_from("<Q", head, 9 + 16)[0] == index.uncompressed_size
 
     def __iter__(self) -> Iterator[tuple[str, int, int, bytes]]:
         with open(self.path, "rb") as f:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+import sys
 import zlib
 from pathlib import Path
 
@@ -278,3 +279,50 @@ def test_fleet_replay_of_hostile_logs_gives_each_a_row(tmp_path):
     assert rows[1].error == "no sample to replay" and "$.gyr: expected an array of 3 numbers" in rows[1].damage
     assert rows[2].error is None and "needs 1099511627776 bytes" in rows[2].damage
     assert not math.isnan(rows[2].rms_diff_vs_recorded_deg or 0.0)
+
+
+def _indexed_file(path: Path, bad_chunk: bytes, claimed_size: int) -> Path:
+    """A complete file (summary, chunk indexes, footer) whose second chunk's index claims
+    ``claimed_size`` bytes uncompressed, whatever its Chunk record says."""
+    from mcap.data_stream import RecordBuilder
+    from mcap.records import ChunkIndex
+
+    schema = _rec(0x03, struct.pack("<H", 1) + _str("ahrs.ImuRaw") + _str("jsonschema") + struct.pack("<I", 2) + b"{}")
+    channel = _rec(0x04, struct.pack("<HH", 1, 1) + _str("/imu/raw") + _str("json") + struct.pack("<I", 0))
+    good = _rec(0x05, struct.pack("<HIQQ", 1, 0, 5, 5) + json.dumps({**RAW, "t_ns": 5}).encode())
+    first = _chunk(zstandard.ZstdCompressor().compress(good), len(good), zlib.crc32(good))
+    head = MAGIC + _rec(0x01, _str("") + _str("test")) + schema + channel
+    body = head + first + bad_chunk + _rec(0x0F, struct.pack("<I", 0))
+    index = RecordBuilder()
+    for offset, chunk, size in ((len(head), first, len(good)), (len(head) + len(first), bad_chunk, claimed_size)):
+        ChunkIndex(chunk_length=len(chunk), chunk_start_offset=offset, compression="zstd",
+                   compressed_size=len(chunk) - 60, message_end_time=5, message_index_length=0,
+                   message_index_offsets={}, message_start_time=5, uncompressed_size=size).write(index)
+    footer = _rec(0x02, struct.pack("<QQI", len(body), 0, 0))
+    path.write_bytes(body + schema + channel + index.end() + footer + MAGIC)
+    return path
+
+
+@pytest.mark.timeout(120)
+def test_a_chunk_index_that_lies_about_a_bomb_is_not_followed(tmp_path, capsys):
+    """The summary's chunk index says 1 000 bytes; the Chunk record says (and holds) 1.2 GiB of
+    zeros in 37 kB. The mcap library decompresses a chunk to its record's size (and then walks
+    the zeros for minutes): the indexed read is not taken, the bounded stream read reports the
+    chunk. Memory is what is asserted, in a fresh interpreter: its peak stays far below the
+    bomb's size (before: over 1.2 GiB)."""
+    import subprocess
+
+    data, crc = _zero_bomb(1200)
+    path = _indexed_file(tmp_path / "idx.mcap", _chunk(data, 1200 << 20, crc), 1000)
+    code = ("import resource, sys\nfrom ahrs_service.logs.reader import read_log\nlog = read_log(sys.argv[1])\n"
+            "print(len(log), log.indexed, log.damage)\nprint(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=100)
+    assert proc.returncode == 0, proc.stderr
+    result, peak_kib = proc.stdout.strip().splitlines()
+    assert result.startswith("1 False damaged at byte") and "over the reader's limit of 256 MiB" in result
+    assert int(peak_kib) < 600 * 1024  # the interpreter with numpy and numba: ~150-250 MiB
+    rc, out, err = _run(capsys, ["log", "info", path])
+    assert rc == 1 and err == "" and "over the reader's limit" in out
+    # a sound complete file is still read through its index
+    sound = read_log(write_mcap(tmp_path / "sound.mcap", flight()))
+    assert sound.indexed and sound.damage is None and len(sound) == N
