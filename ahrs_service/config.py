@@ -494,10 +494,12 @@ def _check_estimator_params(section: dict[str, Any]) -> None:
     _check_param_ranges(section["params"], references)
 
 
-def _check_param_ranges(params: dict[str, Any], references: list[dict[str, Any]]) -> None:
+def _check_param_ranges(params: dict[str, Any], references: list[dict[str, Any]],
+                        label: str = "estimator.params.{}") -> None:
     """Each numeric value within ``CONFIG_RANGE_FACTOR`` of its reference: the largest of its
     default, its paper value (a paper's 1e9 for "gate off") and its preset's, with mavlink_bridge's
-    bounds. A finite 1e300 passes the estimator's own checks and overflows inside it."""
+    bounds. A finite 1e300 passes the estimator's own checks and overflows inside it. ``label``
+    names a parameter in the error (``"--param {}"`` on the command line)."""
     from ahrs_service.mavlink_bridge import CONFIG_RANGE_FACTOR, estimator_param_bounds
 
     def number(v: Any) -> bool:
@@ -510,8 +512,29 @@ def _check_param_ranges(params: dict[str, Any], references: list[dict[str, Any]]
         reference = max(refs, key=abs)
         lo, hi = estimator_param_bounds(float(reference), CONFIG_RANGE_FACTOR)
         if not lo <= value <= hi:
-            raise ConfigError(f"estimator.params.{name} = {value!r}: must be within {lo:g} … {hi:g} "
+            raise ConfigError(f"{label.format(name)} = {value!r}: must be within {lo:g} … {hi:g} "
                               f"({CONFIG_RANGE_FACTOR:g} × its default {reference:g})")
+
+
+def check_estimator_params(name: str, params: dict[str, Any], label: str = "--param {}") -> None:
+    """The configuration file's check of ``estimator.params`` for parameters given elsewhere
+    (``replay --param``, ``evaluate --param``): each a parameter of estimator ``name``, accepted
+    by its ``Params`` and within the same ranges as in the file (``_check_param_ranges``).
+    Raises :class:`ConfigError` naming the parameter with ``label``."""
+    from ahrs_service import estimators
+    from ahrs_service.estimators.presets import has_paper_preset, load_preset
+
+    try:
+        references = [estimators.create(name).get_params()]
+        if has_paper_preset(estimators.get(name).Params):
+            references.append(load_preset(name, "paper"))
+    except (ValueError, TypeError, OverflowError) as exc:
+        raise ConfigError(str(exc)) from None  # an unknown estimator: its own message names it
+    try:  # its own checks first (finite, positive …), then the ranges, as for the file
+        estimators.create(name, **params)
+    except (ValueError, TypeError, OverflowError) as exc:
+        raise ConfigError(str(exc)) from None  # Params' own message names the parameter
+    _check_param_ranges(params, references, label)
 
 
 def _check_source(section: dict[str, Any]) -> None:

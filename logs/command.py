@@ -181,6 +181,10 @@ def _replay_fleet(args: argparse.Namespace) -> int:
         print(f"ahrs-service replay: error: --out {str(args.out)!r} is a file; several logs need a folder", file=sys.stderr)
         return 2
     blend = _blend_time(args)  # checked before any log is replayed
+    if args.estimator and args.param:  # else each log's own estimator: checked in its replay
+        from ahrs_service.config import check_estimator_params
+
+        check_estimator_params(args.estimator, dict(args.param))
     args.out.mkdir(parents=True, exist_ok=True)
     names = [p.stem for p in paths]
     jobs = [
@@ -224,6 +228,10 @@ def _replay(args: argparse.Namespace) -> int:
             print("ahrs-service replay: error: the log names no estimator (no /config or /attitude); give --estimator NAME",
                   file=sys.stderr)
         return 2
+    if params:  # the configuration file's checks and ranges, before any sample is replayed
+        from ahrs_service.config import check_estimator_params
+
+        check_estimator_params(name, params)  # ConfigError (ValueError): cli.main's one line, exit 2
     follow = not args.no_param_changes
     blend = _blend_time(args)
     if blend is not None:

@@ -31,6 +31,13 @@ from ahrs_service.logs.mcap_file import McapLogFile
 
 
 def _effective_start(log: RecordedLog, name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The parameters the replay starts from: the recorded ones (recorded estimator only) with
+    ``params`` over them, each override checked as the configuration file's ``estimator.params``
+    are (``config.check_estimator_params``: a finite 1e300 would overflow inside the filter)."""
+    from ahrs_service.config import check_estimator_params
+
+    if params:
+        check_estimator_params(name, dict(params), label="parameter {}")
     start: dict[str, Any] = dict(log.params) if name == log.estimator else {}
     start.update(params or {})
     return start
