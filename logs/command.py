@@ -76,9 +76,15 @@ def add_subcommands(subparsers: Any) -> None:
 def _recover(args: argparse.Namespace) -> int:
     from ahrs_service.logs.recover import recover
 
+    from ahrs_service.logs.loss import log_losses
+
     report = recover(args.input, args.output)
+    # what the writer could not log (a full disk), from its counters in the last /loop: a file
+    # cut by a disk that stayed full is a clean cut ("0 bytes lost") that misses the rest
+    losses = log_losses(report.output)
     if args.json:
-        print(json.dumps(report.as_dict(), indent=2))
+        print(json.dumps({**report.as_dict(), "not_logged_samples": losses.not_logged_samples,
+                          "not_logged_s": losses.outage_s}, indent=2))
     else:
         d = report.as_dict()
         print(f"recovered {report.total_messages} messages into {report.output}")
@@ -86,6 +92,8 @@ def _recover(args: argparse.Namespace) -> int:
             print(f"  {topic:20s} {n}")
         if d["duration_s"] is not None:
             print(f"  time range {report.start_ns} .. {report.end_ns} ns ({d['duration_s']:.3f} s)")
+        if losses.not_logged_samples:
+            print(f"  not logged (disk errors): {losses.not_logged_samples} samples, {losses.outage_s:.1f} s")
         print(f"  damage: {report.damage or 'none'}")
     return 0
 

@@ -369,6 +369,7 @@ class FlightLogWriter:
         self._last_flush = time.monotonic()
         self._next_retry = 0.0
         self._config: dict[str, Any] | None = None
+        self._last_loop: dict[str, Any] = {}  # the last /loop's stats: the tail of a file ended short
         self._last_tf_ns: int | None = None
         self._state_seen = False  # the caller passes its estimator state to write_attitude
         # rotation handshake (see _Rotation); the lock makes the caller's DUE -> SNAPSHOT_QUEUED
@@ -711,7 +712,33 @@ class FlightLogWriter:
             deleted = isinstance(exc, LogFileDeleted)  # then nothing of it is left
             self._lose(*((f.messages, f.samples) if deleted else (f.unflushed, f.unflushed_samples)))
             self._error(exc, f)
+            if not deleted and isinstance(exc, OSError) and self._end_short(f):
+                return
             f.abandon()
+
+    def _end_short(self, f: McapLogFile) -> bool:
+        """A file the disk refused its end (the disk still full at the end of the run): ends
+        it with the writer's final counters instead — a /log line and a /loop whose ``log``
+        holds ``samples_not_logged`` as the service's summary states it — so that ``log info``
+        and ``log recover`` report what the file misses, not a clean cut of "0 bytes lost".
+        False when even that does not fit (the file is left as its valid prefix)."""
+        now = time.monotonic_ns()
+        lost = self.not_logged()
+        text = (f"flight log ended short: {self.last_error}; not logged: {lost.samples} samples, "
+                f"{lost.messages} messages, {lost.seconds:.1f} s")
+        counters = {"t_ns": now, "log": self.stats()}
+        # the room left may be a few hundred bytes (the rest of the file's last block on a
+        # full disk; the limit under RLIMIT_FSIZE): the whole tail first, then the counters alone
+        tails = ([("/log", now, log_message(now, 3, text)), ("/loop", now, {**jsonable(self._last_loop), **counters})],
+                 [("/loop", now, counters)])
+        for tail in tails:
+            try:
+                f.end_short(tail, self.fsync)
+            except OSError:
+                continue
+            self.written += len(tail)
+            return True
+        return False  # not even the counters fit: the prefix stays
 
     def _finish(self) -> None:
         self._close_file()
@@ -968,6 +995,7 @@ class FlightLogWriter:
             self._write("/attitude/truth", item.t_ns, truth_message(item.t_ns, item.q, item.movement, item.source))
 
     def _on_loop(self, item: _Loop) -> None:
+        self._last_loop = dict(item.stats)
         if self._ensure_file(1):
             self._write("/loop", item.t_ns, {"t_ns": int(item.t_ns), **jsonable(item.stats)})
 
