@@ -193,6 +193,37 @@ def _endpoints(key: str, v: Any) -> list[str]:
     return out
 
 
+def check_endpoint_hosts(cfg: "Config") -> list[str]:
+    """``config --check``'s look at the hosts of ``mavlink.endpoints`` now (a DNS lookup:
+    never done by :func:`validate`, which ``run`` and reloads use). A listening endpoint
+    (``udpin``, ``udp``, ``tcpin``) whose host does not resolve is a :class:`ConfigError`:
+    ``run`` cannot bind it either. A destination (``udpout``, ``udpbcast``, ``tcp``) that
+    does not resolve *now* is a warning, returned as one line each: a companion may start
+    before DNS is up; ``run`` then resolves a ``udpout``/``udpbcast`` name off the loop and
+    retries (docs/mavlink.md, "Connection strings"), while ``tcp`` connects once at start."""
+    from ahrs_service.protocols.mavlink.endpoints import destination_host, is_numeric, resolve
+
+    warnings = []
+    for i, url in enumerate(cfg.mavlink["endpoints"]):
+        key = f"mavlink.endpoints[{i}]"
+        scheme, _, rest = url.partition(":")
+        dest = destination_host(url)
+        host = dest[0] if dest is not None else (rest.rpartition(":")[0] if scheme in ("udpin", "udp", "tcpin") else "")
+        if not host or is_numeric(host):
+            continue
+        try:
+            resolve(host)
+        except OSError as exc:
+            why = getattr(exc, "strerror", None) or str(exc)
+            if dest is None:
+                raise ConfigError(f"{key}: {url!r}: host {host!r} does not resolve ({why}); accepted: a local "
+                                  f"address to listen on (0.0.0.0, 127.0.0.1, this computer's name)") from None
+            then = ("run starts anyway, retries resolving it and sends nothing to it meanwhile" if scheme != "tcp"
+                    else "run connects once at start and exits with an error while it does not resolve")
+            warnings.append(f"{key}: {url!r}: host {host!r} does not resolve now ({why}); {then}")
+    return warnings
+
+
 def _listening_port(endpoint: str) -> tuple[str, int] | None:
     """("udp", PORT) or ("tcp", PORT) for an endpoint that binds a local port (``udpin``, and
     ``udp``, which mavutil opens as udpin; ``tcpin``), whatever its host: two of them on one port
