@@ -200,13 +200,20 @@ def check_endpoint_hosts(cfg: "Config") -> list[str]:
     ``run`` cannot bind it either. A destination (``udpout``, ``udpbcast``, ``tcp``) that
     does not resolve *now* is a warning, returned as one line each: a companion may start
     before DNS is up; ``run`` then resolves a ``udpout``/``udpbcast`` name off the loop and
-    retries (docs/mavlink.md, "Connection strings"), while ``tcp`` connects once at start."""
+    retries (docs/mavlink.md, "Connection strings"), while ``tcp`` connects once at start. A
+    serial device that does not exist now is a warning too (``run`` opens it once at start)."""
     from ahrs_service.protocols.mavlink.endpoints import destination_host, is_numeric, resolve
 
     warnings = []
     for i, url in enumerate(cfg.mavlink["endpoints"]):
         key = f"mavlink.endpoints[{i}]"
         scheme, _, rest = url.partition(":")
+        device = url.partition(",")[0]
+        if device.startswith("/") and not Path(device).exists():
+            # a USB adapter udev has not named yet at boot: like a name DNS does not know yet
+            warnings.append(f"{key}: {url!r}: serial device {device} does not exist now; run opens it once at "
+                            f"start and exits with an error while it is missing")
+            continue
         dest = destination_host(url)
         host = dest[0] if dest is not None else (rest.rpartition(":")[0] if scheme in ("udpin", "udp", "tcpin") else "")
         if not host or is_numeric(host):

@@ -134,3 +134,24 @@ def test_a_listening_address_that_does_not_resolve_is_refused_by_check_and_run(t
                                     f"'{NOWHERE}' does not resolve (Name or service not known); accepted: a local "
                                     f"address to listen on (0.0.0.0, 127.0.0.1, this computer's name)")
     assert "Traceback" not in run.stderr and run.stderr.strip().endswith("Name or service not known"), run.stderr
+
+
+@pytest.mark.parametrize("url, warning", [
+    (f"tcp:{NOWHERE}:5760", f"host '{NOWHERE}' does not resolve now (Name or service not known); run connects once at start"),
+    ("/dev/ahrs-no-such-tty,57600", "serial device /dev/ahrs-no-such-tty does not exist now; run opens it once at start"),
+])
+def test_an_endpoint_run_opens_once_at_start_is_a_warning_of_check_and_an_error_of_run(tmp_path, url, warning):
+    """`tcp:` connects and a serial device is opened once at start: check warns (the file is
+    valid, the network or udev may not be ready yet), run refuses in one line (exit 1;
+    systemd's Restart=on-failure starts it again)."""
+    cfg = tmp_path / "config.toml"
+    cfg.write_text(f'[mavlink]\nendpoints = ["{url}"]\n[log]\nenabled = false\n')
+    check = subprocess.run(ahrs_service_command() + ["config", "--check", str(cfg)], capture_output=True, text=True,
+                           timeout=120)
+    run = subprocess.run(ahrs_service_command() + ["run", "--config", str(cfg), "--duration", "1"],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    err = check.stderr.strip()
+    assert check.returncode == 0 and "\n" not in err, check.stderr
+    assert err.startswith(f"ahrs-service: warning: mavlink.endpoints[0]: {url!r}: {warning}"), err
+    assert run.returncode == 1 and "Traceback" not in run.stderr, run.stderr
+    assert run.stderr.strip().startswith(f"ahrs-service: cannot start: cannot open MAVLink endpoint {url!r}: ")
