@@ -1,7 +1,7 @@
 """8 kHz ICM-42688-P over the simulated SPI bus: what the service's own work costs.
 
     python benchmarks/spi_8khz.py [--seconds 20] [--odr 8000] [--loop-hz 1000] [--estimator madgwick]
-                                  [--publish 200] [--drdy] [--stall-ms 0]
+                                  [--publish 200] [--drdy] [--stall-ms 0] [--log-messages per-sample]
 
 What runs, in this process: the service (scheduler, driver reading the FIFO in bursts over the
 simulated SPI bus, estimator on every sample, MCAP log of every sample, ATTITUDE and
@@ -106,6 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--publish", type=float, default=200.0)
     ap.add_argument("--drdy", action="store_true", help="wake on the simulated watermark line")
     ap.add_argument("--stall-ms", type=float, default=0.0, help="stop the loop this long once a second")
+    ap.add_argument("--log-messages", choices=("config", "per-sample"), default="config",
+                    help="config: the default log.block_messages_above_hz (one message per burst at 8 kHz); "
+                         "per-sample: one /imu/raw + /attitude per sample, for comparison")
     args = ap.parse_args(argv)
 
     from ahrs_service import config, service as service_mod, sources
@@ -164,7 +167,8 @@ def main(argv: list[str] | None = None) -> int:
             "rates": {"estimation_hz": min(args.loop_hz, 2000.0), "attitude_hz": args.publish,
                       "attitude_quaternion_hz": args.publish},
             "mavlink": {"endpoints": [f"udpout:127.0.0.1:{port}"]},
-            "log": {"directory": str(Path(tmp) / "logs")},
+            "log": {"directory": str(Path(tmp) / "logs"),
+                    **({"block_messages_above_hz": 1_000_000.0} if args.log_messages == "per-sample" else {})},
         })
         service_mod.make_source = make_source  # the recording-fed twin instead of the live simulator
         sources.make_source = make_source
@@ -228,13 +232,14 @@ def main(argv: list[str] | None = None) -> int:
         stop.set()
         listener.join(1.0)
     twin_pct = twin_us * real_rate / 1e4
+    log_layout = "per sample" if args.log_messages == "per-sample" else f"per burst above {cfg.log['block_messages_above_hz']:g} Hz"
     loop_pct = threads.get("MainThread", 0.0) - sim_pct
     writer_pct = threads.get("flight-log-writer", 0.0)
     peer_pct = threads.get("gcs-peer", 0.0)
     print()
     print(f"| {args.odr:.0f} Hz ICM-42688-P, simulated SPI, {args.estimator}, publish {args.publish:.0f} Hz, "
           f"{'data-ready line' if args.drdy else f'timer {args.loop_hz:.0f} Hz'}"
-          f"{f', {args.stall_ms:.0f} ms stall a second' if args.stall_ms else ''} | value |")
+          f"{f', {args.stall_ms:.0f} ms stall a second' if args.stall_ms else ''}, log {log_layout} | value |")
     print("|---|---|")
     print(f"| wall time of the run, s | {wall:.1f} |")
     print(f"| CPU of the process (service + twin), % of one core | {cpu:.1f} |")

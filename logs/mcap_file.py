@@ -128,7 +128,9 @@ class McapLogFile:
         self._schemas: dict[str, int] = {}
         self._seq: dict[int, int] = {}
         self.unflushed = 0  # messages written since the last commit (lost if the process dies now)
-        self._committed_samples = 0  # /imu/raw samples on disk at the last commit
+        #: IMU samples written (/imu/raw messages, /imu/raw_block rows)
+        self.samples = 0
+        self._committed_samples = 0  # of which on disk at the last commit
         self.closed = False
         self._finished = False  # the summary is staged: only commit() is left to do
 
@@ -149,8 +151,12 @@ class McapLogFile:
         time the wall clock now (ns since the epoch) unless given."""
         self.write_encoded(topic, log_time_ns, encode(message), publish_time_ns)
 
-    def write_encoded(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None) -> None:
-        """Writes one message already encoded (``schemas.encode``) on ``topic``."""
+    def write_encoded(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None,
+                      *, samples: int | None = None) -> None:
+        """Writes one message already encoded (``schemas.encode``) on ``topic``.
+
+        samples: IMU samples the message carries (counted in :attr:`samples`); None: one for
+        /imu/raw, none for any other topic. An /imu/raw_block message gives its row count."""
         cid = self._channels.get(topic)
         if cid is None:
             cid = self._new_channel(topic)
@@ -159,6 +165,7 @@ class McapLogFile:
             cid, int(log_time_ns), data, time.time_ns() if publish_time_ns is None else int(publish_time_ns), seq
         )
         self._seq[cid] = seq  # counted once written: messages and samples count from here
+        self.samples += (topic == "/imu/raw") if samples is None else samples
         self.unflushed += 1
         if self._out.staged >= COMMIT_BYTES:
             self.retry(fsync=False)
@@ -189,14 +196,8 @@ class McapLogFile:
         return sum(self._seq.values())
 
     @property
-    def samples(self) -> int:
-        """Of which /imu/raw samples."""
-        cid = self._channels.get("/imu/raw")
-        return 0 if cid is None else self._seq[cid]
-
-    @property
     def unflushed_samples(self) -> int:
-        """/imu/raw samples written since the last commit."""
+        """IMU samples written since the last commit."""
         return self.samples - self._committed_samples
 
     @property
