@@ -56,6 +56,7 @@ from typing import Any, Callable, Mapping, Protocol
 
 import numpy as np
 
+from ahrs_service.estimators import SAMPLE_ROW
 from ahrs_service.logs.mcap_file import LogFileDeleted, McapLogFile
 from ahrs_service.logs.schemas import (
     attitude_block_message,
@@ -554,7 +555,7 @@ class FlightLogWriter:
                 None if truth_q is None else np.array(truth_q, dtype=np.float64),
                 None if diagnostics is None else dict(diagnostics),
                 # the middle row's dt: not the long one after a gap, which starts a block
-                float(rows[n // 2, 9]) < self.block_messages_below_dt_s,
+                float(rows[n // 2, SAMPLE_ROW.index.dt]) < self.block_messages_below_dt_s,
             )
         )
         self.samples += n
