@@ -399,6 +399,9 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "rotate_minutes": (0.0, _number(0.0, 525_600.0)),  # 0 = no time rotation; at most a year
         # the estimator's diagnostics (rest, rejections, form) in /attitude this often, Hz
         "diagnostics_hz": (10.0, _number(0.0, 1000.0)),
+        # samples faster than this are logged one message per FIFO burst (/imu/raw_block,
+        # /attitude_block) instead of one per sample, Hz; 0: always (docs/logs.md)
+        "block_messages_above_hz": (1500.0, _number(0.0, 1_000_000.0)),
     },
     # the autopilot's attitude against ours when an autopilot link is up (docs/autopilot.md)
     "monitor": {

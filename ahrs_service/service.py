@@ -314,6 +314,7 @@ class Service:
             rotate_seconds=minutes * 60 if minutes else None,
             first_sample_index=self.pipeline.samples,
             loop=self.scheduler,  # the writer leaves the interpreter free at the loop's wake-ups
+            block_messages_above_hz=cfg.log["block_messages_above_hz"],
         )
         self.log_writer.write_config(time.monotonic_ns(), self.effective_config())
 

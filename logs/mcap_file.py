@@ -139,7 +139,9 @@ class McapLogFile:
         self._schemas: dict[str, int] = {}
         self._seq: dict[int, int] = {}
         self.unflushed = 0  # messages written since the last commit (lost if the process dies now)
-        self._committed_samples = 0  # /imu/raw samples on disk at the last commit
+        #: IMU samples written (/imu/raw messages, /imu/raw_block rows)
+        self.samples = 0
+        self._committed_samples = 0  # of which on disk at the last commit
         self._committed_topics: set[str] = set()  # channels (and their schemas) on disk
         self.closed = False
         self._finished = False  # the summary is staged: only commit() is left to do
@@ -161,8 +163,12 @@ class McapLogFile:
         time the wall clock now (ns since the epoch) unless given."""
         self.write_encoded(topic, log_time_ns, encode(message), publish_time_ns)
 
-    def write_encoded(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None) -> None:
-        """Writes one message already encoded (``schemas.encode``) on ``topic``."""
+    def write_encoded(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None,
+                      *, samples: int | None = None) -> None:
+        """Writes one message already encoded (``schemas.encode``) on ``topic``.
+
+        samples: IMU samples the message carries (counted in :attr:`samples`); None: one for
+        /imu/raw, none for any other topic. An /imu/raw_block message gives its row count."""
         cid = self._channels.get(topic)
         if cid is None:
             cid = self._new_channel(topic)
@@ -171,6 +177,7 @@ class McapLogFile:
             cid, int(log_time_ns), data, time.time_ns() if publish_time_ns is None else int(publish_time_ns), seq
         )
         self._seq[cid] = seq  # counted once written: messages and samples count from here
+        self.samples += (topic == "/imu/raw") if samples is None else samples
         self.unflushed += 1
         if self._out.staged >= COMMIT_BYTES:
             self.retry(fsync=False)
@@ -202,14 +209,8 @@ class McapLogFile:
         return sum(self._seq.values())
 
     @property
-    def samples(self) -> int:
-        """Of which /imu/raw samples."""
-        cid = self._channels.get("/imu/raw")
-        return 0 if cid is None else self._seq[cid]
-
-    @property
     def unflushed_samples(self) -> int:
-        """/imu/raw samples written since the last commit."""
+        """IMU samples written since the last commit."""
         return self.samples - self._committed_samples
 
     @property
@@ -252,6 +253,7 @@ class McapLogFile:
             if topic not in self._channels:
                 self._new_channel(topic)
         self._out.drop_staged()
+        self.samples, self.unflushed = self._committed_samples, 0  # what is on disk (the tail has none)
         out = RecordBuilder()
         on_disk = set(self._committed_topics)
         schemas_on_disk = {schemas.CHANNELS[t][0] for t in on_disk}
@@ -273,8 +275,6 @@ class McapLogFile:
         Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(out)
         self._out.write(out.end() + MCAP0_MAGIC)
         self._out.commit(fsync)  # OSError: cut back to the prefix, as any failed commit
-        self.unflushed = 0
-        self._committed_samples = self.samples
         self.closed = self._finished = True
         os.close(self._out.fd)
 

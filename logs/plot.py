@@ -27,6 +27,7 @@ import numpy as np
 from ahrs_service.logs.fast_scan import scan_messages
 from ahrs_service.logs.reader import MessageSource
 from ahrs_service.logs.schemas import decode
+from ahrs_service.quaternion import euler_of
 
 DRAW_BINS = 2000  # envelope bins per series: a few per pixel column of a wide figure
 FORMATS = (".png", ".pdf", ".svg")
@@ -92,6 +93,28 @@ def read_series(path: str | Path, progress: bool = True) -> LogSeries:
             rej.append(bool(d.get("mag_disturbed", False)))
             red.append(bool(d.get("reduced", False)))
 
+    def on_raw_block(log_time: int, data: bytes) -> None:  # one FIFO burst: its rows
+        m = decode(data)
+        n = len(m["t_ns"])
+        raw_t.extend(m["t_ns"])
+        gyr.extend(m["gyr"])
+        acc.extend(m["acc"])
+        mag.extend(m.get("mag") or [_NAN3] * n)
+        count[0] += n
+        if bar is not None and count[0] % 8192 < n:
+            bar.update(8192)
+
+    def on_attitude_block(log_time: int, data: bytes) -> None:
+        # the rows' attitude; the block log's /attitude (at the /tf rate) carries the diagnostics
+        m = decode(data)
+        att_t.extend(m["t_ns"])
+        att.extend(euler_of([np.nan if v is None else v for v in q]) for q in m["q"])
+
+    def on_truth_block(log_time: int, data: bytes) -> None:
+        m = decode(data)
+        tr_t.extend(m["t_ns"])
+        tr.extend(euler_of([np.nan if v is None else v for v in q]) for q in m["q"])
+
     def on_truth(log_time: int, data: bytes) -> None:
         m = decode(data)
         tr_t.append(log_time)
@@ -112,7 +135,8 @@ def read_series(path: str | Path, progress: bool = True) -> LogSeries:
         events.append((log_time, int(m.get("level", 0)), str(m.get("message", ""))))
 
     handlers = {"/imu/raw": on_raw, "/attitude": on_attitude, "/attitude/truth": on_truth, "/loop": on_loop,
-                "/log": on_log}
+                "/log": on_log, "/imu/raw_block": on_raw_block, "/attitude_block": on_attitude_block,
+                "/attitude/truth_block": on_truth_block}
     try:
         scan = scan_messages(path, handlers)
         damage, n = scan.damage, scan.messages

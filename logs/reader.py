@@ -80,7 +80,9 @@ def _vec(values: Any, n: int) -> list[float]:
 
 @dataclass
 class RecordedLog:
-    """A flight log as arrays. Rows are the /imu/raw samples, in file order.
+    """A flight log as arrays. Rows are the /imu/raw samples (and the rows of /imu/raw_block
+    bursts), in file order; the /attitude of a block log (written at the /tf rate for
+    Foxglove) repeats rows of its /attitude_block.
 
     t_ns (N,) int64 sample times; rows (N, 10) float64 [gx, gy, gz, ax, ay, az, mx, my, mz, dt]
     exactly as fed to the estimator (rad/s, m/s², µT, s; NaN where null); flags (N,) int64;
@@ -152,6 +154,14 @@ def read_log(path: str | os.PathLike) -> RecordedLog:
     return log
 
 
+def _rows_of_block(m: dict[str, Any]) -> list[list[float]]:
+    """The (n, 10) sample rows of an /imu/raw_block message (NaN where null)."""
+    dt = m["dt"]
+    n = len(dt)
+    return [_vec(g, 3) + _vec(a, 3) + _vec(b, 3) + _vec([d], 1)
+            for g, a, b, d in zip(m["gyr"], m["acc"], m.get("mag") or [None] * n, dt)]
+
+
 def _read(source: MessageSource) -> RecordedLog:
     path = source.path
     t_ns: list[int] = []
@@ -182,6 +192,27 @@ def _read(source: MessageSource) -> RecordedLog:
             flags.append(int(m["flags"]))
             i = m.get("index")  # null or absent (schema allows both): the row number in this file
             index.append(len(index) if i is None else int(i))
+        elif topic == "/imu/raw_block":  # one FIFO burst: its rows as that many /imu/raw
+            m = decode(data)
+            times = [int(t) for t in m["t_ns"]]
+            t_ns.extend(times)
+            sources = m.get("t_source_ns")
+            t_src.extend(times if sources is None else [int(t) for t in sources])
+            rows.extend(_rows_of_block(m))
+            flags.extend(int(f) for f in m["flags"])
+            first = int(m["first_index"])
+            index.extend(range(first, first + len(times)))
+        elif topic in ("/attitude_block", "/attitude/original_block"):
+            m = decode(data)
+            (att_t if topic == "/attitude_block" else orig_t).extend(int(t) for t in m["t_ns"])
+            (att_q if topic == "/attitude_block" else orig_q).extend(_vec(q, 4) for q in m["q"])
+            if topic == "/attitude_block" and att_estimator is None:
+                att_estimator = m.get("estimator")
+        elif topic == "/attitude/truth_block":
+            m = decode(data)
+            tru_t.extend(int(t) for t in m["t_ns"])
+            tru_q.extend(_vec(q, 4) for q in m["q"])
+            tru_m.extend([np.nan] * len(m["t_ns"]))
         elif topic in ("/attitude", "/attitude/original"):
             m = decode(data)
             (att_t if topic == "/attitude" else orig_t).append(int(m["t_ns"]))
