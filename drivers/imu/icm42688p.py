@@ -54,9 +54,10 @@ datasheet)"); Zephyr ``drivers/sensor/tdk/icm42688/icm42688_reg.h`` (20f7c36f),
 mask 0x78, FIFO_CONFIG 0x80, FIFO_FLUSH 2). Every address, bit and code above is confirmed by
 at least two of them, with these exceptions: the 16-bit FIFO timestamp's unit (1 µs with
 TMST_CONFIG.TMST_RES = 0, the power-on value) is confirmed only by the register bit names;
-the power-on values of TMST_CONFIG (0x23) and INT_SOURCE0 (0x10) by one source each (PX4's
-"TMST_EN … (default)", "RESET_DONE_INT1_EN … enabled by default" in its ICM-40609-D sibling
-header); the SPI modes and I2C addresses are from the datasheet only. Fixed in this check:
+the twin's power-on TMST_CONFIG 0x23 only in its bit 0 (PX4: "TMST_EN … (default)") and
+INT_SOURCE0 0x10 by one source (PX4's ICM-40609-D sibling header: "RESET_DONE_INT1_EN …
+enabled by default"); the twin treats stream mode (FIFO_MODE 01) like stop-on-full; the SPI
+modes and I2C addresses are from the datasheet only. Fixed in this check:
 INT_CONFIG1 was never written (INT_ASYNC_RESET left at its power-on 1, no 8 µs pulse at
 ≥ 4 kHz: PX4 register header, Linux, Zephyr), and the gyro start-up wait cited a "45 ms"
 that no source gives (PX4 and Zephyr: 30 ms gyro, 10 ms accel).
@@ -94,7 +95,8 @@ FIFO_THS_INT1_EN, FIFO_FULL_INT1_EN = 0x04, 0x02
 INT1_PUSH_PULL_ACTIVE_HIGH = 0x03
 # INT_CONFIG1 (PX4 register header, Linux inv_icm42600.h, Zephyr icm42688_reg.h)
 INT_TPULSE_8US, INT_TDEASSERT_DISABLE, INT_ASYNC_RESET = 0x40, 0x20, 0x10
-#: from this ODR up: 8 µs pulses, no de-assert time (Zephyr icm42688_common.c, datasheet "required if ODR ≥ 4 kHz")
+#: from this ODR up: 8 µs pulses, no de-assert time (Zephyr icm42688_common.c; the datasheet's
+#: "required if ODR ≥ 4 kHz", quoted in PX4's ICM-40609-D register header)
 FAST_ODR_HZ = 4000
 
 ODR_CODES = {8000: 3, 4000: 4, 2000: 5, 1000: 6, 500: 15, 200: 7, 100: 8}
