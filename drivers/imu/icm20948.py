@@ -51,8 +51,9 @@ and WHO_AM_I 0xEA). Slave 4's DONE flag (I2C_MST_STATUS bit 6) and the slave-4 s
 (ADDR, REG, DO, CTRL.EN, poll DONE, read DI) are confirmed by third-party MPU-6050/MPU-9250
 and ICM-20948 register headers and AK8963 examples found in the code index (the same
 InvenSense I2C master), not by PX4 or ArduPilot, which reach the AK09916 through slave 0.
-Not confirmed by a second source: INT_STATUS_2's FIFO_OVERFLOW_INT bits 4:0 and the 13-bit
-FIFO count mask (the address only, ArduPilot), the ACCEL_CONFIG DLPFCFG 1 bandwidth, the
+INT_STATUS_2 (0x1B, ArduPilot) with one FIFO_OVERFLOW_INT bit per FIFO in 4:0: a third-party
+ICM-20948 library in the code index. Not confirmed by a second source: the 13-bit FIFO count
+mask, the ACCEL_CONFIG DLPFCFG 1 bandwidth, the
 power-on 0x01 of GYRO_CONFIG_1/ACCEL_CONFIG in the twin, and I2C_MST_CLK 7 = 345.6 kHz (PX4
 quotes the datasheet's recommendation; ArduPilot writes 13, the MPU-6000 table's 400 kHz
 code). Fixed in this check: the AK09916 was asked for its
