@@ -86,7 +86,10 @@ class _StagedOutput:
         done = 0
         try:
             while done < len(view):
-                done += os.pwrite(self.fd, view[done:], self.committed + done)
+                # released even when pwrite raises: an error's traceback keeps its arguments,
+                # and an unreleased view of the buffer forbids resizing it later
+                with view[done:] as rest:
+                    done += os.pwrite(self.fd, rest, self.committed + done)
             if fsync:
                 os.fsync(self.fd)
         except OSError:
@@ -104,7 +107,7 @@ class _StagedOutput:
         """Forgets the staged bytes (a file ended short: :meth:`McapLogFile.end_short`);
         returns how many there were."""
         n = len(self._staged)
-        del self._staged[:]
+        self._staged = bytearray()  # a new buffer: nothing may still view the old one
         return n
 
 
