@@ -193,6 +193,44 @@ def _endpoints(key: str, v: Any) -> list[str]:
     return out
 
 
+def check_endpoint_hosts(cfg: "Config") -> list[str]:
+    """``config --check``'s look at the hosts of ``mavlink.endpoints`` now (a DNS lookup:
+    never done by :func:`validate`, which ``run`` and reloads use). A listening endpoint
+    (``udpin``, ``udp``, ``tcpin``) whose host does not resolve is a :class:`ConfigError`:
+    ``run`` cannot bind it either. A destination (``udpout``, ``udpbcast``, ``tcp``) that
+    does not resolve *now* is a warning, returned as one line each: a companion may start
+    before DNS is up; ``run`` then resolves a ``udpout``/``udpbcast`` name off the loop and
+    retries (docs/mavlink.md, "Connection strings"), while ``tcp`` connects once at start. A
+    serial device that does not exist now is a warning too (``run`` opens it once at start)."""
+    from ahrs_service.protocols.mavlink.endpoints import destination_host, is_numeric, resolve
+
+    warnings = []
+    for i, url in enumerate(cfg.mavlink["endpoints"]):
+        key = f"mavlink.endpoints[{i}]"
+        scheme, _, rest = url.partition(":")
+        device = url.partition(",")[0]
+        if device.startswith("/") and not Path(device).exists():
+            # a USB adapter udev has not named yet at boot: like a name DNS does not know yet
+            warnings.append(f"{key}: {url!r}: serial device {device} does not exist now; run opens it once at "
+                            f"start and exits with an error while it is missing")
+            continue
+        dest = destination_host(url)
+        host = dest[0] if dest is not None else (rest.rpartition(":")[0] if scheme in ("udpin", "udp", "tcpin") else "")
+        if not host or is_numeric(host):
+            continue
+        try:
+            resolve(host)
+        except OSError as exc:
+            why = getattr(exc, "strerror", None) or str(exc)
+            if dest is None:
+                raise ConfigError(f"{key}: {url!r}: host {host!r} does not resolve ({why}); accepted: a local "
+                                  f"address to listen on (0.0.0.0, 127.0.0.1, this computer's name)") from None
+            then = ("run starts anyway, retries resolving it and sends nothing to it meanwhile" if scheme != "tcp"
+                    else "run connects once at start and exits with an error while it does not resolve")
+            warnings.append(f"{key}: {url!r}: host {host!r} does not resolve now ({why}); {then}")
+    return warnings
+
+
 def _listening_port(endpoint: str) -> tuple[str, int] | None:
     """("udp", PORT) or ("tcp", PORT) for an endpoint that binds a local port (``udpin``, and
     ``udp``, which mavutil opens as udpin; ``tcpin``), whatever its host: two of them on one port
@@ -361,6 +399,9 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         "rotate_minutes": (0.0, _number(0.0, 525_600.0)),  # 0 = no time rotation; at most a year
         # the estimator's diagnostics (rest, rejections, form) in /attitude this often, Hz
         "diagnostics_hz": (10.0, _number(0.0, 1000.0)),
+        # samples faster than this are logged one message per FIFO burst (/imu/raw_block,
+        # /attitude_block) instead of one per sample, Hz; 0: always (docs/logs.md)
+        "block_messages_above_hz": (1500.0, _number(0.0, 1_000_000.0)),
     },
     # the autopilot's attitude against ours when an autopilot link is up (docs/autopilot.md)
     "monitor": {
@@ -494,10 +535,12 @@ def _check_estimator_params(section: dict[str, Any]) -> None:
     _check_param_ranges(section["params"], references)
 
 
-def _check_param_ranges(params: dict[str, Any], references: list[dict[str, Any]]) -> None:
+def _check_param_ranges(params: dict[str, Any], references: list[dict[str, Any]],
+                        label: str = "estimator.params.{}") -> None:
     """Each numeric value within ``CONFIG_RANGE_FACTOR`` of its reference: the largest of its
     default, its paper value (a paper's 1e9 for "gate off") and its preset's, with mavlink_bridge's
-    bounds. A finite 1e300 passes the estimator's own checks and overflows inside it."""
+    bounds. A finite 1e300 passes the estimator's own checks and overflows inside it. ``label``
+    names a parameter in the error (``"--param {}"`` on the command line)."""
     from ahrs_service.mavlink_bridge import CONFIG_RANGE_FACTOR, estimator_param_bounds
 
     def number(v: Any) -> bool:
@@ -510,8 +553,29 @@ def _check_param_ranges(params: dict[str, Any], references: list[dict[str, Any]]
         reference = max(refs, key=abs)
         lo, hi = estimator_param_bounds(float(reference), CONFIG_RANGE_FACTOR)
         if not lo <= value <= hi:
-            raise ConfigError(f"estimator.params.{name} = {value!r}: must be within {lo:g} … {hi:g} "
+            raise ConfigError(f"{label.format(name)} = {value!r}: must be within {lo:g} … {hi:g} "
                               f"({CONFIG_RANGE_FACTOR:g} × its default {reference:g})")
+
+
+def check_estimator_params(name: str, params: dict[str, Any], label: str = "--param {}") -> None:
+    """The configuration file's check of ``estimator.params`` for parameters given elsewhere
+    (``replay --param``, ``evaluate --param``): each a parameter of estimator ``name``, accepted
+    by its ``Params`` and within the same ranges as in the file (``_check_param_ranges``).
+    Raises :class:`ConfigError` naming the parameter with ``label``."""
+    from ahrs_service import estimators
+    from ahrs_service.estimators.presets import has_paper_preset, load_preset
+
+    try:
+        references = [estimators.create(name).get_params()]
+        if has_paper_preset(estimators.get(name).Params):
+            references.append(load_preset(name, "paper"))
+    except (ValueError, TypeError, OverflowError) as exc:
+        raise ConfigError(str(exc)) from None  # an unknown estimator: its own message names it
+    try:  # its own checks first (finite, positive …), then the ranges, as for the file
+        estimators.create(name, **params)
+    except (ValueError, TypeError, OverflowError) as exc:
+        raise ConfigError(str(exc)) from None  # Params' own message names the parameter
+    _check_param_ranges(params, references, label)
 
 
 def _check_source(section: dict[str, Any]) -> None:

@@ -51,6 +51,13 @@ MAX_SAMPLES_PER_TICK = 64  # a source with a backlog catches up at most this fas
 # how long close() waits for a running live-calibration fit, s: fits take tens of ms, and
 # the whole stop must stay well within 2 s (systemd's TimeoutStopSec is 5 s)
 LIVE_FIT_CLOSE_WAIT_S = 0.5
+#: a SIGHUP's reload waits until no other SIGHUP has come for this long, so that a burst (a
+#: script or configuration tool signalling at every file it writes, `systemctl reload`
+#: repeated) is one reload of the file as last written, not one full reload per signal; a
+#: signal during a reload makes one more. RELOAD_MAX_WAIT_NS bounds the wait after the first
+#: signal of a burst that never pauses.
+RELOAD_SETTLE_NS = 200_000_000
+RELOAD_MAX_WAIT_NS = 2_000_000_000
 
 
 @dataclass
@@ -109,7 +116,10 @@ class Service:
         self.notifier = notifier or Notifier()
         self.boot_ns = time.monotonic_ns()
         self._stop = False
-        self._reload = False
+        # a reload is pending when _reload_due_ns is set: the loop runs it from that time
+        # (request_reload); _reload_first_ns: the first signal of the pending burst
+        self._reload_due_ns: int | None = None
+        self._reload_first_ns = 0
         self.source: ImuSource | None = None
         self.mavlink = None
         self.log_writer = None
@@ -304,6 +314,7 @@ class Service:
             rotate_seconds=minutes * 60 if minutes else None,
             first_sample_index=self.pipeline.samples,
             loop=self.scheduler,  # the writer leaves the interpreter free at the loop's wake-ups
+            block_messages_above_hz=cfg.log["block_messages_above_hz"],
         )
         self.log_writer.write_config(time.monotonic_ns(), self.effective_config())
 
@@ -390,7 +401,14 @@ class Service:
         self._stop = True
 
     def request_reload(self, *_: Any) -> None:
-        self._reload = True
+        """SIGHUP: a reload, run by the loop once signals have paused for ``RELOAD_SETTLE_NS``
+        (at most ``RELOAD_MAX_WAIT_NS`` after the first): a burst of signals is one reload,
+        which reads the file as it is then (the last content wins). A signal during a running
+        reload (handled between two bytecodes of it) leaves one more pending."""
+        now = time.monotonic_ns()
+        if self._reload_due_ns is None:
+            self._reload_first_ns = now
+        self._reload_due_ns = min(now + RELOAD_SETTLE_NS, self._reload_first_ns + RELOAD_MAX_WAIT_NS)
 
     def install_signal_handlers(self) -> None:
         signal.signal(signal.SIGTERM, self.request_stop)
@@ -451,8 +469,11 @@ class Service:
             schedule.run_due(now)
             self._report_form_change()
             self.scheduler.done()
-            if self._reload:
-                self._reload = False
+            due = self._reload_due_ns
+            if due is not None and time.monotonic_ns() >= due:
+                # cleared before the reload: a signal from here on is one more (a signal
+                # between the test and this line is served by this reload, which reads later)
+                self._reload_due_ns = None
                 self.reload()
                 self._was_reduced = self.pipeline.reduced  # a new pipeline starts in full form
                 schedule = LoopSchedule(self._periodic_jobs(), now)  # a new watchdog interval, rates
@@ -560,7 +581,7 @@ class Service:
             self.notifier.extend_timeout(kernels.EXTEND_TIMEOUT_S)
             done = self.compiler.poll(self._loop_counters())
             if done is not None and done.ok:
-                self._reload = True  # the loop calls reload() at the end of this tick
+                self._reload_due_ns = 0  # the loop calls reload() at the end of this tick
             elif done is not None:
                 self.report(f"reload refused: compiling {done.name} failed: {done.error}", 3)
                 self.notifier.ready(self.status_line())

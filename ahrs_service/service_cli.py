@@ -96,9 +96,12 @@ def cmd_compile(args: argparse.Namespace) -> int:
 def cmd_config(args: argparse.Namespace) -> int:
     try:
         cfg = config_mod.load(args.check) if args.check else config_mod.load(None)
+        warnings = config_mod.check_endpoint_hosts(cfg) if args.check else []
     except config_mod.ConfigError as exc:
         print(f"ahrs-service: configuration error: {exc}", file=sys.stderr)
         return 2
+    for text in warnings:  # valid, but not reachable now: the file is fine, exit 0
+        print(f"ahrs-service: warning: {text}", file=sys.stderr)
     print(config_mod.to_toml(cfg.raw))
     return 0
 

@@ -76,9 +76,15 @@ def add_subcommands(subparsers: Any) -> None:
 def _recover(args: argparse.Namespace) -> int:
     from ahrs_service.logs.recover import recover
 
+    from ahrs_service.logs.loss import log_losses
+
     report = recover(args.input, args.output)
+    # what the writer could not log (a full disk), from its counters in the last /loop: a file
+    # cut by a disk that stayed full is a clean cut ("0 bytes lost") that misses the rest
+    losses = log_losses(report.output)
     if args.json:
-        print(json.dumps(report.as_dict(), indent=2))
+        print(json.dumps({**report.as_dict(), "not_logged_samples": losses.not_logged_samples,
+                          "not_logged_s": losses.outage_s}, indent=2))
     else:
         d = report.as_dict()
         print(f"recovered {report.total_messages} messages into {report.output}")
@@ -86,6 +92,8 @@ def _recover(args: argparse.Namespace) -> int:
             print(f"  {topic:20s} {n}")
         if d["duration_s"] is not None:
             print(f"  time range {report.start_ns} .. {report.end_ns} ns ({d['duration_s']:.3f} s)")
+        if losses.not_logged_samples:
+            print(f"  not logged (disk errors): {losses.not_logged_samples} samples, {losses.outage_s:.1f} s")
         print(f"  damage: {report.damage or 'none'}")
     return 0
 
@@ -182,6 +190,10 @@ def _replay_fleet(args: argparse.Namespace) -> int:
         print(f"ahrs-service replay: error: --out {str(args.out)!r} is a file; several logs need a folder", file=sys.stderr)
         return 2
     blend = _blend_time(args)  # checked before any log is replayed
+    if args.estimator and args.param:  # else each log's own estimator: checked in its replay
+        from ahrs_service.config import check_estimator_params
+
+        check_estimator_params(args.estimator, dict(args.param))
     args.out.mkdir(parents=True, exist_ok=True)
     names = [p.stem for p in paths]
     jobs = [
@@ -229,6 +241,10 @@ def _replay(args: argparse.Namespace) -> int:
         why = f" ({log.damage})" if log.damage is not None else ""
         print(f"ahrs-service replay: error: {log.path}: no sample to replay{why}", file=sys.stderr)
         return 2
+    if params:  # the configuration file's checks and ranges, before any sample is replayed
+        from ahrs_service.config import check_estimator_params
+
+        check_estimator_params(name, params)  # ConfigError (ValueError): cli.main's one line, exit 2
     follow = not args.no_param_changes
     blend = _blend_time(args)
     if blend is not None:

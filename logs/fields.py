@@ -99,12 +99,49 @@ def vector(m: dict[str, Any], key: str, n: int, *, nullable: bool = False) -> li
     return [number(x, f"$.{key}[{i}]") for i, x in enumerate(v)]
 
 
-def numbers(m: dict[str, Any], key: str) -> list[float]:
-    """``m[key]`` as a list of floats of any length (null items → NaN)."""
+def numbers(m: dict[str, Any], key: str, n: int | None = None) -> list[float]:
+    """``m[key]`` as a list of floats (null items → NaN), of length ``n`` when given."""
     v = m.get(key)
-    if not isinstance(v, list):
-        raise BadMessage(f"$.{key}", f"expected an array of numbers, got {_kind(v)}")
+    if not isinstance(v, list) or (n is not None and len(v) != n):
+        want = "numbers" if n is None else f"{n} numbers"
+        raise BadMessage(f"$.{key}", f"expected an array of {want}, got {_kind(v)}")
     return [number(x, f"$.{key}[{i}]") for i, x in enumerate(v)]
+
+
+def integers(m: dict[str, Any], key: str, n: int | None = None, *, optional: bool = False) -> list[int] | None:
+    """``m[key]`` as a list of int64 (of length ``n`` when given; None when absent or null
+    and ``optional``) — a block message's per-row times, flags."""
+    v = m.get(key)
+    if v is None and optional:
+        return None
+    if not isinstance(v, list) or (n is not None and len(v) != n):
+        want = "integers" if n is None else f"{n} integers"
+        raise BadMessage(f"$.{key}", f"expected an array of {want}, got {_kind(v)}")
+    for i, x in enumerate(v):
+        if not isinstance(x, int) or isinstance(x, bool) or not _INT64[0] <= x <= _INT64[1]:
+            raise BadMessage(f"$.{key}[{i}]", f"expected a 64-bit integer, got {_kind(x)}")
+    return v
+
+
+def vectors(m: dict[str, Any], key: str, n: int, width: int, *, nullable: bool = False) -> list[list[float]]:
+    """``m[key]`` as ``n`` rows of ``width`` floats (a block message's per-row vectors; null
+    items → NaN; with ``nullable`` a null row, or a null or absent array, → NaN rows)."""
+    v = m.get(key)
+    if v is None and nullable:
+        return [[math.nan] * width for _ in range(n)]
+    if not isinstance(v, list) or len(v) != n:
+        raise BadMessage(f"$.{key}", f"expected an array of {n} rows, got {_kind(v)}")
+    out = []
+    for i, row in enumerate(v):
+        if row is None and nullable:
+            out.append([math.nan] * width)
+        elif type(row) is list and len(row) == width and all(type(x) is float for x in row):
+            out.append(row)
+        elif isinstance(row, list) and len(row) == width:
+            out.append([number(x, f"$.{key}[{i}][{j}]") for j, x in enumerate(row)])
+        else:
+            raise BadMessage(f"$.{key}[{i}]", f"expected an array of {width} numbers, got {_kind(row)}")
+    return out
 
 
 def obj(m: dict[str, Any], key: str, *, optional: bool = False) -> dict[str, Any]:

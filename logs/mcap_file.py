@@ -3,7 +3,9 @@
 :class:`McapLogFile` registers each channel (and its JSON schema, once) on first use and
 writes messages with ``mcap.writer.Writer``'s public methods only (``register_schema``,
 ``register_channel``, ``add_message``, ``add_metadata``, ``flush``, ``finish``), so a new
-``mcap`` release can change its internals without changing what is written. ``flush`` closes
+``mcap`` release can change its internals without changing what is written (a file ended
+short by a full disk gets its last records from ``mcap.records``' public record classes:
+:meth:`McapLogFile.end_short`). ``flush`` closes
 the open chunk and ``fsync``\\ s the file: everything written so far survives a crash, and
 :func:`ahrs_service.logs.recover.recover` turns a file cut off later back into a valid one.
 
@@ -30,9 +32,11 @@ import errno
 import os
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
-from mcap.writer import CompressionType, Writer
+from mcap.data_stream import RecordBuilder
+from mcap.records import Channel, DataEnd, Footer, Message, Schema
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from ahrs_service.logs import schemas
 from ahrs_service.logs.schemas import encode
@@ -82,7 +86,10 @@ class _StagedOutput:
         done = 0
         try:
             while done < len(view):
-                done += os.pwrite(self.fd, view[done:], self.committed + done)
+                # released even when pwrite raises: an error's traceback keeps its arguments,
+                # and an unreleased view of the buffer forbids resizing it later
+                with view[done:] as rest:
+                    done += os.pwrite(self.fd, rest, self.committed + done)
             if fsync:
                 os.fsync(self.fd)
         except OSError:
@@ -95,6 +102,13 @@ class _StagedOutput:
         view.release()
         self.committed += done
         del self._staged[:]
+
+    def drop_staged(self) -> int:
+        """Forgets the staged bytes (a file ended short: :meth:`McapLogFile.end_short`);
+        returns how many there were."""
+        n = len(self._staged)
+        self._staged = bytearray()  # a new buffer: nothing may still view the old one
+        return n
 
 
 class McapLogFile:
@@ -128,7 +142,10 @@ class McapLogFile:
         self._schemas: dict[str, int] = {}
         self._seq: dict[int, int] = {}
         self.unflushed = 0  # messages written since the last commit (lost if the process dies now)
-        self._committed_samples = 0  # /imu/raw samples on disk at the last commit
+        #: IMU samples written (/imu/raw messages, /imu/raw_block rows)
+        self.samples = 0
+        self._committed_samples = 0  # of which on disk at the last commit
+        self._committed_topics: set[str] = set()  # channels (and their schemas) on disk
         self.closed = False
         self._finished = False  # the summary is staged: only commit() is left to do
 
@@ -149,8 +166,12 @@ class McapLogFile:
         time the wall clock now (ns since the epoch) unless given."""
         self.write_encoded(topic, log_time_ns, encode(message), publish_time_ns)
 
-    def write_encoded(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None) -> None:
-        """Writes one message already encoded (``schemas.encode``) on ``topic``."""
+    def write_encoded(self, topic: str, log_time_ns: int, data: bytes, publish_time_ns: int | None = None,
+                      *, samples: int | None = None) -> None:
+        """Writes one message already encoded (``schemas.encode``) on ``topic``.
+
+        samples: IMU samples the message carries (counted in :attr:`samples`); None: one for
+        /imu/raw, none for any other topic. An /imu/raw_block message gives its row count."""
         cid = self._channels.get(topic)
         if cid is None:
             cid = self._new_channel(topic)
@@ -159,6 +180,7 @@ class McapLogFile:
             cid, int(log_time_ns), data, time.time_ns() if publish_time_ns is None else int(publish_time_ns), seq
         )
         self._seq[cid] = seq  # counted once written: messages and samples count from here
+        self.samples += (topic == "/imu/raw") if samples is None else samples
         self.unflushed += 1
         if self._out.staged >= COMMIT_BYTES:
             self.retry(fsync=False)
@@ -182,6 +204,7 @@ class McapLogFile:
         self._out.commit(fsync)
         self.unflushed = 0
         self._committed_samples = self.samples
+        self._committed_topics = set(self._channels)
 
     @property
     def messages(self) -> int:
@@ -189,14 +212,8 @@ class McapLogFile:
         return sum(self._seq.values())
 
     @property
-    def samples(self) -> int:
-        """Of which /imu/raw samples."""
-        cid = self._channels.get("/imu/raw")
-        return 0 if cid is None else self._seq[cid]
-
-    @property
     def unflushed_samples(self) -> int:
-        """/imu/raw samples written since the last commit."""
+        """IMU samples written since the last commit."""
         return self.samples - self._committed_samples
 
     @property
@@ -219,6 +236,49 @@ class McapLogFile:
             self._w.finish()
         self.retry(fsync)
         self.closed = True
+        os.close(self._out.fd)
+
+    def end_short(self, tail: Sequence[tuple[str, int, Mapping[str, Any]]], fsync: bool = True) -> None:
+        """Ends a file whose last bytes the disk refused (a full disk at the end of a run):
+        the staged bytes are dropped (the caller counts what they held), and after what is
+        on disk come ``tail`` — (topic, log time ns, message), e.g. the writer's final
+        counters — as messages outside any chunk, a DataEnd and a footer without summary
+        section: a complete MCAP, read as a stream (no index), a few hundred bytes where the
+        refused chunk and summary did not fit, that says what the file misses. Written
+        with the mcap library's record classes (``mcap.records``), as its ``Writer`` writes
+        them. Raises OSError if even that does not fit; the file is then its valid prefix
+        as before (``abandon`` it)."""
+        if self.closed:
+            return
+        if self._out.committed == 0:  # the header never reached the disk: nothing to end
+            raise OSError(errno.ENOSPC, "nothing of the file reached the disk", str(self.path))
+        for topic, _, _ in tail:  # ids for channels not used yet (their records are in the tail)
+            if topic not in self._channels:
+                self._new_channel(topic)
+        self._out.drop_staged()
+        self.samples, self.unflushed = self._committed_samples, 0  # what is on disk (the tail has none)
+        out = RecordBuilder()
+        on_disk = set(self._committed_topics)
+        schemas_on_disk = {schemas.CHANNELS[t][0] for t in on_disk}
+        for topic, log_time_ns, message in tail:
+            cid = self._channels[topic]
+            name, _ = schemas.CHANNELS[topic]
+            sid = self._schemas[name]
+            if name not in schemas_on_disk:
+                Schema(id=sid, name=name, encoding=schemas.SCHEMA_ENCODING, data=schemas.schema_bytes(topic)).write(out)
+                schemas_on_disk.add(name)
+            if topic not in on_disk:
+                Channel(id=cid, topic=topic, message_encoding=schemas.MESSAGE_ENCODING, schema_id=sid,
+                        metadata={}).write(out)
+                on_disk.add(topic)
+            self._seq[cid] += 1
+            Message(channel_id=cid, sequence=self._seq[cid], log_time=int(log_time_ns), publish_time=time.time_ns(),
+                    data=encode(message)).write(out)
+        DataEnd(data_section_crc=0).write(out)  # 0: not computed (the MCAP specification)
+        Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(out)
+        self._out.write(out.end() + MCAP0_MAGIC)
+        self._out.commit(fsync)  # OSError: cut back to the prefix, as any failed commit
+        self.closed = self._finished = True
         os.close(self._out.fd)
 
     def abandon(self) -> None:

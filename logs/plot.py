@@ -25,9 +25,10 @@ from typing import Any
 import numpy as np
 
 from ahrs_service.logs.fast_scan import scan_messages
-from ahrs_service.logs.fields import BadMessage, decoded, number, obj, scalar, vector
+from ahrs_service.logs.fields import BadMessage, decoded, integers, number, obj, scalar, vector, vectors
 from ahrs_service.logs.reader import MessageSource
 from ahrs_service.logs.schemas import CHANNELS
+from ahrs_service.quaternion import euler_of
 
 DRAW_BINS = 2000  # envelope bins per series: a few per pixel column of a wide figure
 FORMATS = (".png", ".pdf", ".svg")
@@ -94,6 +95,34 @@ def read_series(path: str | Path, progress: bool = True) -> LogSeries:
             rej.append(bool(d.get("mag_disturbed", False)))
             red.append(bool(d.get("reduced", False)))
 
+    def on_raw_block(log_time: int, data: bytes) -> None:  # one FIFO burst: its rows
+        m = decoded(data)
+        times = integers(m, "t_ns")
+        n = len(times)
+        rows = (vectors(m, "gyr", n, 3), vectors(m, "acc", n, 3), vectors(m, "mag", n, 3, nullable=True))
+        raw_t.extend(times)
+        gyr.extend(rows[0])
+        acc.extend(rows[1])
+        mag.extend(rows[2])
+        count[0] += n
+        if bar is not None and count[0] % 8192 < n:
+            bar.update(8192)
+
+    def on_attitude_block(log_time: int, data: bytes) -> None:
+        # the rows' attitude; the block log's /attitude (at the /tf rate) carries the diagnostics
+        m = decoded(data)
+        times = integers(m, "t_ns")
+        qs = vectors(m, "q", len(times), 4)
+        att_t.extend(times)
+        att.extend(euler_of(q) for q in qs)
+
+    def on_truth_block(log_time: int, data: bytes) -> None:
+        m = decoded(data)
+        times = integers(m, "t_ns")
+        qs = vectors(m, "q", len(times), 4)
+        tr_t.extend(times)
+        tr.extend(euler_of(q) for q in qs)
+
     def on_truth(log_time: int, data: bytes) -> None:
         m = decoded(data)
         euler = tuple(number(m.get(k), f"$.{k}") for k in ("roll", "pitch", "yaw"))
@@ -120,7 +149,8 @@ def read_series(path: str | Path, progress: bool = True) -> LogSeries:
         events.append((log_time, level, str(m.get("message", ""))))
 
     handlers = {"/imu/raw": on_raw, "/attitude": on_attitude, "/attitude/truth": on_truth, "/loop": on_loop,
-                "/log": on_log}
+                "/log": on_log, "/imu/raw_block": on_raw_block, "/attitude_block": on_attitude_block,
+                "/attitude/truth_block": on_truth_block}
     topics = {handler: topic for topic, handler in handlers.items()}
 
     def checked(handler: Any) -> Any:

@@ -18,7 +18,7 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata
 
-from ahrs_service.logs.fields import BadMessage, decoded, integer, numbers, obj, scalar, string, vector
+from ahrs_service.logs.fields import BadMessage, decoded, integer, integers, numbers, obj, scalar, string, vector, vectors
 from ahrs_service.logs.recover import MAX_CHUNK_BYTES, Damage, RecordScanner
 from ahrs_service.logs.schemas import CHANNELS
 
@@ -98,7 +98,9 @@ class MessageSource:
 
 @dataclass
 class RecordedLog:
-    """A flight log as arrays. Rows are the /imu/raw samples, in file order.
+    """A flight log as arrays. Rows are the /imu/raw samples (and the rows of /imu/raw_block
+    bursts), in file order; the /attitude of a block log (written at the /tf rate for
+    Foxglove) repeats rows of its /attitude_block.
 
     t_ns (N,) int64 sample times; rows (N, 10) float64 [gx, gy, gz, ax, ay, az, mx, my, mz, dt]
     exactly as fed to the estimator (rad/s, m/s², µT, s; NaN where null); flags (N,) int64;
@@ -206,6 +208,36 @@ def _read(source: MessageSource) -> RecordedLog:
                 rows.append(row)
                 flags.append(flag)
                 index.append(len(index) if i is None else i)
+            elif topic == "/imu/raw_block":  # one FIFO burst: its rows as that many /imu/raw
+                m = decoded(data)
+                times = integers(m, "t_ns")
+                n = len(times)
+                sources = integers(m, "t_source_ns", n, optional=True)
+                dt = numbers(m, "dt", n)
+                gyr, acc = vectors(m, "gyr", n, 3), vectors(m, "acc", n, 3)
+                mag = vectors(m, "mag", n, 3, nullable=True)
+                block_flags = integers(m, "flags", n)
+                first = integer(m, "first_index")
+                t_ns.extend(times)
+                t_src.extend(times if sources is None else sources)
+                rows.extend(g + a + b + [d] for g, a, b, d in zip(gyr, acc, mag, dt))
+                flags.extend(block_flags)
+                index.extend(range(first, first + n))
+            elif topic in ("/attitude_block", "/attitude/original_block"):
+                m = decoded(data)
+                times = integers(m, "t_ns")
+                qs = vectors(m, "q", len(times), 4)
+                name = string(m, "estimator", optional=True)
+                (att_t if topic == "/attitude_block" else orig_t).extend(times)
+                (att_q if topic == "/attitude_block" else orig_q).extend(qs)
+                if topic == "/attitude_block" and att_estimator is None:
+                    att_estimator = name
+            elif topic == "/attitude/truth_block":
+                m = decoded(data)
+                times = integers(m, "t_ns")
+                tru_q.extend(vectors(m, "q", len(times), 4))
+                tru_t.extend(times)
+                tru_m.extend([np.nan] * len(times))
             elif topic in ("/attitude", "/attitude/original"):
                 m = decoded(data)
                 t, q = integer(m, "t_ns"), vector(m, "q", 4)

@@ -26,11 +26,21 @@ from ahrs_service import estimators
 from ahrs_service.estimators import offline
 from ahrs_service.evaluation.metrics import error_angles, rmse
 from ahrs_service.logs.reader import MessageSource, RecordedLog
-from ahrs_service.logs.schemas import attitude_message, jsonable, tf_message
+from ahrs_service.logs.schemas import attitude_block_message, attitude_message, jsonable, tf_message
 from ahrs_service.logs.mcap_file import McapLogFile
+
+#: where a replayed log keeps the estimate that was recorded
+_ORIGINAL = {"/attitude": "/attitude/original", "/attitude_block": "/attitude/original_block"}
 
 
 def _effective_start(log: RecordedLog, name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The parameters the replay starts from: the recorded ones (recorded estimator only) with
+    ``params`` over them, each override checked as the configuration file's ``estimator.params``
+    are (``config.check_estimator_params``: a finite 1e300 would overflow inside the filter)."""
+    from ahrs_service.config import check_estimator_params
+
+    if params:
+        check_estimator_params(name, dict(params), label="parameter {}")
     start: dict[str, Any] = dict(log.params) if name == log.estimator else {}
     start.update(params or {})
     return start
@@ -250,14 +260,29 @@ def write_replay(
             if remaining == 0:
                 break
             remaining -= 1
-            if topic in ("/config", "/tf", "/attitude/original") or (topic == "/estimator/state" and not same):
+            if topic in ("/config", "/tf", "/attitude/original", "/attitude/original_block") or (
+                    topic == "/estimator/state" and not same):
                 continue
             if topic == "/params":
                 name = json.loads(data).get("name")
                 if not (same and follow_param_changes and name in known and name not in pinned):
                     continue  # a change the replay did not apply
-            if topic == "/attitude":
-                f.write_encoded("/attitude/original", log_time, data, publish_time)
+            if topic in ("/attitude", "/attitude_block"):
+                f.write_encoded(_ORIGINAL[topic], log_time, data, publish_time)
+                continue
+            if topic == "/imu/raw_block":  # a burst in, a burst out: its rows' new estimates
+                times = [int(t) for t in json.loads(data)["t_ns"]]
+                f.write_encoded(topic, log_time, data, publish_time, samples=len(times))
+                rows_here = [row_of[t] for t in times if t in row_of]
+                if len(rows_here) != len(times):
+                    continue
+                q_block = q[rows_here]
+                f.write("/attitude_block", log_time, attitude_block_message(times, q_block, label))
+                if np.all(np.isfinite(q_block[-1])) and (last_tf is None or log_time - last_tf >= tf_period):
+                    last_tf = log_time
+                    q_last = q_block[-1].tolist()
+                    f.write("/attitude", log_time, attitude_message(log_time, q_last, label))
+                    f.write("/tf", log_time, tf_message(log_time, q_last))
                 continue
             f.write_encoded(topic, log_time, data, publish_time)
             if topic == "/imu/raw":

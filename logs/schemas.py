@@ -144,6 +144,62 @@ TRUTH = {
     "required": ["t_ns", "q"],
 }
 
+# Block channels: one message per FIFO burst, for sources faster than
+# ``log.block_messages_above_hz`` (the per-sample channels' cost, two MCAP messages a sample,
+# is what a log of an 8 kHz part cannot afford; PX4 logs its FIFO bursts the same way, as
+# ``sensor_gyro_fifo``). Row i of every array is sample i of the burst.
+def _rows_of(item: dict[str, Any], description: str) -> dict[str, Any]:
+    return {"type": "array", "items": item, "description": description}
+
+
+IMU_RAW_BLOCK = {
+    "title": "ahrs.ImuRawBlock",
+    "description": "The samples of one FIFO burst exactly as fed to the estimator (calibrated, body FRD), "
+    "row i of every array being sample first_index + i; the same values as that many ahrs.ImuRaw.",
+    "type": "object",
+    "properties": {
+        "t_ns": _rows_of(_INT, "each sample's time, ns, monotonic clock of the host (as ahrs.ImuRaw t_ns)"),
+        "t_source_ns": {"type": ["array", "null"], "items": _INT,
+                        "description": "the source's own stamps, ns; null: the same as t_ns"},
+        "first_index": {"type": "integer", "description": "sample number (since the writer started) of row 0"},
+        "dt": _rows_of(_NUM_OR_NULL, "time step fed to the estimator, s"),
+        "gyr": _rows_of(_vec(3, _NUM_OR_NULL, "rad/s"), "angular rate, rad/s, body FRD"),
+        "acc": _rows_of(_vec(3, _NUM_OR_NULL, "m/s²"), "specific force, m/s², body FRD"),
+        "mag": _rows_of(_vec(3, _NUM_OR_NULL, "µT"), "magnetic field, µT, body FRD; nulls: no reading"),
+        "flags": _rows_of(_INT, "validity bit mask (ahrs_service.drivers.base)"),
+        "raw": {"type": ["object", "null"], "description": "uncalibrated readings (counts), {name: one entry per row}"},
+        "temperature": {"type": ["array", "null"], "items": _NUM_OR_NULL, "description": "°C per row"},
+    },
+    "required": ["t_ns", "first_index", "dt", "gyr", "acc", "mag", "flags"],
+}
+
+ATTITUDE_BLOCK = {
+    "title": "ahrs.AttitudeBlock",
+    "description": "The estimate after each sample of one burst (row i: after sample i of the "
+    "ahrs.ImuRawBlock at the same log time); bias and diagnostics after the last row.",
+    "type": "object",
+    "properties": {
+        "t_ns": _rows_of(_INT, "each sample's time, ns"),
+        "q": _rows_of(_QUAT, "q_earth←body [w, x, y, z] after each sample"),
+        "estimator": {"type": "string"},
+        "gyro_bias": _vec(3, _NUM_OR_NULL, "gyro-bias estimate after the last row, rad/s, body FRD"),
+        "diagnostics": ATTITUDE["properties"]["diagnostics"],
+    },
+    "required": ["t_ns", "q", "estimator"],
+}
+
+TRUTH_BLOCK = {
+    "title": "ahrs.AttitudeTruthBlock",
+    "description": "Ground-truth attitude of each sample of one burst (simulator).",
+    "type": "object",
+    "properties": {
+        "t_ns": _rows_of(_INT, "each sample's time, ns"),
+        "q": _rows_of(_QUAT, "q_earth←body [w, x, y, z], NED"),
+        "source": {"type": "string"},
+    },
+    "required": ["t_ns", "q"],
+}
+
 LOOP = {
     "title": "ahrs.LoopStats",
     "description": "Scheduler statistics over the last window of ticks (times in µs), estimator "
@@ -306,6 +362,11 @@ CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
     "/attitude": ("ahrs.Attitude", ATTITUDE),
     "/attitude/original": ("ahrs.Attitude", ATTITUDE),
     "/attitude/truth": ("ahrs.AttitudeTruth", TRUTH),
+    # one message per FIFO burst instead of per sample, above log.block_messages_above_hz
+    "/imu/raw_block": ("ahrs.ImuRawBlock", IMU_RAW_BLOCK),
+    "/attitude_block": ("ahrs.AttitudeBlock", ATTITUDE_BLOCK),
+    "/attitude/original_block": ("ahrs.AttitudeBlock", ATTITUDE_BLOCK),
+    "/attitude/truth_block": ("ahrs.AttitudeTruthBlock", TRUTH_BLOCK),
     # beside an autopilot: its own attitude (estimator "autopilot") and the comparison
     "/autopilot/attitude": ("ahrs.Attitude", ATTITUDE),
     "/monitor": ("ahrs.AttitudeMonitor", MONITOR),
@@ -442,6 +503,49 @@ def truth_message(t_ns: int, q: list[float], movement: bool | None = None, sourc
         "movement": movement,
         "source": source,
     }
+
+
+def raw_block_message(
+    t_ns: list[int],
+    rows: np.ndarray,
+    flags: list[int],
+    first_index: int,
+    raw: dict[str, np.ndarray] | None = None,
+    temperature: np.ndarray | None = None,
+    t_source_ns: list[int] | None = None,
+) -> dict[str, Any]:
+    """The /imu/raw_block message of a burst's (n, 10) sample rows [gx, gy, gz, ax, ay, az,
+    mx, my, mz, dt] (float64); row i is sample number ``first_index + i``."""
+    rows = np.asarray(rows, dtype=np.float64)
+    return {
+        "t_ns": t_ns,
+        "t_source_ns": t_source_ns,
+        "first_index": int(first_index),
+        "dt": rows[:, SAMPLE_ROW.index.dt].tolist(),
+        "gyr": rows[:, _R.gyr].tolist(),
+        "acc": rows[:, _R.acc].tolist(),
+        "mag": rows[:, _R.mag].tolist(),  # NaN (no reading) is written as null
+        "flags": flags,
+        "raw": None if raw is None else {k: np.asarray(v).tolist() for k, v in raw.items()},
+        "temperature": None if temperature is None else np.asarray(temperature, dtype=np.float64).tolist(),
+    }
+
+
+def attitude_block_message(t_ns: list[int], q: np.ndarray, estimator: str, bias: list[float] | None = None,
+                           diagnostics: Any = None) -> dict[str, Any]:
+    """The /attitude_block message: (n, 4) q_earth←body [w, x, y, z] after each sample of a
+    burst; ``bias`` (rad/s) and ``diagnostics`` after the last one (left out when None)."""
+    message: dict[str, Any] = {"t_ns": t_ns, "q": np.asarray(q, dtype=np.float64).tolist(), "estimator": str(estimator)}
+    if bias is not None:
+        message["gyro_bias"] = list(bias)
+    if diagnostics:
+        message["diagnostics"] = diagnostics
+    return message
+
+
+def truth_block_message(t_ns: list[int], q: np.ndarray, source: str = "") -> dict[str, Any]:
+    """The /attitude/truth_block message: (n, 4) true q_earth←body [w, x, y, z] (NED)."""
+    return {"t_ns": t_ns, "q": np.asarray(q, dtype=np.float64).tolist(), "source": source}
 
 
 def monitor_message(t_ns: int, total_deg: float, inclination_deg: float, heading_deg: float,

@@ -56,16 +56,20 @@ from typing import Any, Callable, Mapping, Protocol
 
 import numpy as np
 
+from ahrs_service.estimators import SAMPLE_ROW
 from ahrs_service.logs.mcap_file import LogFileDeleted, McapLogFile
 from ahrs_service.logs.schemas import (
+    attitude_block_message,
     attitude_message,
     autopilot_attitude_messages,
     encode,
     jsonable,
     log_message,
     num_or_null,
+    raw_block_message,
     raw_message,
     tf_message,
+    truth_block_message,
     truth_message,
 )
 
@@ -111,21 +115,24 @@ class _Sample:
 
 @dataclass(slots=True)
 class _Block:
-    """/imu/raw + /attitude (+ /attitude/truth) of every row of one sample block: the
-    service's one entry per burst. Per-row values as lists (one ``tolist`` per array)."""
+    """The samples of one block and their estimates: the service's one entry per burst.
+    Written as /imu/raw + /attitude (+ /attitude/truth) per row, or, when ``one_message``,
+    as one /imu/raw_block + /attitude_block (+ /attitude/truth_block). The arrays are the
+    caller's, copied (the caller may reuse its own at once)."""
 
-    t_ns: list  # (n,) recovered sample times, ns
-    t_source_ns: list | None  # (n,) the source's own stamps, ns
-    rows: list  # (n, 10) sample rows as fed to the estimator
-    flags: list
-    raw: dict | None  # {name: (n, …) list} driver counts
-    temperature: list | None  # (n,) °C, NaN where unknown (encode writes null)
+    t_ns: np.ndarray  # (n,) int64 recovered sample times, ns
+    t_source_ns: np.ndarray | None  # (n,) the source's own stamps, ns
+    rows: np.ndarray  # (n, 10) float64 sample rows as fed to the estimator
+    flags: np.ndarray  # (n,)
+    raw: dict | None  # {name: (n, …) array} driver counts
+    temperature: np.ndarray | None  # (n,) °C, NaN where unknown (encode writes null)
     first_index: int
-    q: list  # (n, 4)
+    q: np.ndarray  # (n, 4)
     estimator: str
     bias: list | None  # after the last row, rad/s body FRD: written with the last row only
-    truth_q: list | None  # (n, 4)
+    truth_q: np.ndarray | None  # (n, 4)
     diagnostics: dict | None  # the estimator's after the last row, at the diagnostics rate
+    one_message: bool  # the samples come faster than block_messages_above_hz: block channels
 
 
 @dataclass(slots=True)
@@ -216,7 +223,8 @@ class _Close:
 _CARRIES: dict[type, Callable[[Any], tuple[int, int]]] = {
     _Raw: lambda item: (1, 1),
     _Sample: lambda item: (2 + (item.truth_q is not None), 1),
-    _Block: lambda item: (len(item.t_ns) * (2 + (item.truth_q is not None)), len(item.t_ns)),
+    _Block: lambda item: ((1 if item.one_message else len(item.t_ns)) * (2 + (item.truth_q is not None)),
+                          len(item.t_ns)),
     _AutopilotAttitude: lambda item: (3, 0),  # /autopilot/attitude, /tf, /monitor
 }
 
@@ -298,6 +306,11 @@ class FlightLogWriter:
         sleeps until just after it: one interpreter runs both threads, and a wake-up that
         has to wait for the writer to give up the interpreter is late by up to the
         interpreter's switch interval and more (the loop's wake-up jitter).
+    block_messages_above_hz: a block (``write_block``) of samples faster than this (by its
+        middle row's ``dt``) is written as one message per channel (/imu/raw_block,
+        /attitude_block, /attitude/truth_block), with /attitude (and /tf) at ``tf_rate_hz``
+        for Foxglove's plots; slower ones, and every block when None, one message per sample.
+        0: every block as one message.
 
     The ``write_*`` methods never raise because of the disk and never block; see ``status``,
     ``last_error``, ``dropped`` and :meth:`stats`.
@@ -321,6 +334,7 @@ class FlightLogWriter:
         fsync: bool = True,
         first_sample_index: int = 0,
         loop: LoopWakeups | None = None,
+        block_messages_above_hz: float | None = None,
     ) -> None:
         self.directory = Path(directory)
         self.prefix = prefix
@@ -369,6 +383,7 @@ class FlightLogWriter:
         self._last_flush = time.monotonic()
         self._next_retry = 0.0
         self._config: dict[str, Any] | None = None
+        self._last_loop: dict[str, Any] = {}  # the last /loop's stats: the tail of a file ended short
         self._last_tf_ns: int | None = None
         self._state_seen = False  # the caller passes its estimator state to write_attitude
         # rotation handshake (see _Rotation); the lock makes the caller's DUE -> SNAPSHOT_QUEUED
@@ -377,6 +392,10 @@ class FlightLogWriter:
         self._rotation_lock = threading.Lock()
         self._rotation_since = 0.0
         self._loop = loop
+        #: a block whose middle row's dt (s) is below this is written as one message per channel
+        self.block_messages_below_dt_s = (
+            -1.0 if block_messages_above_hz is None else math.inf if block_messages_above_hz <= 0
+            else 1.0 / float(block_messages_above_hz))
         #: a record's handling time, ns: the recent largest, decaying by 1/16 a record
         self._record_ns = 0.0
         self._thread = threading.Thread(target=self._run, name="flight-log-writer", daemon=True)
@@ -520,21 +539,24 @@ class FlightLogWriter:
         n = len(t_ns)
         if n == 0:
             return
+        rows = np.array(rows, dtype=np.float64)
         self._put(
             _Block(
-                np.asarray(t_ns).tolist(),
-                None if t_source_ns is None else np.asarray(t_source_ns).tolist(),
-                np.asarray(rows).tolist(),
-                np.asarray(flags).tolist(),
-                None if raw is None else {k: np.asarray(v).tolist() for k, v in raw.items()},
+                np.array(t_ns, dtype=np.int64),
+                None if t_source_ns is None else np.array(t_source_ns, dtype=np.int64),
+                rows,
+                np.array(flags, dtype=np.int64),
+                None if raw is None else {k: np.array(v) for k, v in raw.items()},
                 # NaN (unknown) stays NaN: encode writes it as null, as write_sample's None
-                None if temperature is None else np.asarray(temperature, dtype=float).tolist(),
+                None if temperature is None else np.array(temperature, dtype=np.float64),
                 self.samples,
-                np.asarray(q).tolist(),
+                np.array(q, dtype=np.float64),
                 estimator,
                 None if bias is None else _tolist(bias),
-                None if truth_q is None else np.asarray(truth_q).tolist(),
+                None if truth_q is None else np.array(truth_q, dtype=np.float64),
                 None if diagnostics is None else dict(diagnostics),
+                # the middle row's dt: not the long one after a gap, which starts a block
+                float(rows[n // 2, SAMPLE_ROW.index.dt]) < self.block_messages_below_dt_s,
             )
         )
         self.samples += n
@@ -711,7 +733,33 @@ class FlightLogWriter:
             deleted = isinstance(exc, LogFileDeleted)  # then nothing of it is left
             self._lose(*((f.messages, f.samples) if deleted else (f.unflushed, f.unflushed_samples)))
             self._error(exc, f)
+            if not deleted and isinstance(exc, OSError) and self._end_short(f):
+                return
             f.abandon()
+
+    def _end_short(self, f: McapLogFile) -> bool:
+        """A file the disk refused its end (the disk still full at the end of the run): ends
+        it with the writer's final counters instead — a /log line and a /loop whose ``log``
+        holds ``samples_not_logged`` as the service's summary states it — so that ``log info``
+        and ``log recover`` report what the file misses, not a clean cut of "0 bytes lost".
+        False when even that does not fit (the file is left as its valid prefix)."""
+        now = time.monotonic_ns()
+        lost = self.not_logged()
+        text = (f"flight log ended short: {self.last_error}; not logged: {lost.samples} samples, "
+                f"{lost.messages} messages, {lost.seconds:.1f} s")
+        counters = {"t_ns": now, "log": self.stats()}
+        # the room left may be a few hundred bytes (the rest of the file's last block on a
+        # full disk; the limit under RLIMIT_FSIZE): the whole tail first, then the counters alone
+        tails = ([("/log", now, log_message(now, 3, text)), ("/loop", now, {**jsonable(self._last_loop), **counters})],
+                 [("/loop", now, counters)])
+        for tail in tails:
+            try:
+                f.end_short(tail, self.fsync)
+            except OSError:
+                continue
+            self.written += len(tail)
+            return True
+        return False  # not even the counters fit: the prefix stays
 
     def _finish(self) -> None:
         self._close_file()
@@ -836,19 +884,23 @@ class FlightLogWriter:
             return True
         return self.rotate_seconds is not None and time.monotonic() - self._opened_at >= self.rotate_seconds
 
-    def _write(self, topic: str, t_ns: int, message: dict[str, Any]) -> None:
+    def _write(self, topic: str, t_ns: int, message: dict[str, Any], samples: int | None = None) -> None:
+        """Encodes and writes one message; ``samples``: the IMU samples it carries (None: one
+        on /imu/raw, else none)."""
+        if samples is None:
+            samples = int(topic == "/imu/raw")
         if self._file is None:  # an earlier write of the same record failed: _fail counted what the file held
-            self._lose(1, topic == "/imu/raw")
+            self._lose(1, samples)
             return
         try:
             data = encode(message)
         except (TypeError, ValueError) as exc:
             # a message the caller filled with something JSON cannot hold: lose it, not the file
-            self._dropped_io += 1
+            self._lose(1, samples)
             self._note(exc)
             return
         try:
-            self._file.write_encoded(topic, t_ns, data)
+            self._file.write_encoded(topic, t_ns, data, samples=samples)
             self.written += 1
         except Exception as exc:  # noqa: BLE001
             self._fail(exc)
@@ -939,25 +991,53 @@ class FlightLogWriter:
         self._rotate_if_due()  # at the block's start: a rotation's snapshot is a block's end state
         if not self._ensure_item(item):
             return
+        if item.one_message:
+            self._write_block_messages(item)
+            return
         n = len(item.t_ns)
-        truth = item.truth_q
+        truth = None if item.truth_q is None else item.truth_q.tolist()
         per_row = 2 + (truth is not None)
-        raw, temps, sources = item.raw, item.temperature, item.t_source_ns
+        sources = None if item.t_source_ns is None else item.t_source_ns.tolist()
+        temps = None if item.temperature is None else item.temperature.tolist()
+        raw = None if item.raw is None else {k: v.tolist() for k, v in item.raw.items()}
+        rows, flags, qs = item.rows.tolist(), item.flags.tolist(), item.q.tolist()
         last = n - 1
-        for i, t_ns in enumerate(item.t_ns):
+        for i, t_ns in enumerate(item.t_ns.tolist()):
             if self._file is None:  # a write before failed: _fail counted what the file held
                 self._lose((n - i) * per_row, n - i)
                 return
             self._write("/imu/raw", t_ns, raw_message(
-                t_ns, item.rows[i], item.flags[i], None if raw is None else {k: v[i] for k, v in raw.items()},
+                t_ns, rows[i], flags[i], None if raw is None else {k: v[i] for k, v in raw.items()},
                 None if temps is None else temps[i], item.first_index + i,
                 t_source_ns=None if sources is None else sources[i]))
             if i == last:
-                self._write_attitude(t_ns, item.q[i], item.estimator, item.bias, item.diagnostics)
+                self._write_attitude(t_ns, qs[i], item.estimator, item.bias, item.diagnostics)
             else:  # no bias of its own: the key is left out (not zeros a plot would show)
-                self._write_attitude(t_ns, item.q[i], item.estimator, None, None, with_bias=False)
+                self._write_attitude(t_ns, qs[i], item.estimator, None, None, with_bias=False)
             if truth is not None:
                 self._write("/attitude/truth", t_ns, truth_message(t_ns, truth[i]))
+
+    def _write_block_messages(self, item: _Block) -> None:
+        """One /imu/raw_block, /attitude_block (and /attitude/truth_block) for the whole block;
+        /attitude and /tf of its last row at ``tf_rate_hz`` (and whenever the block carries
+        diagnostics), so Foxglove's plots and 3-D panel have the attitude."""
+        t_ns = item.t_ns.tolist()
+        t_last = t_ns[-1]
+        n = len(t_ns)
+        self._write("/imu/raw_block", t_last, raw_block_message(
+            t_ns, item.rows, item.flags.tolist(), item.first_index, item.raw, item.temperature,
+            None if item.t_source_ns is None else item.t_source_ns.tolist()), samples=n)
+        self._write("/attitude_block", t_last,
+                    attitude_block_message(t_ns, item.q, item.estimator, item.bias, item.diagnostics))
+        if item.truth_q is not None:
+            self._write("/attitude/truth_block", t_last, truth_block_message(t_ns, item.truth_q))
+        if self._file is None:
+            return
+        q_last = item.q[-1].tolist()
+        tf_due = self._last_tf_ns is None or t_last - self._last_tf_ns >= self.tf_period_ns
+        if tf_due or item.diagnostics:  # not counted as carried: a preview of /attitude_block
+            self._write_attitude(t_last, q_last, item.estimator, item.bias, item.diagnostics,
+                                 with_bias=item.bias is not None)
 
     def _on_attitude(self, item: _Attitude) -> None:
         if self._ensure_file(1):
@@ -968,6 +1048,7 @@ class FlightLogWriter:
             self._write("/attitude/truth", item.t_ns, truth_message(item.t_ns, item.q, item.movement, item.source))
 
     def _on_loop(self, item: _Loop) -> None:
+        self._last_loop = dict(item.stats)
         if self._ensure_file(1):
             self._write("/loop", item.t_ns, {"t_ns": int(item.t_ns), **jsonable(item.stats)})
 

@@ -204,6 +204,95 @@ def test_write_block_writes_the_messages_of_write_sample(tmp_path):
     assert a.counts == b.counts
 
 
+def _one_message_blocks(directory: Path, t_ns, rows, flags, q, q_true, n: int = 16, **writer_options) -> FlightLogWriter:
+    writer = FlightLogWriter(directory, fsync=False, block_messages_above_hz=100.0, **writer_options)
+    for i in range(0, len(t_ns), n):
+        s = slice(i, i + n)
+        writer.write_block(t_ns[s], rows[s], flags[s], q=q[s], estimator="madgwick", truth_q=q_true[s],
+                           bias=np.array([0.01, 0.02, 0.03]))
+    writer.close()
+    return writer
+
+
+def test_blocks_faster_than_the_threshold_read_back_as_their_rows(tmp_path):
+    """Above ``block_messages_above_hz`` a block is one message per channel; the log reads back
+    into exactly the rows, indexes, attitudes and truth that per-sample messages give, and
+    every message validates against its schema."""
+    from mcap.reader import make_reader
+
+    from ahrs_service.logs import schemas
+
+    t_ns, rows, q_true = make_fixtures.analytic_trajectory(200.0, 1.0)
+    rows[::7, 6:9] = np.nan  # samples without a magnetometer reading
+    q = estimators.create("madgwick").run_rows(rows)
+    flags = np.full(len(t_ns), GYR_VALID | ACC_VALID | MAG_VALID | MAG_NEW, dtype=np.int64)
+    per_sample = FlightLogWriter(tmp_path / "a", fsync=False)
+    for i in range(len(t_ns)):
+        per_sample.write_sample(int(t_ns[i]), rows[i], int(flags[i]), q=q[i], estimator="madgwick", truth_q=q_true[i])
+    per_sample.close()
+    blocks = _one_message_blocks(tmp_path / "b", t_ns, rows, flags, q, q_true)
+    a, b = read_log(per_sample.files[0]), read_log(blocks.files[0])
+    for key in ("t_ns", "rows", "flags", "index", "attitudes", "truth", "t_source_ns"):
+        assert np.array_equal(getattr(a, key), getattr(b, key), equal_nan=True), key
+    n_blocks = -(-len(t_ns) // 16)
+    assert b.counts["/imu/raw_block"] == b.counts["/attitude_block"] == b.counts["/attitude/truth_block"] == n_blocks
+    assert "/imu/raw" not in b.counts
+    # /attitude (and /tf) for Foxglove at the /tf rate, 50 Hz: one per 4 rows at 200 Hz, so one per block here
+    assert b.counts["/attitude"] == b.counts["/tf"] == n_blocks
+    assert blocks.written == sum(b.counts.values()) and blocks.samples_not_logged == 0
+    with open(blocks.files[0], "rb") as f:
+        checked = 0
+        for schema, channel, message in make_reader(f).iter_messages():
+            assert schemas.validate(json.loads(message.data), json.loads(schema.data)) == [], channel.topic
+            checked += 1
+    assert checked == sum(b.counts.values())
+
+
+def test_a_block_log_replays_and_plots_like_a_per_sample_log(tmp_path):
+    """``replay`` of a block log writes blocks again (new /attitude_block, the recorded one
+    kept as /attitude/original_block); ``log plot``'s series hold every row."""
+    from ahrs_service.logs.plot import read_series
+    from ahrs_service.logs.replay import replay, write_replay
+
+    t_ns, rows, q_true = make_fixtures.analytic_trajectory(200.0, 1.0)
+    q = estimators.create("madgwick").run_rows(rows)
+    flags = np.full(len(t_ns), GYR_VALID | ACC_VALID | MAG_VALID | MAG_NEW, dtype=np.int64)
+    log = read_log(_one_message_blocks(tmp_path / "b", t_ns, rows, flags, q, q_true).files[0])
+    assert np.array_equal(replay(log), q)  # the recorded rows give the recorded estimate, bit for bit
+    q_new = replay(log, "mahony_passive")
+    out = read_log(write_replay(log, q_new, tmp_path / "replayed.mcap", "mahony_passive"))
+    assert np.array_equal(out.attitudes, q_new) and np.array_equal(out.original, q)
+    assert np.array_equal(out.rows, log.rows, equal_nan=True) and out.estimator == "mahony_passive"
+    assert out.counts["/attitude_block"] == out.counts["/attitude/original_block"] == log.counts["/imu/raw_block"]
+    series = read_series(log.path, progress=False)
+    assert len(series.raw_t) == len(t_ns) and np.array_equal(series.gyr, rows[:, 0:3])
+    assert len(series.truth_t) == len(t_ns)
+
+
+def test_a_lost_block_message_counts_its_samples(tmp_path):
+    """A block refused by a full queue counts its messages (one per channel) and all its
+    samples as not logged."""
+    t_ns, rows, q_true = make_fixtures.analytic_trajectory(200.0, 0.5)
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (len(t_ns), 1))
+    flags = np.full(len(t_ns), GYR_VALID | ACC_VALID, dtype=np.int64)
+    writer = FlightLogWriter(tmp_path, fsync=False, block_messages_above_hz=100.0, queue_size=0)
+    writer.write_block(t_ns[:10], rows[:10], flags[:10], q=q[:10], estimator="m", truth_q=q_true[:10])
+    writer.write_block(t_ns[10:14], rows[10:14], flags[10:14], q=q[10:14], estimator="m")
+    writer.close()
+    assert (writer.dropped, writer.samples_not_logged) == (3 + 2, 14)
+
+
+def test_blocks_slower_than_the_threshold_stay_per_sample(tmp_path):
+    t_ns, rows, q_true = make_fixtures.analytic_trajectory(200.0, 0.2)  # dt 5 ms ± 20 %: 200 Hz
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (len(t_ns), 1))
+    flags = np.full(len(t_ns), GYR_VALID | ACC_VALID, dtype=np.int64)
+    writer = FlightLogWriter(tmp_path, fsync=False, block_messages_above_hz=400.0)
+    writer.write_block(t_ns, rows, flags, q=q, estimator="m")
+    writer.close()
+    counts = read_log(writer.files[0]).counts
+    assert counts["/imu/raw"] == len(t_ns) and "/imu/raw_block" not in counts
+
+
 def test_a_block_s_gyro_bias_is_written_with_its_last_row_only(tmp_path):
     from mcap.reader import make_reader
 
@@ -222,7 +311,7 @@ def test_a_block_s_gyro_bias_is_written_with_its_last_row_only(tmp_path):
     assert all(schemas.validate(m, schema) == [] for m, schema in found)
 
 
-def _service_on(path: Path, directory: Path) -> Path:
+def _service_on(path: Path, directory: Path, **log_options) -> Path:
     """Plays the flight log ``path`` through the service as fast as it goes; its new log."""
     from ahrs_service import config as config_mod
     from ahrs_service.service import Service
@@ -232,7 +321,7 @@ def _service_on(path: Path, directory: Path) -> Path:
         "rates": {"estimation_hz": 200},
         "estimator": {"name": "madgwick"},
         "mavlink": {"endpoints": ["udpout:127.0.0.1:9"]},
-        "log": {"directory": str(directory)},
+        "log": {"directory": str(directory), **log_options},
     })
     service = Service(cfg, duration_s=60.0)
     service.start()
@@ -257,3 +346,23 @@ def test_the_service_on_its_own_log_reproduces_it_bit_for_bit(tmp_path):
     assert np.array_equal(again.t_ns, first.t_ns) and np.array_equal(again.t_source_ns, first.t_ns)
     assert np.array_equal(again.rows, first.rows, equal_nan=True)
     assert np.array_equal(replay(first), first.attitudes) and np.array_equal(again.attitudes, first.attitudes)
+
+
+def test_the_service_logs_a_fast_source_one_message_per_burst_and_replays_it(tmp_path):
+    """A 4 kHz recording played through the service (blocks of up to 64 rows from the recorded
+    source) is logged as /imu/raw_block + /attitude_block: the same rows, times, numbers and
+    estimates as the service's per-sample log of the same run, the recorded estimate replayed
+    bit for bit; played through the service again, the block log gives the same again."""
+    path, *_ = make_fixtures.record_analytic(tmp_path / "rec", rate_hz=4000.0, seconds=1.0, change=None)
+    recorded = read_log(path)
+    first = read_log(_service_on(path, tmp_path / "first"))
+    per_sample = read_log(_service_on(path, tmp_path / "per-sample", block_messages_above_hz=1e6))
+    assert "/imu/raw" not in first.counts and first.counts["/imu/raw_block"] >= len(recorded) // 64
+    assert per_sample.counts["/imu/raw"] == len(recorded) and "/imu/raw_block" not in per_sample.counts
+    for key in ("t_ns", "t_source_ns", "rows", "flags", "index", "attitudes"):
+        assert np.array_equal(getattr(first, key), getattr(per_sample, key), equal_nan=True), key
+    assert np.array_equal(first.t_ns, recorded.t_ns) and np.array_equal(first.index, np.arange(len(recorded)))
+    assert np.array_equal(replay(first), first.attitudes)
+    again = read_log(_service_on(first.path, tmp_path / "again"))
+    assert np.array_equal(again.rows, first.rows, equal_nan=True) and np.array_equal(again.attitudes, first.attitudes)
+

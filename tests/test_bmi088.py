@@ -3,7 +3,9 @@ dummy byte and SPI-mode switch), configuration, frame layout and scale, watermar
 overflow, and the pairing of the two clocks into rows.
 
 Register expectations are written out from Bosch BST-BMI088-DS001 (accelerometer and
-gyroscope register maps, FIFO chapter) independently of the driver's constants.
+gyroscope register maps, FIFO chapter) independently of the driver's constants, each checked
+against Bosch's BMI08x Sensor API, PX4, ArduPilot and Zephyr (see the module header of
+drivers/imu/bmi088.py).
 """
 
 from __future__ import annotations
@@ -123,6 +125,30 @@ def test_gyro_overflow_counted_and_fifo_reset_accel_overflow_counted_apart():
     after = b.read_block()
     assert after.lost.fifo_overflow == lost
     assert (after.t_ns[0] - blk.t_ns[-1]) / 1e9 == pytest.approx((lost + 1) / gyro.rate_hz(), abs=2e-4)
+
+
+def test_fifo_flush_rules_of_both_dies():
+    # accelerometer: the 0xB0 command to ACC_SOFTRESET (0x7E) flushes the FIFO, a rewrite of
+    # FIFO_CONFIG_0 (0x48) does not; gyroscope: a write of FIFO_CONFIG_0 (0x3D) clears the
+    # buffer but not the overrun flag (FIFO_STATUS bit 7), only a write of FIFO_CONFIG_1 (0x3E)
+    # clears that
+    b, imu, acc, gyro = board(odr_hz=2000, acc_odr_hz=1600, watermark=8)
+    b.open()
+    imu.clock.advance(0.2)  # both FIFOs overflow
+    gyro.update(imu.clock.now())  # the twins latch when the bus touches them
+    acc_bus, gyro_bus = b.acc_transport, b.transport
+    acc_bus.write(0x48, 0x03)
+    assert acc.fifo.level == 146 * 7  # still full
+    acc_bus.write(0x7E, 0xB0)
+    assert acc.fifo.level == 0 and acc.regs[0x40] == 0xAC  # flushed, configuration kept
+    assert gyro.read_register(0x0E) == 0x80 | 100  # overrun, 100 frames
+    gyro_bus.write(0x3D, 8)
+    assert gyro.read_register(0x0E) == 0x80  # empty, overrun still flagged
+    gyro_bus.write(0x3E, 0x40)
+    assert gyro.read_register(0x0E) == 0x00
+    imu.clock.advance(0.002)
+    gyro.update(imu.clock.now())
+    assert 3 <= gyro.read_register(0x0E) <= 5  # filling again in FIFO mode (2014.6 Hz)
 
 
 def test_gyro_watermark_raises_int3_for_the_data_ready_line():

@@ -129,3 +129,42 @@ def test_log_recover_of_a_log_without_one_complete_message_writes_nothing(tmp_pa
     assert rc == 2
     assert err.startswith(f"ahrs-service log: error: {cut}: no complete message (damaged at byte") and err.endswith(": nothing to recover")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.mcap"]
+
+
+@pytest.mark.parametrize(
+    "argv, expected",
+    [
+        (["replay", "{log}", "--param", "beta=1e300"],
+         "ahrs-service replay: error: --param beta = 1e+300: must be within 0 … 100000 (1e+06 × its default 0.1)"),
+        (["replay", "{log}", "--param", "beta=2e5"], "ahrs-service replay: error: --param beta = 200000.0: must be within 0 …"),
+        (["replay", "{log}", "--estimator", "mahony_direct", "--param", "kp=1e300"], "error: --param kp = 1e+300: must be within"),
+        (["replay", "{log}", "{log}", "--out", "{tmp}/fleet", "--estimator", "madgwick", "--param", "beta=1e300"],
+         "ahrs-service replay: error: --param beta = 1e+300: must be within 0 …"),
+        (["evaluate", "--data", "{broad}", "--estimators", "madgwick", "--param", "madgwick.beta=1e300", "--out", "{tmp}/ev"],
+         "ahrs-service evaluate: error: --param madgwick.beta = 1e+300: must be within 0 … 100000"),
+        (["tune", "madgwick", "--data", "{broad}", "--space", "beta=0.01:1e300", "--out", "{tmp}/t.json"],
+         "ahrs-service tune: error: search range of madgwick.beta = 1e+300: must be within 0 … 100000"),
+    ],
+)
+def test_param_values_get_the_configuration_files_ranges(tmp_path, capsys, log_path, broad_dir, argv, expected):
+    """Issue 14 re-probe: `replay --param beta=1e300` (and evaluate's --param, tune's --space)
+    were accepted, though `estimator.params` in the configuration file refuses the same value
+    (config.check_estimator_params: one check, the file's ranges)."""
+    fill = {"log": str(log_path), "tmp": str(tmp_path), "broad": str(broad_dir)}
+    rc, err = _run(capsys, [a.format(**fill) for a in argv])
+    assert rc == 2 and "\n" not in err and "Traceback" not in err, err
+    assert expected.format(**fill) in err
+    assert list(tmp_path.iterdir()) == []  # refused before anything was written
+
+
+def test_param_value_refused_in_the_file_is_refused_on_the_command_line_by_the_same_words(tmp_path, capsys, log_path):
+    """The file and the command line share the check: the same range in both messages."""
+    from ahrs_service import config
+
+    with pytest.raises(config.ConfigError) as exc:
+        config.validate({"estimator": {"name": "madgwick", "params": {"beta": 1e300}}})
+    in_file = str(exc.value).partition(": ")[2]
+    rc, err = _run(capsys, ["replay", str(log_path), "--param", "beta=1e300"])
+    assert rc == 2 and err.endswith(in_file), (err, in_file)
+    # a value inside the range is replayed
+    assert main(["replay", str(log_path), "--param", "beta=0.3"]) == 0

@@ -227,3 +227,58 @@ def test_kill_9_then_recover_keeps_all_but_the_last_second(tmp_path):
     assert np.all(np.diff(log.t_ns) > 0)
     # a flush may fall between a sample's raw message and its attitude: only the last may miss it
     assert np.isfinite(log.attitudes[:-1]).all()
+
+
+def test_a_burst_of_sighups_is_one_reload_of_the_file_as_last_written(tmp_path):
+    """Issue 14 re-probe: 50 SIGHUPs a few ms apart, the file rewritten before each (as a
+    configuration tool does), gave 44-48 full reloads. Signals coming while a reload is pending
+    (Service.request_reload: until they pause for RELOAD_SETTLE_NS) or running are one more
+    reload at most; the last content wins. A burst ending in a broken file is one refusal and
+    the service runs on with what it had."""
+    import threading
+
+    notify = FakeSystemd(tmp_path)
+    cfg = tmp_path / "config.toml"
+    write_config(cfg, tmp_path / "logs", 14997, beta=0.1)
+    with running(["run", "--config", str(cfg)], tmp_path, notify) as proc:
+        assert notify.wait_for("READY=1", 90)
+        lines: list[str] = []
+        reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+        reader.start()
+
+        def wait_for_line(text: str) -> bool:
+            end = time.monotonic() + 60.0  # a bound for a hang, not a speed
+            while time.monotonic() < end and proc.poll() is None:
+                if any(text in line for line in list(lines)):
+                    return True
+                notify._receive()  # drains the notify socket meanwhile
+            return False
+
+        for i in range(1, 51):
+            write_config(cfg, tmp_path / "logs", 14997, beta=round(0.1 + 0.01 * i, 2))
+            proc.send_signal(signal.SIGHUP)
+            time.sleep(0.005)
+        assert wait_for_line("-> 0.6 (reload"), "".join(lines)  # the last file's beta applied
+        first_burst = "".join(lines).count("configuration reloaded")
+        for i in range(20):  # a burst whose last file is broken (the others: what runs)
+            if i == 19:
+                cfg.write_text("[estimator]\nname = 'nope'\n")
+            else:
+                write_config(cfg, tmp_path / "logs", 14997, beta=0.6)
+            proc.send_signal(signal.SIGHUP)
+            time.sleep(0.005)
+        assert wait_for_line("reload refused"), "".join(lines)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20.0) == 0
+        reader.join(timeout=10.0)
+    output = "".join(lines)
+    # one reload per burst; a second one only if the burst paused (a loaded machine) or a
+    # signal came during the reload
+    assert 1 <= first_burst <= 2, output
+    assert output.count("configuration reloaded") - first_burst <= 1, output
+    assert output.count("reload refused") == 1, output
+    from ahrs_service.logs.reader import read_log
+
+    log = read_log(sorted((tmp_path / "logs").glob("flight-*.mcap"))[0])
+    changes = [c for c in log.param_changes if c["name"] == "beta"]
+    assert changes[-1]["new"] == pytest.approx(0.6)  # the broken file changed nothing

@@ -48,7 +48,8 @@ def write_mcap(path: Path, messages: list[tuple[str, object, int]]) -> Path:
         w = Writer(f, compression=CompressionType.ZSTD)
         w.start()
         channels = {}
-        for topic in ("/config", "/imu/raw", "/attitude", "/params", "/loop", "/log", "/estimator/state"):
+        for topic in ("/config", "/imu/raw", "/attitude", "/params", "/loop", "/log", "/estimator/state",
+                      "/imu/raw_block", "/attitude_block"):
             sid = w.register_schema(CHANNELS[topic][0], "jsonschema", schema_bytes(topic))
             channels[topic] = w.register_channel(topic, "json", sid)
         for topic, value, t in messages:
@@ -63,6 +64,22 @@ def flight(raw=lambda i: {**RAW, "t_ns": _t(i), "index": i}, extra=(), config=CO
     for i in range(n):
         msgs += [("/imu/raw", raw(i), _t(i)), ("/attitude", {**ATT, "t_ns": _t(i)}, _t(i))]
     return msgs + list(extra)
+
+
+def block_flight(bad: dict | None = None, bad_attitude: dict | None = None, blocks: int = 4, rows: int = 10):
+    """A block log (one /imu/raw_block and /attitude_block per burst of ``rows`` samples); the
+    third burst's messages get ``bad`` / ``bad_attitude`` merged in."""
+    msgs = [("/config", CONFIG, 0)]
+    for b in range(blocks):
+        t = [_t(b * rows + i) for i in range(rows)]
+        raw = {"t_ns": t, "first_index": b * rows, "dt": [0.005] * rows, "gyr": [[0.0, 0.0, 0.0]] * rows,
+               "acc": [[0.0, 0.0, -9.81]] * rows, "mag": [[20.0, 0.0, 40.0]] * rows, "flags": [7] * rows}
+        att = {"t_ns": t, "q": [[1.0, 0.0, 0.0, 0.0]] * rows, "estimator": "madgwick"}
+        if b == 2:
+            raw.update(bad or {})
+            att.update(bad_attitude or {})
+        msgs += [("/imu/raw_block", raw, t[-1]), ("/attitude_block", att, t[-1])]
+    return msgs
 
 
 def _bad_raw_at(k: int, **fields):
@@ -99,6 +116,11 @@ HOSTILE = [
      "/params message 1", "$.sample_index: expected a 64-bit integer, got the string '10'"),
     ("state not an array", flight(extra=[("/estimator/state", {"t_ns": 0, "sample_index": 0, "estimator": "madgwick", "state": None}, _t(N))]),
      "/estimator/state message 1", "$.state: expected an array of numbers, got null"),
+    ("block time a string", block_flight({"t_ns": [_t(20)] * 9 + ["x"]}), "/imu/raw_block message 3", "$.t_ns[9]: expected a 64-bit integer, got the string 'x'"),
+    ("block rows short", block_flight({"gyr": [[0.0, 0.0, 0.0]] * 9}), "/imu/raw_block message 3", "$.gyr: expected an array of 10 rows, got an array of 9"),
+    ("block row of strings", block_flight({"acc": [[0.0, 0.0, -9.81]] * 9 + [["a", 0, 0]]}), "/imu/raw_block message 3", "$.acc[9][0]: expected a number or null"),
+    ("block first index missing", block_flight({"first_index": None}), "/imu/raw_block message 3", "$.first_index: expected a 64-bit integer, got null"),
+    ("block attitude q short", block_flight(bad_attitude={"q": [[1.0, 0.0]] * 10}), "/attitude_block message 3", "$.q[0]: expected an array of 4 numbers, got an array of 2"),
 ]
 
 
@@ -118,7 +140,7 @@ def test_a_message_that_is_not_what_its_schema_says_is_damage_named_by_field(tmp
     rc, out, _ = _run(capsys, ["log", "info", "--json", path])  # the same exit status as without --json
     assert rc == 1 and where in json.loads(out)["damage"]["reason"]
     log = read_log(path)
-    kept = 7 if where.startswith("/imu/raw") else (0 if where.startswith("/config") else N)
+    kept = {"/imu/raw ": 7, "/config ": 0, "/imu/raw_block ": 20, "/attitude_block ": 30}.get(where.split("message")[0], N)
     assert len(log) == kept and np.all(np.isfinite(log.rows[:, :6])) and log.damage is not None
     rc, out, err = _run(capsys, ["replay", path, "--estimator", "madgwick"])
     assert "Traceback" not in err and "\n" not in err

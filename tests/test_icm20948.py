@@ -1,6 +1,8 @@
 """ICM-20948 against its twin: identity, user banks, the AK09916 behind the auxiliary I2C
 master (slave 4 for configuration, slave 0 into the FIFO), packet layout and scale,
-overflow. Expectations written out from TDK DS-000189 and the AK09916 datasheet.
+overflow. Expectations written out from TDK DS-000189 and the AK09916 datasheet, each checked
+against PX4, ArduPilot and Linux ak8975 (see the module headers of drivers/imu/icm20948.py
+and ak09916.py).
 """
 
 from __future__ import annotations

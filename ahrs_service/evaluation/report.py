@@ -27,6 +27,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ahrs_service import estimators
+from ahrs_service.config import check_estimator_params
 from ahrs_service.estimators import offline as offline_mode
 from ahrs_service.estimators.base import stack_rows, time_steps
 from ahrs_service.evaluation import broad, dido, metrics, peers, stats
@@ -546,6 +547,9 @@ def main(args: Any) -> int:
         est_names, skipped = select_estimators(args.estimators)
         peer_names = peers.select(args.peers)
         params = parse_params(args.param, est_names + peer_names)
+        for name in est_names:  # the configuration file's checks and ranges (ConfigError: a ValueError)
+            if name in params:
+                check_estimator_params(name, params[name], label=f"--param {name}.{{}}")
         params = with_presets(getattr(args, "preset", []) or [], est_names, params)
         columns = make_columns(
             est_names,

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from ahrs_service import estimators
+from ahrs_service.config import check_estimator_params
 from ahrs_service.estimators.presets import SearchRange
 from ahrs_service.evaluation import report
 from ahrs_service.execution import Runner, progress_bar
@@ -90,6 +91,9 @@ def check_space(name: str, space: dict[str, SearchRange]) -> None:
             raise ValueError(
                 f"search range of {name}.{key} = {space[key].low}:{space[key].high} is outside its bounds: {exc}"
             ) from None
+    for key, rng in space.items():  # then the configuration file's ranges (ConfigError: a ValueError)
+        for end in (rng.low, rng.high):
+            check_estimator_params(name, {key: end}, label=f"search range of {name}.{{}}")
 
 
 def _accepts(name: str, key: str, value: float) -> bool:

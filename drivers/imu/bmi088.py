@@ -1,8 +1,8 @@
 """Bosch BMI088: accelerometer and gyroscope on two dies, each with its own chip select,
 registers and FIFO (SPI), and their twins.
 
-Accelerometer die (BST-BMI088-DS001 rev 1.x, register map §5.3.x / Table "accelerometer
-register map"; FIFO §4.9 "FIFO", frame formats §4.9.x):
+Accelerometer die (Bosch BST-BMI088-DS001, accelerometer register descriptions §5.3.x — PX4
+cites "Datasheet 5.3.7" for TEMP_MSB/LSB; the FIFO chapter's frame formats):
 
 =====  ==============  ===============================================================
 0x00   ACC_CHIP_ID     0x1E
@@ -18,15 +18,17 @@ register map"; FIFO §4.9 "FIFO", frame formats §4.9.x):
 0x58   INT_MAP_DATA    bit 1 int1_fwm, bit 0 int1_ffull
 0x7C   ACC_PWR_CONF    0x03 suspend (power-on), 0x00 active
 0x7D   ACC_PWR_CTRL    0x00 off (power-on), 0x04 on
-0x7E   ACC_SOFTRESET   0xB6
+0x7E   ACC_SOFTRESET   0xB6 soft reset (1 ms); 0xB0 flushes the FIFO
 =====  ==============  ===============================================================
 
-SPI on the accelerometer (§6.1.2): a read returns one **dummy byte** before the data; after
-power-on the die listens on I2C until a rising edge on CSB1 — the driver's first access is
-a throw-away read of ACC_CHIP_ID. Sensitivity: 32768 / (1.5 · 2^(range+1)) LSB/g. FIFO
-1024 bytes = 146 accelerometer frames of 7 bytes.
+SPI on the accelerometer (§6.1 / §6.1.2, as PX4 quotes them): a read returns one **dummy
+byte** before the data; after power-on the die listens on I2C until a rising edge on CSB1 —
+the driver's first access is a throw-away read of ACC_CHIP_ID. Sensitivity:
+32768 / (1.5 · 2^(range+1)) LSB/g. FIFO 1024 bytes = 146 accelerometer frames of 7 bytes; an
+empty FIFO's length reads 0x8000 (bit 15, masked off with the 13:8 field). Power: ACC_PWR_CONF
+then ACC_PWR_CTRL, 5 ms each (Bosch's BMI08_POWER_CONFIG_DELAY).
 
-Gyroscope die (register map §5.5.x / Table "gyroscope register map"; FIFO §4.9):
+Gyroscope die (gyroscope register descriptions; the FIFO chapter):
 
 =====  ==================  ===========================================================
 0x00   GYRO_CHIP_ID        0x0F
@@ -40,12 +42,38 @@ Gyroscope die (register map §5.5.x / Table "gyroscope register map"; FIFO §4.9
 0x16   INT3_INT4_IO_CONF   bit 1 int3 open-drain, bit 0 int3 active high
 0x18   INT3_INT4_IO_MAP    bit 2 FIFO on INT3
 0x1E   FIFO_WM_ENABLE      0x88 watermark interrupt on, 0x08 off
-0x3D   FIFO_CONFIG_0       watermark level, frames 6:0
-0x3E   FIFO_CONFIG_1       mode 7:6: 0x40 FIFO (stop when full), 0x80 stream; a write clears it
+0x3D   FIFO_CONFIG_0       watermark level, frames 6:0; a write clears the FIFO buffer
+0x3E   FIFO_CONFIG_1       mode 7:6: 0x40 FIFO (stop when full), 0x80 stream; a write is the
+                           only way to clear the overrun flag
 0x3F   FIFO_DATA           6-byte frames X, Y, Z little-endian
 =====  ==================  ===========================================================
 
 No dummy byte on the gyroscope. FIFO 100 frames. Sensitivity 16.384 · 2^range LSB/(°/s).
+Soft reset: 0xB6, then 30 ms.
+
+Verified against (2026-12-02; read, not copied): Bosch ``BMI08x_SensorAPI`` ``bmi08_defs.h``
+and ``bmi08.h`` (commit c1ed227: every gyro register, bit and code above, ACC_CONF
+bandwidth/ODR codes, ACC_PWR_* values, INT1_IO_CONF and INT map bits, FIFO_CONFIG_1
+acc_en, frame headers, 0xB6, the 1 ms / 30 ms / 5 ms delays, BMI088 accel range codes);
+PX4-Autopilot ``src/drivers/imu/bosch/bmi088/Bosch_BMI088_Accelerometer_Registers.hpp``
+(1e944a5a), ``Bosch_BMI088_Gyroscope_Registers.hpp`` (15c4f088),
+``BMI088_Accelerometer.cpp`` (9ffa0096) and ``BMI088_Gyroscope.cpp`` (accel FIFO addresses,
+FIFO_CONFIG_0/1 "must be 1" bits, 1024-byte / 100-frame FIFOs, FIFO_WM_ENABLE 0x88/0x08, the
+dummy byte and first CSB1 edge, 0x8000 = empty); ArduPilot
+``libraries/AP_InertialSensor/AP_InertialSensor_BMI088.cpp`` (05ac7a31: addresses, 0xAC,
+±24 g scale, FIFO_CONFIG1 0x50, frame headers, 30 ms gyro reset) and Zephyr
+``drivers/sensor/bosch/bmi08x`` (``bmi08x_accel_stream.c``: FIFO_WTM 12:0, FIFO_CONFIG_0
+0x03, FIFO_CONFIG_1 0x50, INT map 0x03, INT1_IO_CONF 0x0A; ``bmi08x.h``: range codes).
+PX4's own gyro header gives 0x04/0x05 for ±250/±125 °/s; Bosch and Zephyr give 0x03/0x04,
+which the driver uses. Confirmed by one source only: the accelerometer's FIFO flush command
+0xB0 (PX4, its SPI and I2C drivers) and the gyro's FIFO_CONFIG_0/1 clearing rules (PX4,
+quoting the datasheet); Bosch's API writes FIFO_WM_ENABLE as 0x80 where PX4 (and this
+driver) write 0x88. Power-on values in the accelerometer twin other than ACC_PWR_*
+(ACC_CONF 0xA8, ACC_RANGE 0x01, FIFO_CONFIG 0x02/0x10, FIFO_WTM 0x0200) are unconfirmed.
+Fixed in this check: the accelerometer FIFO was "cleared" by rewriting FIFO_CONFIG_0, which
+no source supports (now the 0xB0 command, also at the end of configure); the gyro FIFO reset
+wrote only FIFO_CONFIG_1 (now FIFO_CONFIG_0, which clears the buffer, then FIFO_CONFIG_1,
+which clears the overrun flag); the twins model exactly those rules.
 
 The dies run on separate oscillators: the board pairs them by the rule in
 :class:`~ahrs_service.drivers.imu.boards.BMI088Board`.
@@ -75,6 +103,7 @@ ACC_RANGES_G = {3: 0, 6: 1, 12: 2, 24: 3}
 ACC_FRAME_HEADER, ACC_FRAME, ACC_EMPTY = 0x84, 7, 0x80
 ACC_FIFO_BYTES = 1024
 SOFTRESET_CMD = 0xB6
+ACC_FIFO_FLUSH_CMD = 0xB0  # to ACC_SOFTRESET (PX4 BMI088_Accelerometer.cpp FIFOReset)
 
 # gyroscope die
 GYRO_CHIP_ID, GYRO_CHIP_ID_VALUE = 0x00, 0x0F
@@ -133,9 +162,11 @@ class BMI088Accel(TransportDevice):
         self.write_u8(ACC_FIFO_CONFIG_0, 0x03)  # FIFO mode: stop when full (also clears it)
         self.write_u8(INT1_IO_CTRL, 0x0A)  # out, push-pull, active high
         self.write_u8(INT_MAP_DATA, 0x03)  # watermark and full on INT1
+        self.flush()
 
     def flush(self) -> None:
-        self.write_u8(ACC_FIFO_CONFIG_0, 0x03)  # rewriting the FIFO configuration clears it
+        """Empties the FIFO: the 0xB0 command to ACC_SOFTRESET (PX4's FIFOReset)."""
+        self.write_u8(ACC_SOFTRESET, ACC_FIFO_FLUSH_CMD)
 
     def read_level(self) -> int:
         b = self.read_regs(FIFO_LENGTH_0, 2)
@@ -190,9 +221,14 @@ class BMI088Gyro(TransportDevice):
         self.write_u8(INT3_INT4_IO_CONF, 0x01)  # push-pull, active high
         self.write_u8(INT3_INT4_IO_MAP, 0x04)  # FIFO interrupt on INT3
         self.write_u8(GYRO_INT_CTRL, 0x40)
-        self.write_u8(GYRO_FIFO_CONFIG_1, 0x40)  # FIFO mode: stop when full (clears it)
+        self.write_u8(GYRO_FIFO_CONFIG_1, 0x40)  # FIFO mode: stop when full
+        self.flush()
 
     def flush(self) -> None:
+        """Empties the FIFO and clears its overrun flag (the datasheet's rules as PX4 quotes
+        them: a write of FIFO_CONFIG_0 clears the buffer, only a write of FIFO_CONFIG_1 the
+        overrun)."""
+        self.write_u8(GYRO_FIFO_CONFIG_0, self.watermark)
         self.write_u8(GYRO_FIFO_CONFIG_1, 0x40)
         self.read_status()  # an overrun flagged before the flush must not show as a new one
 
@@ -239,7 +275,17 @@ class _BMI088Die(SimulatedFifoDevice):
         if sub == self.SOFTRESET_REG and data and data[0] == SOFTRESET_CMD:
             self.power_on_reset(now)
             return
+        if sub == self.SOFTRESET_REG and data and data[0] == self.FIFO_FLUSH_CMD:
+            self.flush_fifo()
+            return
         super().bus_write(sub, data, now)
+
+    FIFO_FLUSH_CMD: int | None = None  # a command to SOFTRESET_REG that empties the FIFO
+
+    def flush_fifo(self) -> None:
+        self.fifo.clear()
+        self.truth.clear()
+        self._above_wm = False
 
     def _truth_q(self, phys: dict):
         truth = phys.get("truth")
@@ -264,7 +310,7 @@ class SimulatedBMI088Accel(_BMI088Die):
     PART = "BMI088 accelerometer"
     SPI_DUMMY_BYTES = 1
     CLOCK_ERROR = -0.0061
-    FIFO_PORT, SOFTRESET_REG = ACC_FIFO_DATA, ACC_SOFTRESET
+    FIFO_PORT, SOFTRESET_REG, FIFO_FLUSH_CMD = ACC_FIFO_DATA, ACC_SOFTRESET, ACC_FIFO_FLUSH_CMD
     POWER_ON = {ACC_CHIP_ID: ACC_CHIP_ID_VALUE, ACC_CONF: 0xA8, ACC_RANGE: 0x01, ACC_PWR_CONF: 0x03,
                 ACC_PWR_CTRL: 0x00, ACC_FIFO_CONFIG_0: 0x02, ACC_FIFO_CONFIG_1: 0x10, FIFO_WTM_0: 0x00,
                 FIFO_WTM_1: 0x02, INT_MAP_DATA: 0x00}
@@ -293,9 +339,8 @@ class SimulatedBMI088Accel(_BMI088Die):
         return ACC_FIFO_BYTES // ACC_FRAME + 1
 
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
-        if reg == ACC_FIFO_CONFIG_0:
-            self.fifo.clear()
-            self.truth.clear()
+        # no FIFO clearing on FIFO_CONFIG writes: no source gives that rule (the 0xB0
+        # command to ACC_SOFTRESET flushes, see _BMI088Die.bus_write)
         if reg in (ACC_PWR_CTRL, ACC_PWR_CONF, ACC_CONF) and value != old:
             self.restart_measurement(now)
 
@@ -358,9 +403,12 @@ class SimulatedBMI088Gyro(_BMI088Die):
             self.regs[GYRO_BANDWIDTH] = 0x80 | value  # bit 7 reads 1
             if (value & 0x07) != (old & 0x07):
                 self.restart_measurement(now)
-        elif reg == GYRO_FIFO_CONFIG_1:
-            self.fifo.clear()
-            self.truth.clear()
+        elif reg == GYRO_FIFO_CONFIG_0:  # "clears the FIFO buffer", not the overrun flag
+            overrun = self.fifo.overflowed
+            self.flush_fifo()
+            self.fifo.overflowed = overrun
+        elif reg == GYRO_FIFO_CONFIG_1:  # the only way to clear the overrun flag
+            self.fifo.overflowed = False
         elif reg == GYRO_LPM1 and value != old:
             self.restart_measurement(now)
 

@@ -1,8 +1,8 @@
 """TDK InvenSense ICM-20948 gyroscope + accelerometer with its AK09916 magnetometer read by
 the part's auxiliary I2C master (SPI or I2C), and its twin.
 
-Register map used (TDK DS-000189 rev 1.3, §7 "Register map" per user bank; FIFO §6.x). Every
-bank has REG_BANK_SEL at 0x7F (bits 5:4 = bank):
+Register map used (TDK DS-000189, the register map per user bank). Every bank has
+REG_BANK_SEL at 0x7F (bits 5:4 = bank):
 
 =====  ==========  ===================  =================================================
 bank   reg         name                 use
@@ -21,7 +21,8 @@ bank   reg         name                 use
 0      0x70        FIFO_COUNTH/L        bytes in the FIFO, big-endian (0x70 … 0x71)
 0      0x72        FIFO_R_W             reads pop the FIFO
 2      0x00        GYRO_SMPLRT_DIV      gyro ODR = 1125 Hz / (1 + div)
-2      0x01        GYRO_CONFIG_1        DLPFCFG 5:3, GYRO_FS_SEL 2:1 (±250/500/1000/2000), FCHOICE 0
+2      0x01        GYRO_CONFIG_1        DLPFCFG 5:3 (1 = ArduPilot's "188 Hz"), GYRO_FS_SEL 2:1
+                                        (±250/500/1000/2000), FCHOICE 0 (1 = DLPF in)
 2      0x10        ACCEL_SMPLRT_DIV_1/2 accel ODR = 1125 Hz / (1 + div), 11:0
 2      0x14        ACCEL_CONFIG         DLPFCFG 5:3, ACCEL_FS_SEL 2:1 (±2/4/8/16 g), FCHOICE 0
 3      0x01        I2C_MST_CTRL         I2C_MST_CLK 3:0 (7 = 345.6 kHz)
@@ -36,7 +37,28 @@ slave 0's 9 bytes a packet is 21 bytes, big-endian: ACCEL X Y Z, GYRO X Y Z, the
 HZH (little-endian), TMPS, ST2 — 24 packets, 21 ms at 1125 Hz. The part has no programmable
 FIFO watermark interrupt (its watermark belongs to the DMP), so the board polls on the timer;
 ``source.drdy_gpio`` is refused for it. SPI: mode 0 or 3, ≤ 7 MHz, read bit 0x80; I2C
-address 0x68 (AD0 low) or 0x69.
+address 0x68 (AD0 low) or 0x69. Reset: DEVICE_RESET, then 100 ms (PWR_MGMT_1 reads 0x41,
+asleep, auto clock); the AK09916 gets 100 ms after its CNTL3 soft reset.
+
+Verified against (2026-12-02; read, not copied): PX4-Autopilot
+``src/drivers/imu/invensense/icm20948/InvenSense_ICM20948_registers.hpp`` (0a12a2b3),
+``ICM20948.cpp`` (1bbd1168), ``ICM20948.hpp`` (f929353e) and ``ICM20948_AK09916.cpp``
+(542f41f2: 512-byte FIFO, FIFO_RST 0x1F then 0x00, snapshot FIFO_MODE, PWR_MGMT_1 0x41
+after reset, 100 ms reset wait, 7 MHz SPI); ArduPilot
+``libraries/AP_InertialSensor/AP_InertialSensor_Invensensev2_registers.h`` (04117858: every
+bank 0/2/3 address above, FIFO_EN_1/2 bits, USER_CTRL bits, FCHOICE/DLPF codes, I2C_SLV0…4
+and WHO_AM_I 0xEA). Slave 4's DONE flag (I2C_MST_STATUS bit 6) and the slave-4 sequence
+(ADDR, REG, DO, CTRL.EN, poll DONE, read DI) are confirmed by third-party MPU-6050/MPU-9250
+and ICM-20948 register headers and AK8963 examples found in the code index (the same
+InvenSense I2C master), not by PX4 or ArduPilot, which reach the AK09916 through slave 0.
+INT_STATUS_2 (0x1B, ArduPilot) with one FIFO_OVERFLOW_INT bit per FIFO in 4:0: a third-party
+ICM-20948 library in the code index. Not confirmed by a second source: the 13-bit FIFO count
+mask, the ACCEL_CONFIG DLPFCFG 1 bandwidth, the
+power-on 0x01 of GYRO_CONFIG_1/ACCEL_CONFIG in the twin, and I2C_MST_CLK 7 = 345.6 kHz (PX4
+quotes the datasheet's recommendation; ArduPilot writes 13, the MPU-6000 table's 400 kHz
+code). Fixed in this check: the AK09916 was asked for its
+identity right after its soft reset (PX4 waits 100 ms), and the gyro DLPF 1 was called
+"≈ 197 Hz" (ArduPilot names it 188 Hz; the bandwidth is not used by the driver).
 """
 
 from __future__ import annotations
@@ -150,7 +172,7 @@ class ICM20948(TransportDevice):
         self.write_u8(USER_CTRL, spi | I2C_MST_EN)
         self.bank(2)
         self.write_u8(GYRO_SMPLRT_DIV, self.div)
-        self.write_u8(GYRO_CONFIG_1, 1 << 3 | self.gyro_code << 1 | 1)  # DLPF 1 (≈ 197 Hz), FCHOICE on
+        self.write_u8(GYRO_CONFIG_1, 1 << 3 | self.gyro_code << 1 | 1)  # DLPFCFG 1, FCHOICE: DLPF in
         self.write_u8(ACCEL_SMPLRT_DIV_1, 0)
         self.write_u8(ACCEL_SMPLRT_DIV_2, self.div)
         self.write_u8(ACCEL_CONFIG, 1 << 3 | self.acc_code << 1 | 1)
@@ -158,6 +180,7 @@ class ICM20948(TransportDevice):
         self.write_u8(I2C_MST_CTRL, 0x07)
         self.bank(0)
         self.aux_transfer(ak09916.CNTL3, ak09916.SRST)
+        t.sleep(0.1)  # the AK09916's soft reset (PX4 ICM20948_AK09916.cpp waits 100 ms)
         wia = self.aux_transfer(ak09916.WIA2)
         if wia != ak09916.WIA2_VALUE:
             raise PartIdentityError(f"{t.where} aux I2C 0x0C", "AK09916", ak09916.WIA2, wia,

@@ -1,15 +1,16 @@
 """TDK InvenSense ICM-42688-P gyroscope + accelerometer (SPI or I2C), and its twin.
 
-Register map used (user bank 0; TDK DS-000347 rev 1.6, §14 "Register map", descriptions
-§14.x; FIFO §6, packet structure §6.1, hi-res packet = "packet 4", 20 bytes):
+Register map used (user bank 0; TDK DS-000347, register descriptions in §14.x — Zephyr's
+driver cites "datasheet 14.36" for PWR_MGMT0; the FIFO's 20-byte hi-res packet is the one
+PX4 calls "Packet 4"):
 
 =====  ==================  ===============================================================
 0x11   DEVICE_CONFIG       bit 0 SOFT_RESET_CONFIG (wait 1 ms)
 0x14   INT_CONFIG          INT1: bit 2 MODE (0 pulsed), bit 1 DRIVE (1 push-pull), bit 0
                            POLARITY (1 active high)
-0x16   FIFO_CONFIG         FIFO_MODE 7:6: 00 bypass, 01 stream, 10 stop-on-full
-0x2D   INT_STATUS          bit 2 FIFO_THS_INT, bit 1 FIFO_FULL_INT, bit 3 DATA_RDY_INT —
-                           cleared by reading
+0x16   FIFO_CONFIG         FIFO_MODE 7:6: 00 bypass, 01 stream, 10 (and 11) stop-on-full
+0x2D   INT_STATUS          bit 4 RESET_DONE_INT, bit 3 DATA_RDY_INT, bit 2 FIFO_THS_INT,
+                           bit 1 FIFO_FULL_INT — cleared by reading (INT_CONFIG0 default)
 0x2E   FIFO_COUNTH/L       bytes in the FIFO (INTF_CONFIG0: big-endian, in bytes), 0x2E…0x2F
 0x30   FIFO_DATA           reads pop the FIFO (no address increment)
 0x4B   SIGNAL_PATH_RESET   bit 1 FIFO_FLUSH
@@ -20,20 +21,46 @@ Register map used (user bank 0; TDK DS-000347 rev 1.6, §14 "Register map", desc
 0x5F   FIFO_CONFIG1        bit 5 WM_GT_TH, 4 HIRES_EN, 3 TMST_FSYNC_EN, 2 TEMP_EN, 1 GYRO_EN,
                            0 ACCEL_EN
 0x60   FIFO_CONFIG2/3      watermark in bytes, 11:0 (0x60 = 7:0, 0x61 = 11:8)
-0x65   INT_SOURCE0         bit 2 FIFO_THS_INT1_EN, bit 1 FIFO_FULL_INT1_EN
+0x64   INT_CONFIG1         bit 6 INT_TPULSE_DURATION (1 = 8 µs), bit 5 INT_TDEASSERT_DISABLE,
+                           bit 4 INT_ASYNC_RESET (power-on 1; must be cleared for proper INT1
+                           operation); bits 6 and 5 are required at ODR ≥ 4 kHz
+0x65   INT_SOURCE0         bit 2 FIFO_THS_INT1_EN, bit 1 FIFO_FULL_INT1_EN (power-on 0x10:
+                           RESET_DONE_INT1_EN)
 0x75   WHO_AM_I            0x47
-0x76   REG_BANK_SEL        bank 0 after reset
+0x76   REG_BANK_SEL        BANK_SEL 2:0, bank 0 after reset
 =====  ==================  ===============================================================
 
 ODR codes (GYRO_ODR / ACCEL_ODR): 3 = 8 kHz, 4 = 4 kHz, 5 = 2 kHz, 6 = 1 kHz, 15 = 500 Hz,
 7 = 200 Hz, 8 = 100 Hz. FIFO: 2048 bytes = 102 hi-res packets (12.75 ms at 8 kHz, 102 ms at
-1 kHz). Hi-res packet (§6.1, packet 4), big-endian: header (0x78: accel, gyro, 20-bit,
-timestamp), accel X/Y/Z bits 19:4, gyro X/Y/Z bits 19:4, temperature (16 bit,
-T = raw / 132.48 + 25 °C), timestamp (16 bit, µs on the part's clock), then one byte per axis
-with accel bits 3:0 in the high nibble and gyro bits 3:0 in the low one. In hi-res the FIFO
-data are ±16 g at 8192 LSB/g in 18 bits (two zero LSBs) and ±2000 °/s at 131 LSB/(°/s) in
-19 bits (one zero LSB), whatever the FS_SEL; −524288 marks an invalid sample. SPI: mode 0
-or 3, up to 24 MHz, read bit 0x80; I2C address 0x68 (AD0 low) or 0x69.
+1 kHz). Hi-res packet, big-endian: header (0x78: accel, gyro, 20-bit, ODR timestamp), accel
+X/Y/Z bits 19:4, gyro X/Y/Z bits 19:4, temperature (16 bit, T = raw / 132.48 + 25 °C),
+timestamp (16 bit, µs on the part's clock), then one byte per axis with accel bits 3:0 in
+the high nibble and gyro bits 3:0 in the low one. In hi-res the FIFO data are ±16 g at
+8192 LSB/g in 18 bits (two zero LSBs) and ±2000 °/s at 131 LSB/(°/s) in 19 bits (one zero
+LSB), whatever the FS_SEL; −524288 marks an invalid sample. A header with bit 7 set marks an
+empty FIFO. Start-up: 1 ms after the soft reset; after PWR_MGMT0 no register write for
+200 µs, and the gyro needs 30 ms (accel 10 ms) to valid data — the driver waits 50 ms as
+Zephyr does. SPI: mode 0 or 3, up to 24 MHz, read bit 0x80; I2C address 0x68 (AD0 low) or
+0x69.
+
+Verified against (2026-12-02; read, not copied): PX4-Autopilot
+``src/drivers/imu/invensense/icm42688p/InvenSense_ICM42688P_registers.hpp`` (commit
+032a09b5), ``ICM42688P.cpp`` (00d281a5) and ``ICM42688P.hpp`` (b8ffe13b); Linux
+``drivers/iio/imu/inv_icm42600/inv_icm42600.h`` (05909cd9) and ``inv_icm42600_core.c``
+(``inv_icm42600_irq_init``: "Deassert async reset for proper INT pin operation (cf
+datasheet)"); Zephyr ``drivers/sensor/tdk/icm42688/icm42688_reg.h`` (20f7c36f),
+``icm42688_common.c`` (1de8336b) and ``icm42688_decoder.c`` (06758ff2); ArduPilot
+``libraries/AP_InertialSensor/AP_InertialSensor_Invensensev3.cpp`` (FIFODataHighRes, header
+mask 0x78, FIFO_CONFIG 0x80, FIFO_FLUSH 2). Every address, bit and code above is confirmed by
+at least two of them, with these exceptions: the 16-bit FIFO timestamp's unit (1 µs with
+TMST_CONFIG.TMST_RES = 0, the power-on value) is confirmed only by the register bit names;
+the twin's power-on TMST_CONFIG 0x23 only in its bit 0 (PX4: "TMST_EN … (default)") and
+INT_SOURCE0 0x10 by one source (PX4's ICM-40609-D sibling header: "RESET_DONE_INT1_EN …
+enabled by default"); the twin treats stream mode (FIFO_MODE 01) like stop-on-full; the SPI
+modes and I2C addresses are from the datasheet only. Fixed in this check:
+INT_CONFIG1 was never written (INT_ASYNC_RESET left at its power-on 1, no 8 µs pulse at
+≥ 4 kHz: PX4 register header, Linux, Zephyr), and the gyro start-up wait cited a "45 ms"
+that no source gives (PX4 and Zephyr: 30 ms gyro, 10 ms accel).
 """
 
 from __future__ import annotations
@@ -53,7 +80,7 @@ TEMP_DATA1, ACCEL_DATA_X1, GYRO_DATA_X1 = 0x1D, 0x1F, 0x25
 INT_STATUS, FIFO_COUNTH, FIFO_COUNTL, FIFO_DATA = 0x2D, 0x2E, 0x2F, 0x30
 SIGNAL_PATH_RESET, INTF_CONFIG0, PWR_MGMT0 = 0x4B, 0x4C, 0x4E
 GYRO_CONFIG0, ACCEL_CONFIG0, TMST_CONFIG = 0x4F, 0x50, 0x54
-FIFO_CONFIG1, FIFO_CONFIG2, FIFO_CONFIG3, INT_SOURCE0 = 0x5F, 0x60, 0x61, 0x65
+FIFO_CONFIG1, FIFO_CONFIG2, FIFO_CONFIG3, INT_CONFIG1, INT_SOURCE0 = 0x5F, 0x60, 0x61, 0x64, 0x65
 WHO_AM_I, REG_BANK_SEL = 0x75, 0x76
 WHO_AM_I_VALUE = 0x47
 
@@ -66,6 +93,11 @@ FIFO_WM_GT_TH, FIFO_HIRES_EN, FIFO_TMST_FSYNC_EN = 0x20, 0x10, 0x08
 FIFO_TEMP_EN, FIFO_GYRO_EN, FIFO_ACCEL_EN = 0x04, 0x02, 0x01
 FIFO_THS_INT1_EN, FIFO_FULL_INT1_EN = 0x04, 0x02
 INT1_PUSH_PULL_ACTIVE_HIGH = 0x03
+# INT_CONFIG1 (PX4 register header, Linux inv_icm42600.h, Zephyr icm42688_reg.h)
+INT_TPULSE_8US, INT_TDEASSERT_DISABLE, INT_ASYNC_RESET = 0x40, 0x20, 0x10
+#: from this ODR up: 8 µs pulses, no de-assert time (Zephyr icm42688_common.c; the datasheet's
+#: "required if ODR ≥ 4 kHz", quoted in PX4's ICM-40609-D register header)
+FAST_ODR_HZ = 4000
 
 ODR_CODES = {8000: 3, 4000: 4, 2000: 5, 1000: 6, 500: 15, 200: 7, 100: 8}
 ODR_HZ = {c: float(r) for r, c in ODR_CODES.items()}
@@ -136,6 +168,10 @@ class ICM42688P(TransportDevice):
         self.write_u8(GYRO_CONFIG0, 0 << 5 | code)  # ±2000 °/s
         self.write_u8(ACCEL_CONFIG0, 0 << 5 | code)  # ±16 g
         self.write_u8(INT_CONFIG, INT1_PUSH_PULL_ACTIVE_HIGH)
+        # INT_ASYNC_RESET cleared for proper INT1 operation (Linux inv_icm42600_irq_init, PX4
+        # register header); 8 µs pulses without de-assert time at ≥ 4 kHz (Zephyr)
+        fast = self.odr_hz >= FAST_ODR_HZ
+        self.write_u8(INT_CONFIG1, (INT_TPULSE_8US | INT_TDEASSERT_DISABLE) if fast else 0x00)
         self.write_u8(FIFO_CONFIG, FIFO_MODE_STOP_ON_FULL)
         self.write_u8(FIFO_CONFIG1, FIFO_WM_GT_TH | FIFO_HIRES_EN | FIFO_TMST_FSYNC_EN
                       | FIFO_TEMP_EN | FIFO_GYRO_EN | FIFO_ACCEL_EN)
@@ -144,7 +180,9 @@ class ICM42688P(TransportDevice):
         self.write_u8(FIFO_CONFIG3, wm >> 8)
         self.write_u8(INT_SOURCE0, FIFO_THS_INT1_EN | FIFO_FULL_INT1_EN)
         self.write_u8(PWR_MGMT0, PWR_LOW_NOISE)
-        t.sleep(0.045)  # gyro start-up (§3.1: 45 ms typical)
+        # no write for 200 µs, gyro 30 ms / accel 10 ms to valid data (PX4 ICM42688P.cpp,
+        # Zephyr icm42688_common.c, which waits 50 ms)
+        t.sleep(0.050)
         self.flush()
 
     def flush(self) -> None:
@@ -175,7 +213,10 @@ class SimulatedICM42688P(SimulatedFifoDevice):
     watermark and stop-on-full overflow, a 16-bit µs timestamp on the part's clock, INT1.
 
     ``int1``: a callable ``(t)`` the simulated data-ready line attaches; called when the FIFO
-    level rises to the watermark (or the FIFO fills) with FIFO_THS/FULL routed to INT1.
+    level rises to the watermark (or the FIFO fills) with FIFO_THS/FULL routed to INT1 and
+    INT_CONFIG1.INT_ASYNC_RESET cleared (the datasheet only says the pin does not operate
+    properly with it set; the twin models that as no edges, so a driver that forgets it
+    is caught).
     """
 
     PART = "ICM-42688-P"
@@ -183,10 +224,10 @@ class SimulatedICM42688P(SimulatedFifoDevice):
     CLOCK_ERROR = +0.0042  # this unit's RC oscillator runs 0.42 % fast
     POWER_ON = {WHO_AM_I: WHO_AM_I_VALUE, INTF_CONFIG0: 0x30, GYRO_CONFIG0: 0x06,
                 ACCEL_CONFIG0: 0x06, INT_SOURCE0: 0x10, FIFO_CONFIG1: 0x00, TMST_CONFIG: 0x23,
-                INT_CONFIG: 0x00, INT_STATUS: RESET_DONE_INT}
+                INT_CONFIG: 0x00, INT_CONFIG1: INT_ASYNC_RESET, INT_STATUS: RESET_DONE_INT}
     WRITABLE = frozenset({DEVICE_CONFIG, INT_CONFIG, FIFO_CONFIG, SIGNAL_PATH_RESET, INTF_CONFIG0,
                           PWR_MGMT0, GYRO_CONFIG0, ACCEL_CONFIG0, TMST_CONFIG, FIFO_CONFIG1,
-                          FIFO_CONFIG2, FIFO_CONFIG3, INT_SOURCE0, REG_BANK_SEL})
+                          FIFO_CONFIG2, FIFO_CONFIG3, INT_CONFIG1, INT_SOURCE0, REG_BANK_SEL})
 
     def __init__(self, source: Any = None, address: int | None = None, clock_error: float | None = None) -> None:
         self.int1 = None
@@ -279,7 +320,8 @@ class SimulatedICM42688P(SimulatedFifoDevice):
             self.regs[INT_STATUS] |= FIFO_THS_INT
             if not self._above_wm:
                 self._above_wm = True
-                if self.int1 is not None and self.regs[INT_SOURCE0] & FIFO_THS_INT1_EN:
+                if self.int1 is not None and self.regs[INT_SOURCE0] & FIFO_THS_INT1_EN \
+                        and not self.regs[INT_CONFIG1] & INT_ASYNC_RESET:
                     self.int1(t)
 
     def take_popped_truth(self) -> list:

@@ -21,6 +21,7 @@ wrongly signed ones are dropped and counted in ``stats.unsigned_rejected``.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -50,6 +51,8 @@ from ahrs_service.protocols.mavlink.signing import SIGNED_ONLY, check_key
 from ahrs_service.protocols.mavlink.statustext_limit import StatusTextLimiter
 from ahrs_service.protocols.mavlink.telemetry import Telemetry
 from ahrs_service.protocols.mavlink.vibration import encode_vibration
+
+_log = logging.getLogger("ahrs_service.mavlink")
 
 #: default publishing rates, Hz (0 = off)
 DEFAULT_RATES: dict[str, float] = {
@@ -95,6 +98,8 @@ class MavlinkStats:
     stale_withheld: int = 0  # stream messages not sent: no fresh estimate (Telemetry.attitude_fresh)
     send_errors: dict[str, int] = field(default_factory=dict)
     receive_errors: dict[str, int] = field(default_factory=dict)
+    # messages not sent to a destination whose name did not resolve yet (endpoints.HostResolver)
+    unresolved: dict[str, int] = field(default_factory=dict)
     last_error: str = ""
 
     def as_dict(self) -> dict[str, Any]:
@@ -191,6 +196,7 @@ class MavlinkComponent:
             raise
         if not self._endpoints:
             raise ValueError("MavlinkComponent needs at least one endpoint")
+        self._resolving = [ep for ep in self._endpoints if ep.resolver is not None]
 
     # ================================================================== rates
     @staticmethod
@@ -370,6 +376,8 @@ class MavlinkComponent:
     def poll(self, max_messages: int = 100) -> int:
         """Handles up to ``max_messages`` pending incoming messages (all endpoints, round
         robin) without blocking; returns how many were handled, malformed ones included."""
+        if self._resolving:
+            self._report_resolution()
         handled = 0
         idle: set[int] = set()
         while handled < max_messages and len(idle) < len(self._endpoints):
@@ -383,6 +391,20 @@ class MavlinkComponent:
                 handled += 1
                 self._handle(ep, msg)
         return handled
+
+    def _report_resolution(self) -> None:
+        """A destination name that does not resolve (or resolves at last): one journal line and
+        one STATUSTEXT (on the links that work) per change; its unsent messages counted."""
+        for ep in self._resolving:
+            self.stats.unresolved[ep.url] = ep.unresolved
+            news = ep.resolution_news()
+            if news is None:
+                continue
+            resolved = ep.resolver is not None and ep.resolver.address is not None
+            _log.log(logging.INFO if resolved else logging.WARNING, news)
+            self.statustext(mavlink.MAV_SEVERITY_INFO if resolved else mavlink.MAV_SEVERITY_WARNING, news)
+        # resolved (and its news given): nothing more to report of it
+        self._resolving = [ep for ep in self._resolving if ep.resolver is None or ep.resolver.address is None]
 
     def _handle(self, ep: Endpoint, msg: Any) -> None:
         name = msg.get_type()

@@ -21,6 +21,13 @@ pymavlink's ``mavutil`` opens the link; this module adds what a long-running ser
   datagram and never forgets one, so anyone able to reach the port could load the loop without
   limit.
 
+* a ``udpout``/``udpbcast`` destination given by name is resolved off the loop, by
+  :class:`HostResolver`'s thread, retried with back-off while it does not resolve (a companion
+  that starts at boot before DNS is up keeps running and publishing on its other links);
+  until then its frames are counted (``unresolved``), not sent. mavutil on its own resolves
+  the name in the loop thread at the first write, and after a failure hands the name to
+  ``sendto`` — a blocking DNS lookup for every frame, in the estimation loop.
+
 Connection strings (mavutil's): ``udpout:HOST:PORT`` (send to a listener such as
 QGroundControl on 14550), ``udpin:HOST:PORT`` (listen; replies go to the peers above —
 nothing is sent before a peer has spoken), ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``,
@@ -30,6 +37,9 @@ nothing is sent before a peer has spoken), ``tcp:HOST:PORT``, ``tcpin:HOST:PORT`
 from __future__ import annotations
 
 import hashlib
+import ipaddress
+import socket
+import threading
 import time
 from collections import OrderedDict
 from typing import Any, Sequence
@@ -45,6 +55,69 @@ MAX_PEERS = 16  # udpin peers served at once
 #: at the cap, an established peer (two frames or more) silent this long may be replaced by a
 #: new one; a ground station beating at 1 Hz never is
 PEER_STALE_S = 3.0
+
+
+#: first retry of a name that did not resolve, s; each later one twice the last, at most
+#: RESOLVE_RETRY_MAX_S (mavlink-router retries a TCP endpoint it could not open every 5 s)
+RESOLVE_RETRY_FIRST_S = 1.0
+RESOLVE_RETRY_MAX_S = 30.0
+
+
+def destination_host(url: str) -> tuple[str, int] | None:
+    """(HOST, PORT) of an endpoint that sends to a remote host (``udpout``, ``udpbcast``,
+    ``tcp``); None for listening endpoints and serial devices."""
+    scheme, sep, rest = url.partition(":")
+    if not sep or scheme not in ("udpout", "udpbcast", "tcp"):
+        return None
+    host, _, port = rest.rpartition(":")
+    return (host, int(port)) if host and port.isdigit() else None
+
+
+def resolve(host: str) -> str:
+    """The IPv4 address of ``host`` (mavutil's sockets are AF_INET); raises OSError
+    (``socket.gaierror``) when it does not resolve. Blocks as long as the system resolver."""
+    return socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_DGRAM)[0][4][0]
+
+
+def is_numeric(host: str) -> bool:
+    try:
+        ipaddress.IPv4Address(host)
+    except ValueError:
+        return False
+    return True
+
+
+class HostResolver:
+    """Resolves one destination name on a thread of its own, retrying with back-off
+    (``RESOLVE_RETRY_FIRST_S`` doubling to ``RESOLVE_RETRY_MAX_S``) until it resolves; the
+    loop only reads :attr:`address` (None until then). ``attempts``: lookups made;
+    ``last_error``: the resolver's text for the last failure. ``resolve_fn`` (tests) stands in
+    for :func:`resolve`."""
+
+    def __init__(self, host: str, resolve_fn: Any = None) -> None:
+        self.host = host
+        self.address: str | None = None
+        self.attempts = 0
+        self.last_error = ""
+        self._resolve = resolve_fn or resolve
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"resolve {host}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        delay = RESOLVE_RETRY_FIRST_S
+        while not self._stop.is_set():
+            self.attempts += 1
+            try:
+                self.address = self._resolve(self.host)
+                return
+            except OSError as exc:
+                self.last_error = getattr(exc, "strerror", None) or str(exc)
+            self._stop.wait(delay)
+            delay = min(RESOLVE_RETRY_MAX_S, 2.0 * delay)
+
+    def close(self) -> None:
+        self._stop.set()
 
 
 class UdpPeers:
@@ -166,6 +239,13 @@ class Endpoint:
         if self.peers is not None:
             conn.timeout = 0  # mavutil's own expiry off: conn.clients is set from self.peers
             conn.clients = set()
+        # udpout/udpbcast to a name: resolved by a thread; until then frames are not sent
+        self.resolver: HostResolver | None = None
+        self.unresolved = 0  # messages not sent: the destination's name did not resolve yet
+        self._resolution_reported = False  # "does not resolve" said once; "resolved" once after
+        dest = destination_host(url)
+        if dest is not None and isinstance(conn, mavutil.mavudp) and not is_numeric(dest[0]):
+            self.resolver = HostResolver(dest[0])
         self.send_errors = 0
         self.receive_errors = 0
         self.truncated = 0
@@ -195,6 +275,9 @@ class Endpoint:
         before = self.send_errors
         if self.peers is not None:
             self.conn.clients = self.peers.live(time.monotonic_ns())
+        if self.resolver is not None and not self._destination_known():
+            self.unresolved += len(msgs)
+            return True  # not an error of the link: counted apart, reported by resolution_news
         try:
             self._tap_port()
             mav = self.conn.mav
@@ -213,6 +296,36 @@ class Endpoint:
             return True
         self.send_errors = before + len(msgs)
         return False
+
+    def _destination_known(self) -> bool:
+        """Whether the resolver has an address; the first time, hands it to mavutil as the
+        destination (so that mavutil never resolves the name itself)."""
+        address = self.resolver.address  # type: ignore[union-attr]
+        if address is None:
+            return False
+        if self.conn.destination_addr[0] != address:
+            self.conn.destination_addr = (address, self.conn.destination_addr[1])
+            self.conn.resolved_destination_addr = address  # mavutil's "already resolved"
+        return True
+
+    def resolution_news(self) -> str | None:
+        """One line when there is news of the destination's name (None otherwise): once when
+        its first lookups failed, once when it resolves after that. Called by the component
+        from its poll, which reports it (journal, STATUSTEXT on the other links)."""
+        r = self.resolver
+        if r is None:
+            return None
+        if r.address is None:
+            if self._resolution_reported or not r.last_error:
+                return None
+            self._resolution_reported = True
+            return (f"MAVLink endpoint {self.url!r}: host {r.host!r} does not resolve ({r.last_error}); "
+                    f"retrying, its messages are not sent meanwhile")
+        if self._resolution_reported:
+            self._resolution_reported = False
+            return (f"MAVLink endpoint {self.url!r}: host {r.host!r} resolved to {r.address} after "
+                    f"{r.attempts} attempts; {self.unresolved} messages were not sent before")
+        return None
 
     # ------------------------------------------------------------------ receiving
     def read(self) -> bytes:
@@ -263,6 +376,8 @@ class Endpoint:
         return left
 
     def close(self) -> None:
+        if self.resolver is not None:
+            self.resolver.close()
         try:
             self.conn.close()
         except Exception:
