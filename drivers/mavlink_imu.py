@@ -98,9 +98,11 @@ MAX_GAP_S = 3600.0
 #: messages 5 ms apart counted 360 000 samples lost before. Above any burst of a queue
 #: (a stalled reader's socket buffer holds well under a second of a 1 kHz stream)
 MAX_LEAD_S = 5.0
-#: a message at most this much older than the newest (or as old) is a duplicate or was
-#: overtaken on the way (UDP, a router with two paths): skipped and counted (``out_of_order``),
-#: not a reboot — a reboot restarts the autopilot's time near zero, and it boots for longer
+#: a message at most this much older than the newest (or as old), arriving at most this long
+#: after the previous one, is a duplicate or was overtaken on the way (UDP, a router with two
+#: paths): skipped and counted (``out_of_order``), not a reboot — a reboot restarts the
+#: autopilot's time near zero after a silence of its boot time (a second or more), so a stamp
+#: that lands just below the old one after such a silence is still a new timeline
 REORDER_S = 0.5
 #: messages whose spacing sets the sample clock's period before the first sample is handed out
 WARMUP_MESSAGES = 16
@@ -247,7 +249,7 @@ class MavlinkImuSource(ImuSource):
         last = self._last_remote_ns
         remote_ns = r.remote_us * 1000
         if last is not None:
-            if last - REORDER_S * 1e9 <= remote_ns <= last:
+            if last - REORDER_S * 1e9 <= remote_ns <= last and rx_ns - prev_rx_ns <= REORDER_S * 1e9:
                 # a duplicate (a router with two paths) or a message overtaken on the way: its
                 # sample is not used (the later one counted it lost), the timeline stays
                 self.out_of_order += 1
@@ -255,6 +257,7 @@ class MavlinkImuSource(ImuSource):
             ahead_ns = (remote_ns - last) - (rx_ns - prev_rx_ns)
             if remote_ns < last or remote_ns - last > MAX_GAP_S * 1e9 or ahead_ns > MAX_LEAD_S * 1e9:
                 # the autopilot rebooted (its time went back) or its clock jumped: a new timeline
+                # (TIMESYNC notices the same jump in its replies and starts again by itself)
                 self.timeline_resets += 1
                 self.link.timeline.reset()
                 self._clock, self._warmup = None, []
