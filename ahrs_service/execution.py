@@ -193,7 +193,9 @@ def open_runner(
         threads_per_worker=1,
         processes=True,
         host="127.0.0.1",
-        dashboard_address=None,  # no web server: nothing listens but the scheduler and workers
+        # no dashboard; what still listens (scheduler, workers, their small HTTP servers for
+        # /health and /metrics) binds to 127.0.0.1 only (``host``)
+        dashboard_address=None,
         silence_logs=logging.ERROR,
     )
     client = Client(cluster, set_as_default=False)

@@ -274,6 +274,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"| in the run: the benchmark's ground-station peer (its thread), % | {peer_pct:.1f} |")
     print(f"| **the service's own work** (process − simulated bus and part − peer), % of one core | "
           f"**{cpu - sim_pct - peer_pct:.1f}** |")
+    own_us = (cpu - sim_pct - peer_pct) / 100 * wall / max(estimated, 1) * 1e6
+    print(f"| the service's own work per sample estimated, µs / at every sample of the part's rate, % of one core | "
+          f"{own_us:.1f} / {own_us * real_rate / 1e4:.1f} |")
     print(f"| of which: loop thread (outside the bus) / log writer thread / others, % | {loop_pct:.1f} / "
           f"{writer_pct:.1f} / {cpu - sim_pct - peer_pct - loop_pct - writer_pct:.1f} |")
     print(f"| samples the part produced during the loop / read by the driver / estimated and logged | "
