@@ -74,13 +74,20 @@ class PeriodicJob:
     run: Callable[[int], None]
     keep_phase: bool = False
     next_ns: int = 0
+    failures: int = 0  # runs that raised (counted, reported, survived: LoopSchedule)
 
 
 class LoopSchedule:
-    """The loop's timers in one place: named periodic jobs, run in the order given when due."""
+    """The loop's timers in one place: named periodic jobs, run in the order given when due.
 
-    def __init__(self, jobs: list[PeriodicJob], now_ns: int) -> None:
+    A job that raises is counted (``PeriodicJob.failures``) and handed to ``on_error``; the
+    other jobs and the loop go on: one bad input reaching a job (a hostile message, a
+    counter of the wrong kind) must not stop estimation and publishing."""
+
+    def __init__(self, jobs: list[PeriodicJob], now_ns: int,
+                 on_error: Callable[[PeriodicJob, Exception], None] | None = None) -> None:
         self.jobs = [j for j in jobs if j.period_ns > 0]
+        self.on_error = on_error
         for job in self.jobs:
             job.next_ns = now_ns
 
@@ -93,7 +100,12 @@ class LoopSchedule:
                         job.next_ns = now_ns + job.period_ns
                 else:
                     job.next_ns = now_ns + job.period_ns
-                job.run(now_ns)
+                try:
+                    job.run(now_ns)
+                except Exception as exc:  # noqa: BLE001 - counted and reported, the loop goes on
+                    job.failures += 1
+                    if self.on_error is not None:
+                        self.on_error(job, exc)
 
     def names(self) -> list[str]:
         return [j.name for j in self.jobs]
@@ -457,7 +469,7 @@ class Service:
         self._diag_due = False  # the next logged block carries the estimator's diagnostics
         self._ready_sent = False
         self._was_reduced = self.pipeline.reduced
-        schedule = LoopSchedule(self._periodic_jobs(), time.monotonic_ns())
+        schedule = LoopSchedule(self._periodic_jobs(), time.monotonic_ns(), on_error=self._job_failed)
         while not self._stop:
             now = self.scheduler.wait()
             if self.source.skipped_ticks_lose_samples:
@@ -476,13 +488,21 @@ class Service:
                 self._reload_due_ns = None
                 self.reload()
                 self._was_reduced = self.pipeline.reduced  # a new pipeline starts in full form
-                schedule = LoopSchedule(self._periodic_jobs(), now)  # a new watchdog interval, rates
+                schedule = LoopSchedule(self._periodic_jobs(), now, on_error=self._job_failed)  # new intervals, rates
                 _freeze_heap()
             if end_ns is not None and now >= end_ns:
                 break
             if getattr(self.source, "finished", False):
                 break
         return 0
+
+    def _job_failed(self, job: PeriodicJob, exc: Exception) -> None:
+        """A periodic job raised: one line (STATUSTEXT, journal, /log) at its 1st, 2nd, 4th,
+        8th … failure, so that a job failing at every run cannot flood the links and logs."""
+        n = job.failures
+        if n & (n - 1) == 0:
+            self.report(f"{job.name} failed ({n} time{'s' if n > 1 else ''} so far), the service goes on: "
+                        f"{type(exc).__name__}: {exc}", 3, kind="job failure")
 
     def _count_skipped_ticks(self) -> None:
         """A source polled once per tick without FIFO (``skipped_ticks_lose_samples``): the

@@ -676,3 +676,46 @@ def test_health_per_sensor_and_no_fresh_looking_attitude_without_a_gyroscope(tmp
             == gyro_bit | ahrs_bit
     finally:
         run.stop()
+
+
+def test_a_periodic_job_that_raises_is_reported_and_the_service_goes_on(tmp_path, gcs):
+    """Issue 14: an exception in one of the loop's periodic jobs (here the diagnostics job, 10
+    times a second) is counted and reported at its 1st, 2nd, 4th … failure; estimation and
+    ATTITUDE go on."""
+    conn, port = gcs
+    service = Service(service_config(tmp_path, port, log={"enabled": False}), duration_s=30.0)
+    service.start()
+
+    def hostile(now_ns: int) -> None:
+        raise ZeroDivisionError("float division by zero")
+
+    service._diagnostics_due = hostile  # what the job list binds (Service._periodic_jobs)
+    thread = threading.Thread(target=service.run, daemon=True)
+    thread.start()
+    try:
+        texts: list[str] = []
+        chunks: dict[int, str] = {}  # a long STATUSTEXT comes in 50-character chunks of one id
+        attitudes_after_failure = 0
+        end = time.monotonic() + 20.0
+        while time.monotonic() < end and not (attitudes_after_failure >= 20 and any("(4 times" in t for t in texts)):
+            m = conn.recv_match(blocking=True, timeout=0.05)
+            if m is None:
+                continue
+            if m.get_type() == "STATUSTEXT":
+                text = chunks.pop(m.id, "") + m.text
+                if len(m.text) == 50 and m.id:
+                    chunks[m.id] = text
+                elif text.startswith("log diagnostics failed"):
+                    texts.append(text)
+            elif m.get_type() == "ATTITUDE" and texts:
+                attitudes_after_failure += 1
+        samples = service.pipeline.samples
+    finally:
+        service.request_stop()
+        thread.join(10)
+        service.close()
+    assert not thread.is_alive()
+    assert texts[:3] == [f"log diagnostics failed ({n} {'time' if n == 1 else 'times'} so far), the service goes on: "
+                         "ZeroDivisionError: float division by zero" for n in (1, 2, 4)], texts
+    assert attitudes_after_failure >= 20 and samples > 0
+

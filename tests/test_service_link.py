@@ -154,3 +154,24 @@ def test_without_new_estimates_the_accelerometer_is_unhealthy_like_the_gyroscope
         assert t.gyro.healthy and t.accel.healthy and t.ahrs_healthy
     finally:
         bridge.close()
+
+
+def test_a_job_that_raises_is_counted_and_the_others_and_later_runs_go_on():
+    ms = 1_000_000
+    runs: list[str] = []
+    failed: list[tuple[str, int, str]] = []
+
+    def broken(now: int) -> None:
+        runs.append("broken")
+        raise ZeroDivisionError("a hostile quaternion")
+
+    schedule = LoopSchedule([
+        PeriodicJob("monitor", ms, broken),
+        PeriodicJob("publish", ms, lambda now: runs.append("publish")),
+    ], now_ns=0, on_error=lambda job, exc: failed.append((job.name, job.failures, type(exc).__name__)))
+    for t in range(5):
+        schedule.run_due(t * ms)
+    assert runs == ["broken", "publish"] * 5  # every tick: the failing job again, the next one still
+    assert failed == [("monitor", n, "ZeroDivisionError") for n in range(1, 6)]
+    assert schedule.jobs[0].failures == 5 and schedule.jobs[1].failures == 0
+
