@@ -42,6 +42,19 @@ def test_unknown_parameter_is_a_clear_error(name):
         estimators.create(name, gain=1.0)
 
 
+@pytest.mark.parametrize("value", ["1.5", True, b"1"])
+def test_a_parameter_value_that_is_not_a_number_is_refused_not_converted(value):
+    """float() takes "1.5" and True; a parameter value of the wrong kind (a hand-edited log's
+    /config, a script's typo) is refused with the parameter named (issue 14)."""
+    est = estimators.create("madgwick")
+    name = est.param_names()[0]
+    with pytest.raises(ValueError, match=f"parameter '{name}' of estimator 'madgwick' must be a number, got"):
+        estimators.create("madgwick", **{name: value})
+    with pytest.raises(ValueError, match="must be a number"):
+        est.set_params(**{name: value})
+    assert estimators.create("madgwick", **{name: np.float32(0.5)}).get_params()[name] == 0.5  # NumPy numbers are numbers
+
+
 @pytest.mark.parametrize("name", estimators.names())
 def test_identity_until_the_first_usable_accelerometer_sample(name):
     """Every estimator starts the same way (_kernel.initialise_from_sample): nothing is

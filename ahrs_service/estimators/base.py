@@ -300,6 +300,10 @@ def _make_params(params_cls: type, values: dict[str, Any], name: str) -> Any:
         )
     clean = {}
     for key, value in values.items():
+        # a number, not a string or a boolean that float() would also take ("1.5", True):
+        # a recorded or typed value of the wrong kind is refused, never silently converted
+        if isinstance(value, (str, bytes, bool, np.bool_)):
+            raise ValueError(f"parameter {key!r} of estimator {name!r} must be a number, got {value!r}")
         try:
             clean[key] = float(value)
         except (TypeError, ValueError):
