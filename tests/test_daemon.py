@@ -259,6 +259,8 @@ def test_a_burst_of_sighups_is_one_reload_of_the_file_as_last_written(tmp_path):
             proc.send_signal(signal.SIGHUP)
             time.sleep(0.005)
         assert wait_for_line("-> 0.6 (reload"), "".join(lines)  # the last file's beta applied
+        # the reload's own line comes just after its parameter line (read by another thread)
+        assert wait_for_line("configuration reloaded"), "".join(lines)
         first_burst = "".join(lines).count("configuration reloaded")
         for i in range(20):  # a burst whose last file is broken (the others: what runs)
             if i == 19:
