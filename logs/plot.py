@@ -108,20 +108,22 @@ def read_series(path: str | Path, progress: bool = True) -> LogSeries:
         if bar is not None and count[0] % 8192 < n:
             bar.update(8192)
 
+    def block_angles(data: bytes) -> tuple[list[int], list[tuple[float, float, float]]]:
+        """Row times and ZYX angles of an /attitude_block or /attitude/truth_block message."""
+        m = decoded(data)
+        times = integers(m, "t_ns")
+        return times, [euler_of(q) for q in vectors(m, "q", len(times), 4)]
+
     def on_attitude_block(log_time: int, data: bytes) -> None:
         # the rows' attitude; the block log's /attitude (at the /tf rate) carries the diagnostics
-        m = decoded(data)
-        times = integers(m, "t_ns")
-        qs = vectors(m, "q", len(times), 4)
+        times, angles = block_angles(data)
         att_t.extend(times)
-        att.extend(euler_of(q) for q in qs)
+        att.extend(angles)
 
     def on_truth_block(log_time: int, data: bytes) -> None:
-        m = decoded(data)
-        times = integers(m, "t_ns")
-        qs = vectors(m, "q", len(times), 4)
+        times, angles = block_angles(data)
         tr_t.extend(times)
-        tr.extend(euler_of(q) for q in qs)
+        tr.extend(angles)
 
     def on_truth(log_time: int, data: bytes) -> None:
         m = decoded(data)
