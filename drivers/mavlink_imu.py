@@ -117,7 +117,6 @@ QUEUE_SAMPLES = 4096
 _HIGHRES_MAG_BITS = 0b111 << 6  # HIGHRES_IMU_UPDATED_XMAG | YMAG | ZMAG
 
 
-
 @dataclass(frozen=True, slots=True)
 class RawScale:
     """RAW_IMU counts → SI: acc m/s², gyr rad/s, mag µT per count."""
