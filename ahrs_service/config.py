@@ -201,12 +201,16 @@ def check_endpoint_hosts(cfg: "Config") -> list[str]:
     does not resolve *now* is a warning, returned as one line each: a companion may start
     before DNS is up; ``run`` then resolves a ``udpout``/``udpbcast`` name off the loop and
     retries (docs/mavlink.md, "Connection strings"), while ``tcp`` connects once at start. A
-    serial device that does not exist now is a warning too (``run`` opens it once at start)."""
+    serial device that does not exist now is a warning too (``run`` opens it once at start).
+    The autopilot link (``source.mavlink_connection``, with ``source.type = "mavlink"``) is
+    looked at the same way."""
     from ahrs_service.protocols.mavlink.endpoints import destination_host, is_numeric, resolve
 
     warnings = []
-    for i, url in enumerate(cfg.mavlink["endpoints"]):
-        key = f"mavlink.endpoints[{i}]"
+    links = [(f"mavlink.endpoints[{i}]", url) for i, url in enumerate(cfg.mavlink["endpoints"])]
+    if cfg.source["type"] == "mavlink":
+        links.append(("source.mavlink_connection", cfg.source["mavlink_connection"]))
+    for key, url in links:
         scheme, _, rest = url.partition(":")
         device = url.partition(",")[0]
         if device.startswith("/") and not Path(device).exists():

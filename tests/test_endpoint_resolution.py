@@ -121,6 +121,17 @@ def test_config_check_warns_and_run_keeps_publishing_on_the_other_link(tmp_path)
     assert out.count("does not resolve") == 1, out  # one journal line, not one per frame or retry
 
 
+def test_config_check_looks_at_the_autopilot_link_too():
+    from ahrs_service import config as config_mod
+
+    cfg = config_mod.validate({"source": {"type": "mavlink", "mavlink_connection": f"udpout:{NOWHERE}:14540"},
+                               "mavlink": {"endpoints": ["udpout:127.0.0.1:14550"]}})
+    (warning,) = config_mod.check_endpoint_hosts(cfg)
+    assert warning.startswith(f"source.mavlink_connection: 'udpout:{NOWHERE}:14540': host '{NOWHERE}' does not resolve now")
+    cfg = config_mod.validate({"source": {"type": "simulated_i2c", "mavlink_connection": f"udpout:{NOWHERE}:14540"}})
+    assert config_mod.check_endpoint_hosts(cfg) == []  # not the source: not looked up
+
+
 @pytest.mark.parametrize("url", [f"udpin:{NOWHERE}:14560", f"tcpin:{NOWHERE}:5760"])
 def test_a_listening_address_that_does_not_resolve_is_refused_by_check_and_run(tmp_path, url):
     cfg = tmp_path / "config.toml"
