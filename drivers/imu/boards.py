@@ -69,6 +69,7 @@ class FifoBoard(ImuSource):
         self.timeline: FifoTimeline | None = None
         self._overflow_pending = False
         self.diagnostics.extra["fifo_overflows"] = 0
+        self._drain_started_ns: int | None = None  # the last drain's start (_note_drain_window)
 
     @property
     def clock(self) -> SensorClock | None:
@@ -143,6 +144,7 @@ class FifoBoard(ImuSource):
             raise RuntimeError(f"{self.NAME} on {self.transport.where}: read before open()")
         if (not self.lost or self._recover()) and \
                 self.pending < self.HOST_QUEUE_DEPTHS * self.FIFO_FRAMES:
+            started = self.transport.now_ns()
             try:
                 block = self._burst(self.FIFO_FRAMES)
             except OSError as exc:
@@ -150,6 +152,7 @@ class FifoBoard(ImuSource):
             else:
                 if len(block) or block.lost.total:
                     self._drained.append(block)
+            self._note_drain_window(started)
             if self.transport.simulated:
                 # the twin's own count of the samples its FIFO turned away or had flushed
                 # unread since the first read, beside the driver's estimate (the stall tests)
@@ -166,6 +169,17 @@ class FifoBoard(ImuSource):
                 taken.append(head)
             room -= len(taken[-1])
         return SampleBlock.concat(taken) if taken else SampleBlock.empty()
+
+    def _note_drain_window(self, started_ns: int) -> None:
+        """``diagnostics.extra["fifo_longest_window_ms"]``: the longest time from one drain's
+        start (its level read, which decides what it pops) to the end of the next, ms, since
+        the first read — an upper bound of the time the FIFO had to hold its samples. An
+        overflow with this under the FIFO's depth is the driver's fault, not the host's."""
+        if self._drain_started_ns is not None:
+            window_ms = (self.transport.now_ns() - self._drain_started_ns) / 1e6
+            if window_ms > self.diagnostics.extra.get("fifo_longest_window_ms", 0.0):
+                self.diagnostics.extra["fifo_longest_window_ms"] = window_ms
+        self._drain_started_ns = started_ns
 
     @property
     def pending(self) -> int:
