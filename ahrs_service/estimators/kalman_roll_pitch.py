@@ -28,7 +28,7 @@ from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.uncertainty import AttitudeVariance
-from ahrs_service.quaternion import quat_from_euler, quat_to_euler
+from ahrs_service.quaternion import quat_from_euler, quat_integrate, quat_to_euler
 
 STATE = Layout(
     "kalman_roll_pitch state",
@@ -69,6 +69,7 @@ class KalmanRollPitchParams:
     sigma_zeta: float = tunable(1.0363149748633103, paper=5.0, search=SearchRange(0.005, 20.0, log=True))  # rad/s
     sigma_xi: float = tunable(3.0, paper=3.0)  # rad
     acc_gate: float = tunable(0.028051961277792185, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    exact_step: float = tunable(1.0, paper=0.0)  # 1: exact Euler-angle step over the sample; 0: first order
 
     def __post_init__(self) -> None:
         if not self.sigma_zeta >= 0:
@@ -77,6 +78,8 @@ class KalmanRollPitchParams:
             raise ValueError(f"sigma_xi must be > 0, got {self.sigma_xi}")
         if not self.acc_gate > 0:
             raise ValueError(f"acc_gate must be > 0, got {self.acc_gate}")
+        if self.exact_step not in (0.0, 1.0):
+            raise ValueError(f"exact_step must be 0 (first-order step) or 1 (exact step), got {self.exact_step}")
 
 
 _P = param_index(KalmanRollPitchParams)  # indices of the packed parameter vector, by field name
@@ -99,25 +102,32 @@ def kalman_roll_pitch_step(s, p, x):
     if gyro_ok:
         h = x[K.DT]
         gp, gq, gr = x[0], x[1], x[2]
-        sr, cr = math.sin(roll), math.cos(roll)
-        cp = math.cos(pitch)
-        if abs(cp) < _COS_MIN:
-            cp = _COS_MIN if cp >= 0.0 else -_COS_MIN
-        tp = math.sin(pitch) / cp
-        # eq. 7: Euler rates; eq. 27–28 / 31–32: x_{k+1} = x_k + h u_k
-        roll += h * (gp + tp * (gq * sr + gr * cr))
-        pitch += h * (gq * cr - gr * sr)
-        yaw += h * (gq * sr + gr * cr) / cp
-        # pitch past ±90°: the same attitude with pitch mirrored and roll, yaw turned by π
-        if pitch > 0.5 * math.pi:
-            pitch = math.pi - pitch
-            roll += math.pi
-            yaw += math.pi
-        elif pitch < -0.5 * math.pi:
-            pitch = -math.pi - pitch
-            roll += math.pi
-            yaw += math.pi
-        roll, yaw = _wrap(roll), _wrap(yaw)
+        if p[_P.exact_step] != 0.0:
+            # eq. 7 over the whole sample: the Euler angles of the attitude turned by the
+            # gyro's rotation h ω (exact for a rate constant over the sample, finite at ±90°;
+            # the stored quaternion is the one of the stored angles)
+            roll, pitch, yaw = quat_to_euler(quat_integrate(K.load_quat(s), gp, gq, gr, h))
+        else:
+            # eq. 27–28 / 31–32 as printed, x_{k+1} = x_k + h u_k, with u the Euler rates of
+            # eq. 7 at the sample's start (first order: loses track in fast turns near ±90°)
+            sr, cr = math.sin(roll), math.cos(roll)
+            cp = math.cos(pitch)
+            if abs(cp) < _COS_MIN:
+                cp = _COS_MIN if cp >= 0.0 else -_COS_MIN
+            tp = math.sin(pitch) / cp
+            roll += h * (gp + tp * (gq * sr + gr * cr))
+            pitch += h * (gq * cr - gr * sr)
+            yaw += h * (gq * sr + gr * cr) / cp
+            # pitch past ±90°: the same attitude with pitch mirrored and roll, yaw turned by π
+            if pitch > 0.5 * math.pi:
+                pitch = math.pi - pitch
+                roll += math.pi
+                yaw += math.pi
+            elif pitch < -0.5 * math.pi:
+                pitch = -math.pi - pitch
+                roll += math.pi
+                yaw += math.pi
+            roll, yaw = _wrap(roll), _wrap(yaw)
         # Algorithm 1 line 2: P ← A P Aᵀ + H Q Hᵀ with A = 1, H = h
         qn = h * h * sigma_zeta * sigma_zeta
         s[P_ROLL] += qn
