@@ -19,7 +19,7 @@ import math
 from numba import njit
 
 from ahrs_service.estimators.layout import Layout, Slot
-from ahrs_service.quaternion import quat_from_gravity_and_field, vec_is_usable
+from ahrs_service.quaternion import quat_from_gravity_and_field, quat_from_rotvec, quat_rotate_inv, vec_is_usable
 
 #: the sample row: one sample's three sensors and its time step
 SAMPLE_ROW = Layout(
@@ -90,6 +90,34 @@ def check_sample(s, x, uses_mag):
 
 
 GRAVITY = 9.81  # m/s², the nominal specific force at rest of the accelerometer gates
+
+
+@_jit
+def acc_disturbance(s, i, x, tau):
+    """How far the specific force is from gravity alone, |‖f̄‖/g − 1|, for a usable sample.
+
+    ``tau`` (s) 0: f̄ = f, this sample's own. Above 0: f̄ is f low-passed with time constant
+    ``tau`` in the body frame, turned with the gyro each sample so a rotation does not shrink it
+    (3 slots from ``s[i]``, zero before the first sample): vibration averages out of f̄, a
+    sustained acceleration does not.
+    """
+    fx, fy, fz = x[3], x[4], x[5]
+    if tau > 0.0:
+        dt = x[DT]
+        lx, ly, lz = s[i], s[i + 1], s[i + 2]
+        if lx == 0.0 and ly == 0.0 and lz == 0.0:
+            lx, ly, lz = fx, fy, fz
+        elif dt > 0.0 and math.isfinite(x[0] + x[1] + x[2]):
+            lx, ly, lz = quat_rotate_inv(quat_from_rotvec(x[0] * dt, x[1] * dt, x[2] * dt), (lx, ly, lz))
+            k = 1.0 - math.exp(-dt / tau)
+            lx += k * (fx - lx)
+            ly += k * (fy - ly)
+            lz += k * (fz - lz)
+        s[i], s[i + 1], s[i + 2] = lx, ly, lz
+        fx, fy, fz = lx, ly, lz
+    return abs(math.sqrt(fx * fx + fy * fy + fz * fz) / GRAVITY - 1.0)
+
+
 RUNNING, WAITING, STARTED = 0, 1, 2  # initialise_from_sample results
 
 
@@ -120,3 +148,40 @@ def store_quat(s, q):
 @_jit
 def load_quat(s):
     return (s[Q], s[Q + 1], s[Q + 2], s[Q + 3])
+
+
+# ------------------------------------------------------------------ magnetic-disturbance gate
+# Not in any source paper (the project's addition, docs/tuning.md): a magnet near the sensor
+# changes the measured field's magnitude and its dip below the horizon, which earth's field
+# keeps. A filter that uses the gate keeps two slots, MAG_REFERENCE_SLOTS, in its own layout:
+# a reference magnitude and dip learned from the field samples the gate accepted (never from
+# outside the filter), and passes their first index to mag_gate_accepts.
+
+#: the gate's two state slots, for an estimator's own Layout (``*K.MAG_REFERENCE_SLOTS``)
+MAG_REFERENCE_SLOTS = (
+    Slot("mag_norm_ref", 1, "reference field magnitude, µT (0 until the first field sample)"),
+    Slot("mag_dip_ref", 1, "reference sine of the field's dip below the horizon"),
+)
+#: time constant with which the field reference follows accepted samples, s
+MAG_REF_TAU = 10.0
+
+
+@_jit
+def mag_gate_accepts(s, ref, norm, dip_sine, gate, dt):
+    """Whether a field sample looks like earth's field; learns the reference from it if so.
+
+    ``ref`` is the index of the gate's slots (MAG_REFERENCE_SLOTS) in ``s``; ``norm`` the
+    sample's magnitude (µT); ``dip_sine`` the down component of the unit field seen in the
+    earth frame by the filter's estimate; ``gate`` the largest |‖m‖/m_ref − 1| + |sin δ −
+    sin δ_ref| accepted (1e9: every sample). The first sample sets the reference; accepted
+    samples move it with time constant MAG_REF_TAU, so it follows slow changes of the field
+    (and of a magnet fixed to the sensor) but not a magnet passing by.
+    """
+    if s[ref] == 0.0:
+        s[ref], s[ref + 1] = norm, dip_sine
+    if abs(norm / s[ref] - 1.0) + abs(dip_sine - s[ref + 1]) > gate:
+        return False
+    k = min(1.0, dt / MAG_REF_TAU)
+    s[ref] += k * (norm - s[ref])
+    s[ref + 1] += k * (dip_sine - s[ref + 1])
+    return True

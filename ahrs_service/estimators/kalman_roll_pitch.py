@@ -32,10 +32,14 @@ from ahrs_service.quaternion import quat_from_euler, quat_integrate, quat_to_eul
 
 STATE = Layout(
     "kalman_roll_pitch state",
-    [Slot("euler", 3, "roll, pitch, yaw, rad"), Slot("p_roll_pitch", 2, "variances of roll and pitch, rad²")],
+    [
+        Slot("euler", 3, "roll, pitch, yaw, rad"),
+        Slot("p_roll_pitch", 2, "variances of roll and pitch, rad²"),
+        Slot("acc_lp", 3, "low-passed specific force of the gate, m/s², body frame"),
+    ],
     start=K.HEADER,
 )
-ROLL, P_ROLL = STATE.index
+ROLL, P_ROLL, ACC_LP = STATE.index
 STATE_SIZE = STATE.end
 
 # |cos θ| floor of eq. 7 at gimbal lock: a finite rate instead of a division by zero
@@ -69,6 +73,7 @@ class KalmanRollPitchParams:
     sigma_zeta: float = tunable(1.0363149748633103, paper=5.0, search=SearchRange(0.005, 20.0, log=True))  # rad/s
     sigma_xi: float = tunable(3.0, paper=3.0)  # rad
     acc_gate: float = tunable(0.028051961277792185, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    acc_lowpass: float = tunable(0.0, paper=0.0, search=SearchRange(0.0, 0.2))  # s
     exact_step: float = tunable(1.0, paper=0.0)  # 1: exact Euler-angle step over the sample; 0: first order
 
     def __post_init__(self) -> None:
@@ -78,6 +83,8 @@ class KalmanRollPitchParams:
             raise ValueError(f"sigma_xi must be > 0, got {self.sigma_xi}")
         if not self.acc_gate > 0:
             raise ValueError(f"acc_gate must be > 0, got {self.acc_gate}")
+        if not self.acc_lowpass >= 0:
+            raise ValueError(f"acc_lowpass must be >= 0, got {self.acc_lowpass}")
         if self.exact_step not in (0.0, 1.0):
             raise ValueError(f"exact_step must be 0 (first-order step) or 1 (exact step), got {self.exact_step}")
 
@@ -134,7 +141,7 @@ def kalman_roll_pitch_step(s, p, x):
         s[P_ROLL + 1] += qn
     fx, fy, fz = x[3], x[4], x[5]
     # the gate (not the paper's): a specific force far from g is mostly linear acceleration
-    if acc_ok and abs(math.sqrt(fx * fx + fy * fy + fz * fz) - K.GRAVITY) <= p[_P.acc_gate] * K.GRAVITY:
+    if acc_ok and K.acc_disturbance(s, ACC_LP, x, p[_P.acc_lowpass]) <= p[_P.acc_gate]:
         # eq. 29–30 in FRD specific force
         y_roll = math.atan2(-fy, -fz)
         y_pitch = math.atan2(fx, math.sqrt(fy * fy + fz * fz))
