@@ -34,7 +34,14 @@ Adaptations to the project's conventions and to real data:
 * Linear-acceleration gate (not in the paper): a sample whose specific-force magnitude
   differs from g by more than ``acc_gate``·g gives no gravity angles (the gyro carries roll
   and pitch through it). Without it the filter follows the accelerations of BROAD's
-  fast-translation trials (37° inclination RMSE on one of them).
+  fast-translation trials (37° inclination RMSE on one of them). With ``acc_lowpass`` > 0 the
+  gate tests the magnitude of the specific force low-passed with that time constant in a frame
+  turned with the gyro (``K.acc_disturbance``): vibration averages out and no longer shuts the
+  gate, a sustained acceleration still does. 0 (``preset="paper"``): each sample's own.
+* Field-disturbance gate (not in the paper, full form): a field sample whose magnitude or dip
+  departs from a reference learned from accepted samples gives no heading (``mag_gate``, the
+  EKF's gate, shared as ``K.mag_gate_accepts``); the gyro carries yaw through it. 1e9
+  (``preset="paper"``) accepts every sample.
 * The filter coefficient α = Δt/(1/ω0 + Δt) (eq. 13) is computed from each sample's real Δt.
 * With gimbal lock itself (|θ| = 90°) roll and yaw are not separable: the gravity angles and
   the tilt compensation stay finite (atan2), and the quaternion output is exact, but the two
@@ -95,6 +102,8 @@ class ComplementaryReducedParams:
         the gyroscope. The paper gives no value (``preset="paper"``: 0.2).
     acc_gate: largest relative error |‖f‖ − g|/g of a specific-force sample still used for
         roll and pitch. The paper has no gate (``preset="paper"``: 1e9).
+    acc_lowpass: time constant (s) of the gyro-turned low-pass of f whose magnitude the gate
+        tests; 0 (``preset="paper"``): each sample's own f.
     Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
     are ``preset="paper"``.
     """
@@ -120,7 +129,10 @@ class ComplementaryFullParams:
         service only: the service turns every estimator's output to true north itself
         (``estimator.declination_deg`` or ``[location]``, MAVLink MAG_DECL_DEG), so a declination set
         here as well would count twice.
-    acc_gate: as for the reduced form.
+    acc_gate, acc_lowpass: as for the reduced form.
+    mag_gate: field-disturbance gate (not in the paper): a field sample is not used when
+        |‖m‖/m_ref − 1| + |sin δ − sin δ_ref| > mag_gate (δ the dip; references learned from
+        accepted samples, ``K.mag_gate_accepts``, as the EKF's). 1e9 (``preset="paper"``): off.
     Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
     are ``preset="paper"``.
     """

@@ -23,6 +23,11 @@ Implementation notes (docs/estimators-paper2.md):
 * the rotation term is written for our frames: a fixed earth direction seen from a body
   turning at Ω moves as −Ω × r₃ (the paper's S(Ω_b) r₃ has its R in the other direction); it is
   applied as an exact rotation over each dt, the rest by an Euler step;
+* the accelerometer gate (not in the paper; ``acc_gate``, ``acc_lowpass`` as the
+  complementary filter's, ``K.acc_disturbance``): through a sample whose (low-passed)
+  specific-force magnitude is off g by more than ``acc_gate``·g the observer is held, r̂₃
+  only turned by the gyro, neither the drift term nor the output error applied (the drift
+  term alone, unchecked by the output error, tilts r̂₃). 1e9 (``preset="paper"``): never;
 * roll and pitch come from z/|z|; yaw from gyro integration: each sample the gyro-propagated
   quaternion is tilted, by the smallest rotation, onto z (:func:`triad.align_down`).
 """
@@ -67,6 +72,10 @@ class ImmersionInvarianceParams:
         makes the ξ loop a negative feedback). −3 scores far better on BROAD (4.9° mean
         inclination RMSE against 14.5°): the paper's value lets fast translations tilt it.
     mu_bar: μ̄_a, saturation of the accelerometer-deviation term. Paper: 10.
+    acc_gate: not in the paper: the observer is held through a sample whose specific-force
+        magnitude is off g by more than acc_gate·g. 1e9 (the paper): never.
+    acc_lowpass: not in the paper: time constant (s) of the gyro-turned low-pass of f the
+        gate tests (``K.acc_disturbance``); 0: each sample's own f.
     """
 
     gamma1: float = tunable(0.3195622329848435, paper=0.5, search=SearchRange(0.01, 10.0, log=True))  # 1/s

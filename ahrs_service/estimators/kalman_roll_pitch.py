@@ -8,10 +8,19 @@ Adaptations, all documented in docs/estimators-paper2.md:
 
 * the process input is the Euler-angle rate of eq. 7 rather than the raw body rate; eq. 27–28
   are its small-angle form, and the exact rate keeps the filter right at large roll and pitch;
+* the step over a sample (``exact_step`` 1, the default) takes the Euler angles of the attitude
+  turned by the gyro's rotation h ω, the exact integral of eq. 7 for a rate constant over the
+  sample, as the first paper's complementary filter does. The printed form x + h u with u the
+  rate of eq. 7 at the sample's start (``exact_step`` 0, ``preset="paper"``) is first order and
+  singular at pitch ±90°: in fast turns it loses the attitude (the gyro alone on BROAD's
+  fast-rotation trial: 82° inclination RMSE, 17° with the exact step; the tuned filter there:
+  27° with the first-order step, 3.2° with the exact one);
 * the measurement (eq. 29–30) is written for our specific force in FRD: at rest
   f = g (sin θ, −sin φ cos θ, −cos φ cos θ), so φ_y = atan2(−f_y, −f_z) (all four quadrants,
   upside-down included) and θ_y = atan2(f_x, √(f_y² + f_z²));
 * yaw is the integral of eq. 7's yaw rate (no magnetometer: heading drifts with the gyro);
+* the accelerometer gate (``acc_gate``, ``acc_lowpass``: ``K.acc_disturbance``) is the
+  project's, not the paper's, and off under ``preset="paper"``;
 * the process noise enters as h ζ with h the actual time step of each sample (eq. 31–32), so the
   filter is right for any sample timing.
 """
@@ -65,16 +74,22 @@ class KalmanRollPitchParams:
     acc_gate: not in the paper (as the complementary filter's gate): no measurement update
         from a sample whose specific-force magnitude is off g by more than acc_gate·g, which
         linear acceleration then dominates; 1e9 (the paper) never gates.
+    acc_lowpass: not in the paper: time constant (s) of the gyro-turned low-pass of the
+        specific force whose magnitude the gate tests (vibration passes, a sustained
+        acceleration does not); 0 (the paper's value, moot there) tests each sample's own.
+    exact_step: 1 (default): the Euler angles after the gyro's exact rotation over the sample;
+        0 (the paper's form, eq. 31–32): the first-order step x + h·u with u the rates of
+        eq. 7 at the sample's start, which loses the attitude in fast turns.
     Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
     are ``preset="paper"``.
     """
 
     # only σ_ζ/σ_ξ sets the gain: σ_ξ stays at the paper's value and σ_ζ alone is searched
-    sigma_zeta: float = tunable(1.0363149748633103, paper=5.0, search=SearchRange(0.005, 20.0, log=True))  # rad/s
+    sigma_zeta: float = tunable(0.6268654816668298, paper=5.0, search=SearchRange(0.005, 20.0, log=True))  # rad/s
     sigma_xi: float = tunable(3.0, paper=3.0)  # rad
-    acc_gate: float = tunable(0.028051961277792185, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
-    acc_lowpass: float = tunable(0.0, paper=0.0, search=SearchRange(0.0, 0.2))  # s
-    exact_step: float = tunable(1.0, paper=0.0)  # 1: exact Euler-angle step over the sample; 0: first order
+    acc_gate: float = tunable(0.020405599140606637, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    acc_lowpass: float = tunable(0.023481716393725316, paper=0.0, search=SearchRange(0.0, 0.2))  # s
+    exact_step: float = tunable(1.0, paper=0.0)  # 1: exact step over the sample; 0: eq. 31–32's first order
 
     def __post_init__(self) -> None:
         if not self.sigma_zeta >= 0:
