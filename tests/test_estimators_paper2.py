@@ -1,6 +1,7 @@
 """Estimators of the second source paper: TRIAD, QUEST, Kalman roll/pitch, quaternion KF,
 Mahony direct/passive, immersion and invariance (eq. 15–37)."""
 
+import dataclasses
 import math
 
 import h5py
@@ -292,6 +293,13 @@ def test_parameter_values_are_checked():
         estimators.create("immersion_invariance", gamma2=-1.0)
     with pytest.raises(ValueError, match="ki"):
         estimators.create("mahony_passive", ki=-1.0)
+    with pytest.raises(ValueError, match="exact_step must be 0"):
+        estimators.create("kalman_roll_pitch", exact_step=0.5)
+    with pytest.raises(ValueError, match="acc_lowpass"):
+        estimators.create("immersion_invariance", acc_lowpass=-0.1)
+    # a form, not a gain: never tuned
+    field = {f.name: f for f in dataclasses.fields(estimators.get("kalman_roll_pitch").Params)}["exact_step"]
+    assert "search" not in field.metadata
 
 
 # ----------------------------------------------------------------------------- BROAD

@@ -109,9 +109,9 @@ class ComplementaryReducedParams:
     """
 
     # paper: no ω0 given (0.2, the value used before tuning), no gate (1e9)
-    omega0: float = tunable(1.256369248913567, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
-    acc_gate: float = tunable(0.01323054450827564, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
-    acc_lowpass: float = tunable(0.0, paper=0.0, search=SearchRange(0.0, 0.2))  # s
+    omega0: float = tunable(1.219261269896263, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
+    acc_gate: float = tunable(0.012627725197232594, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
+    acc_lowpass: float = tunable(0.023017771175886492, paper=0.0, search=SearchRange(0.0, 0.2))  # s
 
     def __post_init__(self) -> None:
         _check_omega0(self.omega0)
