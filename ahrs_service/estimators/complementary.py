@@ -137,11 +137,11 @@ class ComplementaryFullParams:
     are ``preset="paper"``.
     """
 
-    omega0: float = tunable(0.11060220269330527, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
+    omega0: float = tunable(0.25289896788441085, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
     declination: float = tunable(0.0, paper=0.0)  # rad; a site constant, not tuned
-    acc_gate: float = tunable(0.1378805157568786, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
-    acc_lowpass: float = tunable(0.0, paper=0.0, search=SearchRange(0.0, 0.2))  # s
-    mag_gate: float = tunable(1e9, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    acc_gate: float = tunable(0.03611278160401323, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
+    acc_lowpass: float = tunable(0.050237868208254585, paper=0.0, search=SearchRange(0.0, 0.2))  # s
+    mag_gate: float = tunable(0.1512691496420839, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
         _check_omega0(self.omega0)
