@@ -78,13 +78,13 @@ class ImmersionInvarianceParams:
         gate tests (``K.acc_disturbance``); 0: each sample's own f.
     """
 
-    gamma1: float = tunable(0.3195622329848435, paper=0.5, search=SearchRange(0.01, 10.0, log=True))  # 1/s
-    gamma2: float = tunable(0.08263080669913137, paper=0.7, search=SearchRange(0.01, 10.0, log=True))  # 1/s
-    gamma3: float = tunable(1.2405959628063916, paper=0.9, search=SearchRange(0.01, 10.0, log=True))  # 1/s
-    xi_bar: float = tunable(-36.48106260208669, paper=-30.0, search=SearchRange(-50.0, -0.1))  # 1/s, negative
-    mu_bar: float = tunable(13.87743600281825, paper=10.0, search=SearchRange(0.0, 30.0))
-    acc_gate: float = tunable(1e9, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
-    acc_lowpass: float = tunable(0.0, paper=0.0, search=SearchRange(0.0, 0.2))  # s
+    gamma1: float = tunable(0.17774085168697862, paper=0.5, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    gamma2: float = tunable(0.09876442600408761, paper=0.7, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    gamma3: float = tunable(0.06763761659579741, paper=0.9, search=SearchRange(0.01, 10.0, log=True))  # 1/s
+    xi_bar: float = tunable(-0.4618594711617465, paper=-30.0, search=SearchRange(-50.0, -0.1))  # 1/s, negative
+    mu_bar: float = tunable(0.08182994420019707, paper=10.0, search=SearchRange(0.0, 30.0))
+    acc_gate: float = tunable(0.033465314640989646, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
+    acc_lowpass: float = tunable(0.14009055966158587, paper=0.0, search=SearchRange(0.0, 0.2))  # s
 
     def __post_init__(self) -> None:
         for key in ("gamma1", "gamma2", "gamma3"):
