@@ -87,7 +87,7 @@ class KalmanRollPitchParams:
     # only σ_ζ/σ_ξ sets the gain: σ_ξ stays at the paper's value and σ_ζ alone is searched
     sigma_zeta: float = tunable(0.6268654816668298, paper=5.0, search=SearchRange(0.005, 20.0, log=True))  # rad/s
     sigma_xi: float = tunable(3.0, paper=3.0)  # rad
-    acc_gate: float = tunable(0.020405599140606637, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
+    acc_gate: float = tunable(0.020405599140606637, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
     acc_lowpass: float = tunable(0.023481716393725316, paper=0.0, search=SearchRange(0.0, 0.2))  # s
     exact_step: float = tunable(1.0, paper=0.0)  # 1: exact step over the sample; 0: eq. 31–32's first order
 
