@@ -182,6 +182,25 @@ def test_acc_lowpass_passes_vibration_and_gates_sustained_acceleration():
     assert last_dev(push, 0.0) > 0.05 and last_dev(push, 0.05) > 0.05  # measured 0.11, 0.10
 
 
+def test_complementary_soft_gate_weights_the_gravity_angles():
+    # acc_soft 1: a tilt seen by an accelerometer reading 1.2 g is followed, slowly (weight
+    # 1/(1 + (0.2/acc_gate)²)); the hard gate ignores it; both follow it at exactly 1 g
+    _, gyr, acc, _ = static(0.0, 0.0, 0.0, n=int(RATE))
+    _, _, acc1, _ = static(np.radians(20), 0.0, 0.0, n=int(4 * RATE))
+    gyr = np.zeros((5 * int(RATE), 3))
+    rolls = {}
+    for g in (1.0, 1.2):
+        for soft in (0.0, 1.0):
+            est = _run("complementary_reduced", gyr, np.vstack([acc, g * acc1]), None, omega0=1.0, acc_gate=0.1,
+                       acc_lowpass=0.0, acc_soft=soft)
+            rolls[g, soft] = np.degrees(2 * np.arctan2(est[-1, 1], est[-1, 0]))
+    assert rolls[1.0, 0.0] == pytest.approx(20.0, abs=0.5) and rolls[1.0, 1.0] == pytest.approx(20.0, abs=0.5)
+    assert abs(rolls[1.2, 0.0]) < 1e-9  # gated out
+    assert 9.0 < rolls[1.2, 1.0] < 13.0  # weight 0.2: 1 − e^(−0.2·ω0·4 s) = 55 % of 20° (11.0° measured)
+    with pytest.raises(ValueError, match="acc_soft must be 0"):
+        estimators.create("complementary_full", acc_soft=0.5)
+
+
 def quat_rotate_body(q, v_earth):
     from ahrs_service.quaternion import quat_rotate_array
 
@@ -271,8 +290,8 @@ def test_declination_settable_live():
 # accuracy of today's defaults is tests/test_tuned_accuracy.py's) on two recordings, as
 # measured plus about 10 % (measured: total / inclination)
 PRE_TUNING = {
-    "complementary_reduced": {"omega0": 0.2, "acc_gate": 0.1, "acc_lowpass": 0.0},
-    "complementary_full": {"omega0": 0.2, "acc_gate": 0.1, "acc_lowpass": 0.0, "mag_gate": 1e9},
+    "complementary_reduced": {"omega0": 0.2, "acc_gate": 0.1, "acc_lowpass": 0.0, "acc_soft": 0.0},
+    "complementary_full": {"omega0": 0.2, "acc_gate": 0.1, "acc_lowpass": 0.0, "acc_soft": 0.0, "mag_gate": 1e9},
     "ekf": {"gyro_noise": 0.01, "bias_noise": 1e-5, "acc_noise": 0.2, "mag_noise": 0.3, "mag_gate": 0.1},
     "valenti": {"alpha": 0.002, "beta": 0.001, "adaptive_low": 0.1, "adaptive_high": 0.2},
 }
