@@ -98,17 +98,17 @@ class QuaternionKFParams:
 
     # QUEST's weights act through their ratio, and the default's factored measurement does not
     # use them: neither is searched
-    sigma_zeta: float = tunable(0.10094164493325111, paper=0.1, search=SearchRange(1e-4, 1.0, log=True))  # 1/s
-    sigma_xi: float = tunable(0.6257141649842257, paper=0.1, search=SearchRange(1e-3, 10.0, log=True))
+    sigma_zeta: float = tunable(0.0011432187444296177, paper=0.1, search=SearchRange(1e-4, 1.0, log=True))  # 1/s
+    sigma_xi: float = tunable(0.008439127971800171, paper=0.1, search=SearchRange(1e-3, 10.0, log=True))
     p0: float = tunable(1.0, paper=1.0)
     w_acc: float = tunable(2.0, paper=2.0)
     w_mag: float = tunable(2.0, paper=2.0)
-    acc_gate: float = tunable(0.043018582363782934, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    acc_gate: float = tunable(0.024454684271719325, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
     mag_heading_only: float = tunable(1.0, paper=0.0)  # 1: Yun et al. 2008's factored measurement; 0: QUEST
     # not in the paper (as the EKF's mag_gate); 1e9 (the paper) never gates
-    mag_gate: float = tunable(1e9, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    mag_gate: float = tunable(0.036314005607871847, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
     # not in the paper (Valenti's implementation's steady-state bias); 0 (the paper): no bias
-    bias_rate: float = tunable(0.0, paper=0.0, search=SearchRange(1e-3, 10.0, log=True))  # 1/s
+    bias_rate: float = tunable(0.13921086271929187, paper=0.0, search=SearchRange(1e-3, 10.0, log=True))  # 1/s
 
     def __post_init__(self) -> None:
         for key in ("sigma_zeta", "p0", "bias_rate"):
