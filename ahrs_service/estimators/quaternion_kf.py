@@ -67,7 +67,8 @@ STATE = Layout(
     ],
     start=QUEST_STATE.end,
 )
-P, G, L, MAG_REF, GYR_PREV = STATE.index.p, STATE.index.g, STATE.index.l, STATE.index.mag_norm_ref, STATE.index.gyr_prev
+P, G, L = STATE.index.p, STATE.index.g, STATE.index.l
+MAG_REF, GYR_PREV = STATE.index.mag_norm_ref, STATE.index.gyr_prev
 STATE_SIZE = STATE.end
 
 
@@ -121,7 +122,9 @@ class QuaternionKFParams:
             if not getattr(self, key) > 0:
                 raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
         if self.mag_heading_only not in (0.0, 1.0):
-            raise ValueError(f"mag_heading_only must be 0 (QUEST, the paper's) or 1 (factored, heading only), got {self.mag_heading_only}")
+            raise ValueError(
+                f"mag_heading_only must be 0 (QUEST, the paper's) or 1 (factored, heading only), got {self.mag_heading_only}"
+            )
 
 
 _P = param_index(QuaternionKFParams)  # indices of the packed parameter vector, by field name
