@@ -120,3 +120,74 @@ def store_quat(s, q):
 @_jit
 def load_quat(s):
     return (s[Q], s[Q + 1], s[Q + 2], s[Q + 3])
+
+
+# ------------------------------------------------------------------ magnetic-disturbance gate
+# Not in any source paper (the project's addition, docs/tuning.md): a magnet near the sensor
+# changes the measured field's magnitude and its dip below the horizon, which earth's field
+# keeps. A filter that uses the gate keeps two slots, MAG_REFERENCE_SLOTS, in its own layout:
+# a reference magnitude and dip learned from the field samples the gate accepted (never from
+# outside the filter), and passes their first index to mag_gate_accepts.
+
+#: the gate's two state slots, for an estimator's own Layout (``*K.MAG_REFERENCE_SLOTS``)
+MAG_REFERENCE_SLOTS = (
+    Slot("mag_norm_ref", 1, "reference field magnitude, µT (0 until the first field sample)"),
+    Slot("mag_dip_ref", 1, "reference sine of the field's dip below the horizon"),
+)
+#: time constant with which the field reference follows accepted samples, s
+MAG_REF_TAU = 10.0
+
+
+@_jit
+def mag_gate_accepts(s, ref, norm, dip_sine, gate, dt):
+    """Whether a field sample looks like earth's field; learns the reference from it if so.
+
+    ``ref`` is the index of the gate's slots (MAG_REFERENCE_SLOTS) in ``s``; ``norm`` the
+    sample's magnitude (µT); ``dip_sine`` the down component of the unit field seen in the
+    earth frame by the filter's estimate; ``gate`` the largest |‖m‖/m_ref − 1| + |sin δ −
+    sin δ_ref| accepted (1e9: every sample). The first sample sets the reference; accepted
+    samples move it with time constant MAG_REF_TAU, so it follows slow changes of the field
+    (and of a magnet fixed to the sensor) but not a magnet passing by.
+    """
+    if s[ref] == 0.0:
+        s[ref], s[ref + 1] = norm, dip_sine
+    if abs(norm / s[ref] - 1.0) + abs(dip_sine - s[ref + 1]) > gate:
+        return False
+    k = min(1.0, dt / MAG_REF_TAU)
+    s[ref] += k * (norm - s[ref])
+    s[ref + 1] += k * (dip_sine - s[ref + 1])
+    return True
+
+
+# ------------------------------------------------------------- gyro bias from steady states
+# The bias estimate of R.G. Valenti's own implementation of his filter (the
+# ``imu_complementary_filter`` of ROS ``imu_tools``, BSD, CCNY Robotics Lab 2015:
+# ``checkState``/``updateBiases``), for the filters without a bias model of their own: while the
+# sensor is in a steady state the bias follows the gyro by a low-pass filter. A filter that
+# uses it keeps REST_BIAS_SLOTS in its own layout, the bias itself in the header's BIAS slots.
+
+#: the previous gyro sample, for an estimator's own Layout (``*K.REST_BIAS_SLOTS``)
+REST_BIAS_SLOTS = (Slot("gyr_prev", 3, "the previous sample's gyroscope reading, rad/s (steady-state test)"),)
+#: steady-state thresholds of imu_tools: specific-force magnitude off g (m/s²), each gyro axis's
+#: change from the previous sample and its distance from the bias estimate (rad/s)
+STEADY_ACC = 0.1
+STEADY_GYRO_DELTA = 0.01
+STEADY_GYRO = 0.2
+
+
+@_jit
+def rest_bias_update(s, prev, x, gain):
+    """b ← b + gain (ω − b) when the sample is a steady state; keeps ω for the next test.
+
+    ``prev`` is the index of REST_BIAS_SLOTS in ``s``; ``gain`` the fraction per sample.
+    """
+    na = math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
+    steady = math.isfinite(na) and abs(na - GRAVITY) <= STEADY_ACC
+    for i in range(3):
+        if abs(x[i] - s[prev + i]) > STEADY_GYRO_DELTA or abs(x[i] - s[BIAS + i]) > STEADY_GYRO:
+            steady = False
+    if steady:
+        for i in range(3):
+            s[BIAS + i] += gain * (x[i] - s[BIAS + i])
+    for i in range(3):
+        s[prev + i] = x[i]

@@ -60,16 +60,12 @@ STATE = Layout(
         Slot("pht", N * 3, "P·Hᵀ, 7 × 3"),
         Slot("kg", N * 3, "Kalman gain, 7 × 3"),
         Slot("hq", 3 * 4, "H's quaternion columns (bias columns are zero), 3 × 4"),
-        Slot("mag_norm_ref", 1, "reference field magnitude, µT (0 until the first field sample)"),
-        Slot("mag_dip_ref", 1, "reference sine of the field's dip below the horizon"),
+        *K.MAG_REFERENCE_SLOTS,  # the magnetic-disturbance gate's reference (K.mag_gate_accepts)
     ],
     start=K.HEADER,
 )
 P0, FQ, M, PHT, KG, HQ, MAG_NORM_REF, MAG_DIP_REF = STATE.index
 STATE_SIZE = STATE.end
-
-#: time constant with which the field reference follows accepted samples, s
-MAG_REF_TAU = 10.0
 
 
 @dataclass
@@ -278,14 +274,8 @@ def _magnetometer_update(s, x, mag_noise, mag_gate, dt):
     # reference field (b_x, 0, b_z) from the measurement seen in the earth frame
     lx, ly, lz = quat_rotate(q, (mx, my, mz))
     # disturbance gate: a field whose magnitude or dip departs from the reference is not earth's
-    if s[MAG_NORM_REF] == 0.0:
-        s[MAG_NORM_REF], s[MAG_DIP_REF] = nm, lz
-    dev = abs(nm / s[MAG_NORM_REF] - 1.0) + abs(lz - s[MAG_DIP_REF])
-    if dev > mag_gate:
+    if not K.mag_gate_accepts(s, MAG_NORM_REF, nm, lz, mag_gate, dt):
         return
-    k = min(1.0, dt / MAG_REF_TAU)
-    s[MAG_NORM_REF] += k * (nm - s[MAG_NORM_REF])
-    s[MAG_DIP_REF] += k * (lz - s[MAG_DIP_REF])
     bx = math.sqrt(lx * lx + ly * ly)
     bz = lz
     if bx < 1e-6:
