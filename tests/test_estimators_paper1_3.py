@@ -77,8 +77,9 @@ def test_fast_tumble_tracks(name):
     total, _, incl = error_deg(est, q)
     err = total if estimators.get(name).observes_heading else incl
     # 5.4 rad/s through gimbal lock many times; Valenti's small default gains leave the
-    # first-order integration error of eq. 47 largest
-    bound = {"ekf": 0.02, "valenti": 0.2}.get(name, 1e-3)
+    # first-order integration error of eq. 47 largest: 0.26° at the tuned α 0.0006 (0.14° at
+    # the α 0.0023 tuned before the field gate and bias estimate; neither acts here)
+    bound = {"ekf": 0.02, "valenti": 0.3}.get(name, 1e-3)
     assert np.isfinite(est).all()
     assert _rms(err) < bound
 
@@ -129,7 +130,7 @@ def test_valenti_magnetometer_cannot_tilt():
     disturbed = FIELD_NED + np.array([0.0, 40.0, -30.0])
     mag = measure(q, np.zeros((len(q), 3)))[2]
     mag[200:] = quat_rotate_body(q[200:], disturbed)
-    for name, params in [("valenti", {}), ("ekf", {"mag_gate": 1e9})]:
+    for name, params in [("valenti", {"mag_gate": 1e9}), ("ekf", {"mag_gate": 1e9})]:
         est = _run(name, gyr, acc, mag, **params)
         _, heading, incl = error_deg(est, q)
         assert incl.max() < 1e-4, name  # acos resolution near 0 is ~2e-6°

@@ -185,3 +185,37 @@ def mag_gate_accepts(s, ref, norm, dip_sine, gate, dt):
     s[ref] += k * (norm - s[ref])
     s[ref + 1] += k * (dip_sine - s[ref + 1])
     return True
+
+
+# ------------------------------------------------------------- gyro bias from steady states
+# The bias estimate of R.G. Valenti's own implementation of his filter (the
+# ``imu_complementary_filter`` of ROS ``imu_tools``, BSD, CCNY Robotics Lab 2015:
+# ``checkState``/``updateBiases``), for the filters without a bias model of their own: while the
+# sensor is in a steady state the bias follows the gyro by a low-pass filter. A filter that
+# uses it keeps REST_BIAS_SLOTS in its own layout, the bias itself in the header's BIAS slots.
+
+#: the previous gyro sample, for an estimator's own Layout (``*K.REST_BIAS_SLOTS``)
+REST_BIAS_SLOTS = (Slot("gyr_prev", 3, "the previous sample's gyroscope reading, rad/s (steady-state test)"),)
+#: steady-state thresholds of imu_tools: specific-force magnitude off g (m/s²), each gyro axis's
+#: change from the previous sample and its distance from the bias estimate (rad/s)
+STEADY_ACC = 0.1
+STEADY_GYRO_DELTA = 0.01
+STEADY_GYRO = 0.2
+
+
+@_jit
+def rest_bias_update(s, prev, x, gain):
+    """b ← b + gain (ω − b) when the sample is a steady state; keeps ω for the next test.
+
+    ``prev`` is the index of REST_BIAS_SLOTS in ``s``; ``gain`` the fraction per sample.
+    """
+    na = math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
+    steady = math.isfinite(na) and abs(na - GRAVITY) <= STEADY_ACC
+    for i in range(3):
+        if abs(x[i] - s[prev + i]) > STEADY_GYRO_DELTA or abs(x[i] - s[BIAS + i]) > STEADY_GYRO:
+            steady = False
+    if steady:
+        for i in range(3):
+            s[BIAS + i] += gain * (x[i] - s[BIAS + i])
+    for i in range(3):
+        s[prev + i] = x[i]

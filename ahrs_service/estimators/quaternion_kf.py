@@ -14,6 +14,23 @@ Details the paper leaves open:
   (the gravity-only correction of :mod:`triad`): inclination is observed, yaw is not;
 * without a usable accelerometer sample only the prediction runs;
 * the earth-field dip is learned from the first usable sample, as in :mod:`quest`.
+
+Three variants, each off in ``preset="paper"``:
+
+* Heading-only field (``mag_heading_only = 1``, the default): the measurement is the factored
+  quaternion of the authors' later work (X. Yun, E.R. Bachmann, R.B. McGhee, "A Simplified
+  Quaternion-Based Algorithm for Orientation Estimation From Earth Gravity and Magnetic Field
+  Measurements", IEEE Trans. Instrumentation and Measurement 57(3), 2008): tilt from gravity
+  alone, heading from the field's part perpendicular to it, so a disturbed field turns the
+  measurement about the vertical only, where QUEST's weighted fit lets it tilt the estimate.
+  QUEST's weights then play no part. 0 is the paper's QUEST measurement.
+* A magnetic-disturbance gate (the project's, as the EKF's ``mag_gate``): a field sample whose
+  magnitude or dip departs from a reference the filter learns from the accepted samples
+  (``_kernel.mag_gate_accepts``) is measured as a sample without a magnetometer (gravity only).
+* Gyro-bias estimation (the project's; the paper's four states have no bias): while the sensor
+  is in a steady state the bias follows the gyro by a low-pass filter, as in Valenti's own
+  implementation of his filter (``_kernel.rest_bias_update``), and eq. 25's A is built from
+  the rates less the bias. ``bias_rate = 0`` (the paper) estimates no bias.
 """
 
 from __future__ import annotations
@@ -36,7 +53,7 @@ from ahrs_service.estimators.uncertainty import (
 from ahrs_service.estimators.quest import DIP, learn_dip, quest_quat
 from ahrs_service.estimators.quest import STATE as QUEST_STATE
 from ahrs_service.estimators.triad import align_down, down_direction
-from ahrs_service.quaternion import quat_normalize
+from ahrs_service.quaternion import quat_from_down_and_field, quat_normalize, quat_rotate
 
 # after QUEST's learned dip (the start-up is QUEST's)
 STATE = Layout(
@@ -45,10 +62,13 @@ STATE = Layout(
         Slot("p", 16, "4×4 covariance, row-major"),
         Slot("g", 16, "4×4 work area: the Kalman gain"),
         Slot("l", 16, "4×4 work area: A P, then the Cholesky factor of C P Cᵀ + R"),
+        *K.MAG_REFERENCE_SLOTS,  # the magnetic-disturbance gate's reference (K.mag_gate_accepts)
+        *K.REST_BIAS_SLOTS,  # the steady-state test of the bias estimate (K.rest_bias_update)
     ],
     start=QUEST_STATE.end,
 )
-P, G, L = STATE.index
+P, G, L = STATE.index.p, STATE.index.g, STATE.index.l
+MAG_REF, GYR_PREV = STATE.index.mag_norm_ref, STATE.index.gyr_prev
 STATE_SIZE = STATE.end
 
 
@@ -59,31 +79,52 @@ class QuaternionKFParams:
     sigma_zeta: process noise σ_ζ of eq. 25, 1/s (quaternion rate). Paper: 0.1.
     sigma_xi: measurement noise σ_ξ of eq. 26 on each QUEST quaternion component. Paper: 0.1.
     p0: initial variance of each quaternion component (P₀ = p0 I₄). Paper: 1.
-    w_acc, w_mag: QUEST weights ρ₁, ρ₂ (eq. 17). Paper: 2 and 2.
+    w_acc, w_mag: QUEST weights ρ₁, ρ₂ (eq. 17). Paper: 2 and 2. Not used by the heading-only
+        measurement (``mag_heading_only = 1``), so not tuned.
     acc_gate: not in the paper (as the complementary filter's gate): no measurement update
         from a sample whose specific-force magnitude is off g by more than acc_gate·g;
         1e9 (the paper) never gates.
+    mag_heading_only: 1 (default) measures the factored quaternion of Yun, Bachmann and
+        McGhee 2008 (tilt from gravity, the field sets heading only); 0 is the paper's QUEST
+        measurement (paper 0).
+    mag_gate: not in the paper: a field sample is measured as one without a magnetometer when
+        |‖m‖/m_ref − 1| + |sin δ − sin δ_ref| exceeds it, δ the field's dip below the horizon,
+        the references learned from the accepted samples with a 10 s time constant (as the
+        EKF's gate; 1e9, the paper, accepts every sample).
+    bias_rate: not in the paper: the rate, 1/s, at which the gyro-bias estimate follows the gyro
+        while the sensor rests (per sample 1 − exp(−bias_rate·Δt); 0, the paper, no bias).
     Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
     are ``preset="paper"``.
     """
 
-    # QUEST's weights act through their ratio: w_acc stays, w_mag is searched
-    sigma_zeta: float = tunable(0.10094164493325111, paper=0.1, search=SearchRange(1e-4, 1.0, log=True))  # 1/s
-    sigma_xi: float = tunable(0.6257141649842257, paper=0.1, search=SearchRange(1e-3, 10.0, log=True))
+    # QUEST's weights act through their ratio, and the default's factored measurement does not
+    # use them: neither is searched
+    sigma_zeta: float = tunable(0.0011432187444296177, paper=0.1, search=SearchRange(1e-4, 1.0, log=True))  # 1/s
+    sigma_xi: float = tunable(0.008439127971800171, paper=0.1, search=SearchRange(1e-3, 10.0, log=True))
     p0: float = tunable(1.0, paper=1.0)
     w_acc: float = tunable(2.0, paper=2.0)
-    w_mag: float = tunable(3.532682259000227, paper=2.0, search=SearchRange(0.01, 20.0, log=True))
-    acc_gate: float = tunable(0.043018582363782934, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    w_mag: float = tunable(2.0, paper=2.0)
+    acc_gate: float = tunable(0.024454684271719325, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    mag_heading_only: float = tunable(1.0, paper=0.0)  # 1: Yun et al. 2008's factored measurement; 0: QUEST
+    # not in the paper (as the EKF's mag_gate); 1e9 (the paper) never gates
+    mag_gate: float = tunable(0.036314005607871847, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    # not in the paper (Valenti's implementation's steady-state bias); 0 (the paper): no bias
+    bias_rate: float = tunable(0.13921086271929187, paper=0.0, search=SearchRange(1e-3, 10.0, log=True))  # 1/s
 
     def __post_init__(self) -> None:
-        for key in ("sigma_zeta", "p0"):
+        for key in ("sigma_zeta", "p0", "bias_rate"):
             if not getattr(self, key) >= 0:
                 raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
         for key in ("sigma_xi", "w_acc", "w_mag"):
             if not getattr(self, key) > 0:
                 raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
-        if not self.acc_gate > 0:
-            raise ValueError(f"acc_gate must be > 0, got {self.acc_gate}")
+        for key in ("acc_gate", "mag_gate"):
+            if not getattr(self, key) > 0:
+                raise ValueError(f"{key} must be > 0, got {getattr(self, key)}")
+        if self.mag_heading_only not in (0.0, 1.0):
+            raise ValueError(
+                f"mag_heading_only must be 0 (QUEST, the paper's) or 1 (factored, heading only), got {self.mag_heading_only}"
+            )
 
 
 _P = param_index(QuaternionKFParams)  # indices of the packed parameter vector, by field name
@@ -100,8 +141,10 @@ def quaternion_kf_step(s, p, x):
     q0, q1, q2, q3 = K.load_quat(s)
     if gyro_ok:
         h = x[K.DT]
+        if p[_P.bias_rate] > 0.0:  # not in the paper: the steady-state bias estimate
+            K.rest_bias_update(s, GYR_PREV, x, 1.0 - math.exp(-p[_P.bias_rate] * h))
         a = 0.5 * h
-        wp, wq, wr = a * x[0], a * x[1], a * x[2]
+        wp, wq, wr = a * (x[0] - s[K.BIAS]), a * (x[1] - s[K.BIAS + 1]), a * (x[2] - s[K.BIAS + 2])
         # eq. 25: A = I + (h/2) Ω, rows [1 −p −q −r; p 1 r −q; q −r 1 p; r q −p 1]
         A = (
             (1.0, -wp, -wq, -wr),
@@ -133,7 +176,15 @@ def quaternion_kf_step(s, p, x):
         pred = quat_normalize((q0, q1, q2, q3))
         d = down_direction(x)
         ok = False
-        if mag_ok:  # the dip is known: learn_dip ran above
+        if mag_ok:
+            # the gate (not the paper's): a field whose magnitude or dip left the learned ones is a magnet's
+            nm = math.sqrt(x[6] * x[6] + x[7] * x[7] + x[8] * x[8])
+            dip = quat_rotate(pred, (x[6] / nm, x[7] / nm, x[8] / nm))[2]
+            mag_ok = K.mag_gate_accepts(s, MAG_REF, nm, dip, p[_P.mag_gate], x[K.DT])
+        if mag_ok and p[_P.mag_heading_only] != 0.0:
+            # Yun et al. 2008 (factored quaternion): tilt from gravity, heading from the field
+            y, ok = quat_from_down_and_field(d, (x[6], x[7], x[8]))
+        elif mag_ok:  # the dip is known: learn_dip ran above
             y, ok = quest_quat(d, (x[6], x[7], x[8]), (s[DIP], 0.0, s[DIP + 1]), w_acc, w_mag)
         if not ok:
             y = align_down(pred, d)

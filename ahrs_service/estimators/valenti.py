@@ -33,6 +33,20 @@ Gains. Valenti's α and β are fractions of the delta applied per sample; the an
 samples jitter, a sample of length Δt applies 1 − (1 − α)^(Δt · gain_rate_hz): exactly α at
 ``gain_rate_hz``. The adaptive gain (annex 3) scales α by 1 below a relative specific-force
 magnitude error of 0.1, by 0 above 0.2, linearly in between.
+
+Two additions, each off in ``preset="paper"``:
+
+* Gyro-bias estimation as in the authors' own implementation (R.G. Valenti, the
+  ``imu_complementary_filter`` of ROS ``imu_tools``, BSD, CCNY Robotics Lab 2015): while the
+  sensor is in a steady state — |‖f‖ − g| ≤ 0.1 m/s², every gyro axis within 0.01 rad/s of
+  the previous sample and within 0.2 rad/s of the bias — the bias follows the gyro by a
+  low-pass filter, b ← b + α_b (ω − b), and the prediction integrates ω − b
+  (``_kernel.rest_bias_update``, shared with the QKF's variant). ``bias_alpha``
+  is α_b per sample at ``gain_rate_hz`` like alpha and beta (the implementation's default
+  0.01; 0, the paper's filter, estimates no bias).
+* A magnetic-disturbance gate (the project's, as the EKF's ``mag_gate``): a field sample
+  whose magnitude or dip departs from a reference the filter learns from the accepted samples
+  (``_kernel.mag_gate_accepts``) gives no heading correction.
 """
 
 from __future__ import annotations
@@ -45,12 +59,19 @@ from numba import njit
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.presets import SearchRange, tunable
-from ahrs_service.estimators.layout import param_index
+from ahrs_service.estimators.layout import Layout, param_index
 from ahrs_service.quaternion import quat_mul, quat_normalize, quat_rotate
 
 #: the threshold on the delta's scalar part above which LERP replaces SLERP (eq. 54–56)
 EPSILON = 0.9
-#: standard gravity for the adaptive gain, m/s²
+# after the common header (the bias itself is in the header's BIAS slots)
+STATE = Layout(
+    "valenti state",
+    [*K.REST_BIAS_SLOTS, *K.MAG_REFERENCE_SLOTS],
+    start=K.HEADER,
+)
+GYR_PREV, MAG_REF = STATE.index.gyr_prev, STATE.index.mag_norm_ref
+STATE_SIZE = STATE.end
 
 
 @dataclass
@@ -66,22 +87,35 @@ class ValentiParams:
         100, the rate of the third paper's data.
     adaptive_low, adaptive_high: relative specific-force magnitude errors |‖f‖ − g|/g
         between which the accelerometer gain falls from alpha to zero (annex 3: 0.1, 0.2).
+    bias_alpha: gyro-bias gain α_b, the fraction of ω − b the bias moves per steady-state
+        sample at ``gain_rate_hz`` (the authors' implementation; 0 = no bias estimation, the
+        paper's filter).
+    mag_gate: magnetometer disturbance gate (not in the paper): a field sample gives no heading
+        correction when |‖m‖/m_ref − 1| + |sin δ − sin δ_ref| exceeds it, δ the field's dip
+        below the horizon, the references learned from the accepted samples with a 10 s time
+        constant (as the EKF's gate; 1e9, the paper, accepts every sample).
     Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
     are ``preset="paper"``.
     """
 
     # paper: annex 3's gains; the two thresholds' ranges are disjoint, so low < high holds
-    alpha: float = tunable(0.002306161017305611, paper=0.03, search=SearchRange(1e-4, 0.1, log=True))
-    beta: float = tunable(0.0008378618072402205, paper=0.3, search=SearchRange(1e-5, 0.3, log=True))
+    alpha: float = tunable(0.000603792810148083, paper=0.03, search=SearchRange(1e-4, 0.1, log=True))
+    beta: float = tunable(0.0037464629054970973, paper=0.3, search=SearchRange(1e-5, 0.3, log=True))
     gain_rate_hz: float = tunable(100.0, paper=100.0)  # Hz; a unit of alpha and beta, not tuned
-    adaptive_low: float = tunable(0.030377944941125664, paper=0.1, search=SearchRange(0.01, 0.15))
-    adaptive_high: float = tunable(0.16031685415305122, paper=0.2, search=SearchRange(0.16, 1.0))
+    adaptive_low: float = tunable(0.04957639622582108, paper=0.1, search=SearchRange(0.01, 0.15))
+    adaptive_high: float = tunable(0.5733138622254811, paper=0.2, search=SearchRange(0.16, 1.0))
+    # the authors' implementation (imu_tools); 0 (the paper's filter) estimates no bias
+    bias_alpha: float = tunable(0.0016351555924922138, paper=0.0, search=SearchRange(1e-4, 0.3, log=True))
+    # not in the paper (as the EKF's mag_gate); 1e9 (the paper) never gates
+    mag_gate: float = tunable(0.020207317852193128, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
 
     def __post_init__(self) -> None:
-        for name in ("alpha", "beta"):
+        for name in ("alpha", "beta", "bias_alpha"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
+        if not self.mag_gate > 0:
+            raise ValueError(f"mag_gate must be > 0, got {self.mag_gate}")
         if not self.gain_rate_hz > 0:
             raise ValueError(f"gain_rate_hz must be > 0, got {self.gain_rate_hz}")
         if not 0.0 <= self.adaptive_low < self.adaptive_high:
@@ -155,9 +189,12 @@ def valenti_step(s, p, x):
         return
     q = K.load_quat(s)
     dt = x[K.DT]
+    if p[_P.bias_alpha] > 0.0:  # not in the paper: the authors' implementation
+        K.rest_bias_update(s, GYR_PREV, x, _per_sample(p[_P.bias_alpha], dt, rate))
 
-    # eq. 47–48: q_ω = q + Δt · ½ q ⊗ (0, ω), unit norm
-    qd = quat_mul(q, (0.0, 0.5 * x[0], 0.5 * x[1], 0.5 * x[2]))
+    # eq. 47–48: q_ω = q + Δt · ½ q ⊗ (0, ω − b), unit norm (b = 0 without bias estimation)
+    wx, wy, wz = x[0] - s[K.BIAS], x[1] - s[K.BIAS + 1], x[2] - s[K.BIAS + 2]
+    qd = quat_mul(q, (0.0, 0.5 * wx, 0.5 * wy, 0.5 * wz))
     q = quat_normalize((q[0] + qd[0] * dt, q[1] + qd[1] * dt, q[2] + qd[2] * dt, q[3] + qd[3] * dt))
 
     if acc_ok:
@@ -178,9 +215,12 @@ def valenti_step(s, p, x):
             q = quat_normalize(quat_mul(_shrink(_accelerometer_delta(gx, gy, gz), gain), q))
 
     if mag_ok:
-        lx, ly, _ = quat_rotate(q, (x[6], x[7], x[8]))  # eq. 58
+        lx, ly, lz = quat_rotate(q, (x[6], x[7], x[8]))  # eq. 58
         gain = _per_sample(beta, dt, rate)
-        if lx * lx + ly * ly > 1e-12 and gain > 0.0:
+        nm = math.sqrt(x[6] * x[6] + x[7] * x[7] + x[8] * x[8])
+        # the gate (not the paper's): a field whose magnitude or dip left the learned ones is a magnet's
+        accepted = K.mag_gate_accepts(s, MAG_REF, nm, lz / nm, p[_P.mag_gate], dt)
+        if accepted and lx * lx + ly * ly > 1e-12 and gain > 0.0:
             # eq. 60–61
             q = quat_normalize(quat_mul(_shrink(_magnetometer_delta(lx, ly), gain), q))
 
@@ -201,5 +241,6 @@ class Valenti(Estimator):
     Params = ValentiParams
     uses_mag = True
     observes_heading = True
+    state_size = STATE_SIZE
     step = staticmethod(valenti_step)
     batch = staticmethod(valenti_batch)
