@@ -65,8 +65,7 @@ def _mean_score(name: str, recordings, *, heading: bool, preset: str | None = No
 #: assertion is the expected failure, an error in the run is not), and a regression guard
 #: holds them within 2 % of what was measured.
 BROAD_TARGET_MISSED = {
-    "complementary_reduced": 3.46, "complementary_full": 7.57, "kalman_roll_pitch": 8.19,
-    "immersion_invariance": 3.22,
+    "complementary_reduced": 3.01, "kalman_roll_pitch": 3.66,  # measured 2026-12-03
 }
 
 

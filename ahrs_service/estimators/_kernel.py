@@ -19,7 +19,7 @@ import math
 from numba import njit
 
 from ahrs_service.estimators.layout import Layout, Slot
-from ahrs_service.quaternion import quat_from_gravity_and_field, vec_is_usable
+from ahrs_service.quaternion import quat_from_gravity_and_field, quat_from_rotvec, quat_rotate_inv, vec_is_usable
 
 #: the sample row: one sample's three sensors and its time step
 SAMPLE_ROW = Layout(
@@ -90,6 +90,34 @@ def check_sample(s, x, uses_mag):
 
 
 GRAVITY = 9.81  # m/s², the nominal specific force at rest of the accelerometer gates
+
+
+@_jit
+def acc_disturbance(s, i, x, tau):
+    """How far the specific force is from gravity alone, |‖f̄‖/g − 1|, for a usable sample.
+
+    ``tau`` (s) 0: f̄ = f, this sample's own. Above 0: f̄ is f low-passed with time constant
+    ``tau`` in the body frame, turned with the gyro each sample so a rotation does not shrink it
+    (3 slots from ``s[i]``, zero before the first sample): vibration averages out of f̄, a
+    sustained acceleration does not.
+    """
+    fx, fy, fz = x[3], x[4], x[5]
+    if tau > 0.0:
+        dt = x[DT]
+        lx, ly, lz = s[i], s[i + 1], s[i + 2]
+        if lx == 0.0 and ly == 0.0 and lz == 0.0:
+            lx, ly, lz = fx, fy, fz
+        elif dt > 0.0 and math.isfinite(x[0] + x[1] + x[2]):
+            lx, ly, lz = quat_rotate_inv(quat_from_rotvec(x[0] * dt, x[1] * dt, x[2] * dt), (lx, ly, lz))
+            k = 1.0 - math.exp(-dt / tau)
+            lx += k * (fx - lx)
+            ly += k * (fy - ly)
+            lz += k * (fz - lz)
+        s[i], s[i + 1], s[i + 2] = lx, ly, lz
+        fx, fy, fz = lx, ly, lz
+    return abs(math.sqrt(fx * fx + fy * fy + fz * fz) / GRAVITY - 1.0)
+
+
 RUNNING, WAITING, STARTED = 0, 1, 2  # initialise_from_sample results
 
 

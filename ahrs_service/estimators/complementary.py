@@ -34,7 +34,16 @@ Adaptations to the project's conventions and to real data:
 * Linear-acceleration gate (not in the paper): a sample whose specific-force magnitude
   differs from g by more than ``acc_gate``·g gives no gravity angles (the gyro carries roll
   and pitch through it). Without it the filter follows the accelerations of BROAD's
-  fast-translation trials (37° inclination RMSE on one of them).
+  fast-translation trials (37° inclination RMSE on one of them). With ``acc_lowpass`` > 0 the
+  gate tests the magnitude of the specific force low-passed with that time constant in a frame
+  turned with the gyro (``K.acc_disturbance``): vibration averages out and no longer shuts the
+  gate, a sustained acceleration still does. 0 (``preset="paper"``): each sample's own.
+  With ``acc_soft`` 1 (the reduced form's default) the gate is a weight instead:
+  Θ_LF = Θ_p + w (Θ_acc − Θ_p), w = 1/(1 + (dev/acc_gate)²).
+* Field-disturbance gate (not in the paper, full form): a field sample whose magnitude or dip
+  departs from a reference learned from accepted samples gives no heading (``mag_gate``, the
+  EKF's gate, shared as ``K.mag_gate_accepts``); the gyro carries yaw through it. 1e9
+  (``preset="paper"``) accepts every sample.
 * The filter coefficient α = Δt/(1/ω0 + Δt) (eq. 13) is computed from each sample's real Δt.
 * With gimbal lock itself (|θ| = 90°) roll and yaw are not separable: the gravity angles and
   the tilt compensation stay finite (atan2), and the quaternion output is exact, but the two
@@ -52,15 +61,21 @@ from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
-from ahrs_service.quaternion import quat_from_euler, quat_integrate, quat_to_euler
+from ahrs_service.quaternion import quat_from_euler, quat_integrate, quat_rotate, quat_to_euler
 
 # state after the common header: the filtered Euler angles Θ̂
 STATE = Layout(
     "complementary state",
-    [Slot("phi", 1, "roll φ̂, rad"), Slot("theta", 1, "pitch θ̂, rad"), Slot("psi", 1, "yaw ψ̂, rad")],
+    [
+        Slot("phi", 1, "roll φ̂, rad"),
+        Slot("theta", 1, "pitch θ̂, rad"),
+        Slot("psi", 1, "yaw ψ̂, rad"),
+        Slot("acc_lp", 3, "low-passed specific force of the gate, m/s², body frame"),
+        *K.MAG_REFERENCE_SLOTS,  # the field gate's reference (K.mag_gate_accepts), full form only
+    ],
     start=K.HEADER,
 )
-PHI, THETA, PSI = STATE.index
+PHI, THETA, PSI, ACC_LP, MAG_NORM_REF, _ = STATE.index
 STATE_SIZE = STATE.end
 
 #: standard gravity, m/s²
@@ -76,6 +91,16 @@ def _check_acc_gate(acc_gate: float) -> None:
         raise ValueError(f"acc_gate must be > 0, got {acc_gate}")
 
 
+def _check_acc_lowpass(acc_lowpass: float) -> None:
+    if not acc_lowpass >= 0:
+        raise ValueError(f"acc_lowpass must be >= 0, got {acc_lowpass}")
+
+
+def _check_acc_soft(acc_soft: float) -> None:
+    if acc_soft not in (0.0, 1.0):
+        raise ValueError(f"acc_soft must be 0 (hard gate) or 1 (soft weight), got {acc_soft}")
+
+
 @dataclass
 class ComplementaryReducedParams:
     """Tuning of :class:`ComplementaryReduced`.
@@ -84,17 +109,27 @@ class ComplementaryReducedParams:
         the gyroscope. The paper gives no value (``preset="paper"``: 0.2).
     acc_gate: largest relative error |‖f‖ − g|/g of a specific-force sample still used for
         roll and pitch. The paper has no gate (``preset="paper"``: 1e9).
+    acc_lowpass: time constant (s) of the gyro-turned low-pass of f whose magnitude the gate
+        tests; 0 (``preset="paper"``): each sample's own f.
+    acc_soft: 1 (default): instead of a hard gate, the gravity angles are weighted by
+        1/(1 + (dev/acc_gate)²), dev the (low-passed) |‖f‖/g − 1|: Θ_LF moves from the
+        gyro-propagated angles that fraction of the way to the gravity angles. 0: the hard
+        gate (``preset="paper"``, where the gate is open).
     Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
     are ``preset="paper"``.
     """
 
     # paper: no ω0 given (0.2, the value used before tuning), no gate (1e9)
-    omega0: float = tunable(1.256369248913567, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
-    acc_gate: float = tunable(0.01323054450827564, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
+    omega0: float = tunable(1.0115370151414211, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
+    acc_gate: float = tunable(0.009246050103147824, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
+    acc_lowpass: float = tunable(0.021895028580370384, paper=0.0, search=SearchRange(0.0, 0.2))  # s
+    acc_soft: float = tunable(1.0, paper=0.0)  # 1: weight 1/(1 + (dev/acc_gate)²); 0: hard gate
 
     def __post_init__(self) -> None:
         _check_omega0(self.omega0)
         _check_acc_gate(self.acc_gate)
+        _check_acc_lowpass(self.acc_lowpass)
+        _check_acc_soft(self.acc_soft)
 
 
 @dataclass
@@ -107,18 +142,29 @@ class ComplementaryFullParams:
         service only: the service turns every estimator's output to true north itself
         (``estimator.declination_deg`` or ``[location]``, MAVLink MAG_DECL_DEG), so a declination set
         here as well would count twice.
-    acc_gate: as for the reduced form.
+    acc_gate, acc_lowpass, acc_soft: as for the reduced form (acc_soft default 0: this
+        preset was tuned with the hard gate).
+    mag_gate: field-disturbance gate (not in the paper): a field sample is not used when
+        |‖m‖/m_ref − 1| + |sin δ − sin δ_ref| > mag_gate (δ the dip; references learned from
+        accepted samples, ``K.mag_gate_accepts``, as the EKF's). 1e9 (``preset="paper"``): off.
     Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
     are ``preset="paper"``.
     """
 
-    omega0: float = tunable(0.11060220269330527, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
+    omega0: float = tunable(0.25289896788441085, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
     declination: float = tunable(0.0, paper=0.0)  # rad; a site constant, not tuned
-    acc_gate: float = tunable(0.1378805157568786, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
+    acc_gate: float = tunable(0.03611278160401323, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
+    acc_lowpass: float = tunable(0.050237868208254585, paper=0.0, search=SearchRange(0.0, 0.2))  # s
+    mag_gate: float = tunable(0.1512691496420839, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    acc_soft: float = tunable(0.0, paper=0.0)  # the hard gate: what this preset was tuned with
 
     def __post_init__(self) -> None:
         _check_omega0(self.omega0)
         _check_acc_gate(self.acc_gate)
+        _check_acc_lowpass(self.acc_lowpass)
+        _check_acc_soft(self.acc_soft)
+        if not self.mag_gate > 0:
+            raise ValueError(f"mag_gate must be > 0, got {self.mag_gate}")
 
 
 _inline = njit(cache=True, inline="always")
@@ -154,7 +200,7 @@ def _store_euler(s, phi, theta, psi):
 
 
 @_inline
-def _complementary_update(s, x, omega0, declination, acc_gate, use_mag):
+def _complementary_update(s, x, omega0, declination, acc_gate, acc_lowpass, acc_soft, mag_gate, use_mag):
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, use_mag)
     phase = K.initialise_from_sample(s, x, acc_ok, mag_ok)
     if phase == K.STARTED:
@@ -169,7 +215,8 @@ def _complementary_update(s, x, omega0, declination, acc_gate, use_mag):
 
     # eq. 4–5 over one sample: the Euler-angle change of the gyro-propagated attitude
     # (the stored quaternion is always the one of the stored Euler angles)
-    r1, t1, y1 = quat_to_euler(quat_integrate(K.load_quat(s), wx, wy, wz, dt))
+    q1 = quat_integrate(K.load_quat(s), wx, wy, wz, dt)
+    r1, t1, y1 = quat_to_euler(q1)
     phi_p, theta_p, psi_p = phi + _wrap(r1 - phi), t1, psi + _wrap(y1 - psi)
     phi_dot, theta_dot, psi_dot = (phi_p - phi) / dt, (theta_p - theta) / dt, (psi_p - psi) / dt
 
@@ -177,17 +224,28 @@ def _complementary_update(s, x, omega0, declination, acc_gate, use_mag):
     # a sensor is missing (or, for yaw, in the reduced form) that estimate stands in for it
     phi_lf, theta_lf, psi_lf = phi_p, theta_p, psi_p
     fx, fy, fz = x[3], x[4], x[5]
-    if acc_ok and abs(math.sqrt(fx * fx + fy * fy + fz * fz) - K.GRAVITY) <= acc_gate * K.GRAVITY:
-        phi_lf = _unwrap_to(math.atan2(-fy, -fz), phi_p)  # eq. 29 (specific force)
-        theta_lf = math.atan2(fx, math.sqrt(fy * fy + fz * fz))  # eq. 30
+    if acc_ok:
+        dev = K.acc_disturbance(s, ACC_LP, x, acc_lowpass)
+        # the gate (not the paper's): hard, or a soft weight of the gravity angles
+        if acc_soft or dev <= acc_gate:
+            phi_lf = _unwrap_to(math.atan2(-fy, -fz), phi_p)  # eq. 29 (specific force)
+            theta_lf = math.atan2(fx, math.sqrt(fy * fy + fz * fz))  # eq. 30
+            if acc_soft:
+                w = 1.0 / (1.0 + (dev / acc_gate) ** 2)
+                phi_lf = phi_p + w * (phi_lf - phi_p)
+                theta_lf = theta_p + w * (theta_lf - theta_p)
     if mag_ok:
         mx, my, mz = x[6], x[7], x[8]
-        # eq. 43: tilt-compensated magnetic heading, tilt from the gyro-propagated estimate
-        sr, cr, st, c_t = math.sin(r1), math.cos(r1), math.sin(t1), math.cos(t1)
-        num = -my * cr + mz * sr
-        den = mx * c_t + my * sr * st + mz * cr * st
-        if num * num + den * den > 0.0:
-            psi_lf = _unwrap_to(math.atan2(num, den) + declination, psi_p)  # eq. 44
+        nm = math.sqrt(mx * mx + my * my + mz * mz)
+        # the field gate (not the paper's): magnitude and dip against earth's, learned
+        down = quat_rotate(q1, (mx / nm, my / nm, mz / nm))[2]
+        if K.mag_gate_accepts(s, MAG_NORM_REF, nm, down, mag_gate, dt):
+            # eq. 43: tilt-compensated magnetic heading, tilt from the gyro-propagated estimate
+            sr, cr, st, c_t = math.sin(r1), math.cos(r1), math.sin(t1), math.cos(t1)
+            num = -my * cr + mz * sr
+            den = mx * c_t + my * sr * st + mz * cr * st
+            if num * num + den * den > 0.0:
+                psi_lf = _unwrap_to(math.atan2(num, den) + declination, psi_p)  # eq. 44
 
     # eq. 22 and eq. 13: Θs = Θ̇/ω0 + Θ_LF, low-passed with α from this sample's Δt
     alpha = dt / (1.0 / omega0 + dt)
@@ -202,7 +260,7 @@ _PR = param_index(ComplementaryReducedParams)  # indices of the packed parameter
 
 @njit(cache=True)
 def complementary_reduced_step(s, p, x):
-    _complementary_update(s, x, p[_PR.omega0], 0.0, p[_PR.acc_gate], False)
+    _complementary_update(s, x, p[_PR.omega0], 0.0, p[_PR.acc_gate], p[_PR.acc_lowpass], p[_PR.acc_soft] != 0.0, 1e9, False)
 
 
 _PF = param_index(ComplementaryFullParams)  # indices of the packed parameter vector, by field name
@@ -210,7 +268,7 @@ _PF = param_index(ComplementaryFullParams)  # indices of the packed parameter ve
 
 @njit(cache=True)
 def complementary_full_step(s, p, x):
-    _complementary_update(s, x, p[_PF.omega0], p[_PF.declination], p[_PF.acc_gate], True)
+    _complementary_update(s, x, p[_PF.omega0], p[_PF.declination], p[_PF.acc_gate], p[_PF.acc_lowpass], p[_PF.acc_soft] != 0.0, p[_PF.mag_gate], True)
 
 
 @njit(cache=True)

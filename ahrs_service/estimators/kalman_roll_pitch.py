@@ -8,10 +8,19 @@ Adaptations, all documented in docs/estimators-paper2.md:
 
 * the process input is the Euler-angle rate of eq. 7 rather than the raw body rate; eq. 27–28
   are its small-angle form, and the exact rate keeps the filter right at large roll and pitch;
+* the step over a sample (``exact_step`` 1, the default) takes the Euler angles of the attitude
+  turned by the gyro's rotation h ω, the exact integral of eq. 7 for a rate constant over the
+  sample, as the first paper's complementary filter does. The printed form x + h u with u the
+  rate of eq. 7 at the sample's start (``exact_step`` 0, ``preset="paper"``) is first order and
+  singular at pitch ±90°: in fast turns it loses the attitude (the gyro alone on BROAD's
+  fast-rotation trial: 82° inclination RMSE, 17° with the exact step; the tuned filter there:
+  27° with the first-order step, 3.2° with the exact one);
 * the measurement (eq. 29–30) is written for our specific force in FRD: at rest
   f = g (sin θ, −sin φ cos θ, −cos φ cos θ), so φ_y = atan2(−f_y, −f_z) (all four quadrants,
   upside-down included) and θ_y = atan2(f_x, √(f_y² + f_z²));
 * yaw is the integral of eq. 7's yaw rate (no magnetometer: heading drifts with the gyro);
+* the accelerometer gate (``acc_gate``, ``acc_lowpass``: ``K.acc_disturbance``) is the
+  project's, not the paper's, and off under ``preset="paper"``;
 * the process noise enters as h ζ with h the actual time step of each sample (eq. 31–32), so the
   filter is right for any sample timing.
 """
@@ -28,14 +37,18 @@ from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.uncertainty import AttitudeVariance
-from ahrs_service.quaternion import quat_from_euler, quat_to_euler
+from ahrs_service.quaternion import quat_from_euler, quat_integrate, quat_to_euler
 
 STATE = Layout(
     "kalman_roll_pitch state",
-    [Slot("euler", 3, "roll, pitch, yaw, rad"), Slot("p_roll_pitch", 2, "variances of roll and pitch, rad²")],
+    [
+        Slot("euler", 3, "roll, pitch, yaw, rad"),
+        Slot("p_roll_pitch", 2, "variances of roll and pitch, rad²"),
+        Slot("acc_lp", 3, "low-passed specific force of the gate, m/s², body frame"),
+    ],
     start=K.HEADER,
 )
-ROLL, P_ROLL = STATE.index
+ROLL, P_ROLL, ACC_LP = STATE.index
 STATE_SIZE = STATE.end
 
 # |cos θ| floor of eq. 7 at gimbal lock: a finite rate instead of a division by zero
@@ -61,14 +74,22 @@ class KalmanRollPitchParams:
     acc_gate: not in the paper (as the complementary filter's gate): no measurement update
         from a sample whose specific-force magnitude is off g by more than acc_gate·g, which
         linear acceleration then dominates; 1e9 (the paper) never gates.
+    acc_lowpass: not in the paper: time constant (s) of the gyro-turned low-pass of the
+        specific force whose magnitude the gate tests (vibration passes, a sustained
+        acceleration does not); 0 (the paper's value, moot there) tests each sample's own.
+    exact_step: 1 (default): the Euler angles after the gyro's exact rotation over the sample;
+        0 (the paper's form, eq. 31–32): the first-order step x + h·u with u the rates of
+        eq. 7 at the sample's start, which loses the attitude in fast turns.
     Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
     are ``preset="paper"``.
     """
 
     # only σ_ζ/σ_ξ sets the gain: σ_ξ stays at the paper's value and σ_ζ alone is searched
-    sigma_zeta: float = tunable(1.0363149748633103, paper=5.0, search=SearchRange(0.005, 20.0, log=True))  # rad/s
+    sigma_zeta: float = tunable(0.6268654816668298, paper=5.0, search=SearchRange(0.005, 20.0, log=True))  # rad/s
     sigma_xi: float = tunable(3.0, paper=3.0)  # rad
-    acc_gate: float = tunable(0.028051961277792185, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    acc_gate: float = tunable(0.020405599140606637, paper=1e9, search=SearchRange(0.02, 1.0, log=True))
+    acc_lowpass: float = tunable(0.023481716393725316, paper=0.0, search=SearchRange(0.0, 0.2))  # s
+    exact_step: float = tunable(1.0, paper=0.0)  # 1: exact step over the sample; 0: eq. 31–32's first order
 
     def __post_init__(self) -> None:
         if not self.sigma_zeta >= 0:
@@ -77,6 +98,10 @@ class KalmanRollPitchParams:
             raise ValueError(f"sigma_xi must be > 0, got {self.sigma_xi}")
         if not self.acc_gate > 0:
             raise ValueError(f"acc_gate must be > 0, got {self.acc_gate}")
+        if not self.acc_lowpass >= 0:
+            raise ValueError(f"acc_lowpass must be >= 0, got {self.acc_lowpass}")
+        if self.exact_step not in (0.0, 1.0):
+            raise ValueError(f"exact_step must be 0 (first-order step) or 1 (exact step), got {self.exact_step}")
 
 
 _P = param_index(KalmanRollPitchParams)  # indices of the packed parameter vector, by field name
@@ -99,32 +124,39 @@ def kalman_roll_pitch_step(s, p, x):
     if gyro_ok:
         h = x[K.DT]
         gp, gq, gr = x[0], x[1], x[2]
-        sr, cr = math.sin(roll), math.cos(roll)
-        cp = math.cos(pitch)
-        if abs(cp) < _COS_MIN:
-            cp = _COS_MIN if cp >= 0.0 else -_COS_MIN
-        tp = math.sin(pitch) / cp
-        # eq. 7: Euler rates; eq. 27–28 / 31–32: x_{k+1} = x_k + h u_k
-        roll += h * (gp + tp * (gq * sr + gr * cr))
-        pitch += h * (gq * cr - gr * sr)
-        yaw += h * (gq * sr + gr * cr) / cp
-        # pitch past ±90°: the same attitude with pitch mirrored and roll, yaw turned by π
-        if pitch > 0.5 * math.pi:
-            pitch = math.pi - pitch
-            roll += math.pi
-            yaw += math.pi
-        elif pitch < -0.5 * math.pi:
-            pitch = -math.pi - pitch
-            roll += math.pi
-            yaw += math.pi
-        roll, yaw = _wrap(roll), _wrap(yaw)
+        if p[_P.exact_step] != 0.0:
+            # eq. 7 over the whole sample: the Euler angles of the attitude turned by the
+            # gyro's rotation h ω (exact for a rate constant over the sample, finite at ±90°;
+            # the stored quaternion is the one of the stored angles)
+            roll, pitch, yaw = quat_to_euler(quat_integrate(K.load_quat(s), gp, gq, gr, h))
+        else:
+            # eq. 27–28 / 31–32 as printed, x_{k+1} = x_k + h u_k, with u the Euler rates of
+            # eq. 7 at the sample's start (first order: loses track in fast turns near ±90°)
+            sr, cr = math.sin(roll), math.cos(roll)
+            cp = math.cos(pitch)
+            if abs(cp) < _COS_MIN:
+                cp = _COS_MIN if cp >= 0.0 else -_COS_MIN
+            tp = math.sin(pitch) / cp
+            roll += h * (gp + tp * (gq * sr + gr * cr))
+            pitch += h * (gq * cr - gr * sr)
+            yaw += h * (gq * sr + gr * cr) / cp
+            # pitch past ±90°: the same attitude with pitch mirrored and roll, yaw turned by π
+            if pitch > 0.5 * math.pi:
+                pitch = math.pi - pitch
+                roll += math.pi
+                yaw += math.pi
+            elif pitch < -0.5 * math.pi:
+                pitch = -math.pi - pitch
+                roll += math.pi
+                yaw += math.pi
+            roll, yaw = _wrap(roll), _wrap(yaw)
         # Algorithm 1 line 2: P ← A P Aᵀ + H Q Hᵀ with A = 1, H = h
         qn = h * h * sigma_zeta * sigma_zeta
         s[P_ROLL] += qn
         s[P_ROLL + 1] += qn
     fx, fy, fz = x[3], x[4], x[5]
     # the gate (not the paper's): a specific force far from g is mostly linear acceleration
-    if acc_ok and abs(math.sqrt(fx * fx + fy * fy + fz * fz) - K.GRAVITY) <= p[_P.acc_gate] * K.GRAVITY:
+    if acc_ok and K.acc_disturbance(s, ACC_LP, x, p[_P.acc_lowpass]) <= p[_P.acc_gate]:
         # eq. 29–30 in FRD specific force
         y_roll = math.atan2(-fy, -fz)
         y_pitch = math.atan2(fx, math.sqrt(fy * fy + fz * fz))
