@@ -381,6 +381,9 @@ class FigureEight(Trajectory):
 
     def _kinematics(self, t: float) -> Kinematics:
         p, v, a, j = self._path(t)
+        # the scalar algebra below on Python floats: the same IEEE operations as on numpy's
+        # float64 scalars (the same bits), at a third of their cost per operation
+        v, a, j = v.tolist(), a.tolist(), j.tolist()
         g = self.gravity
         vh2 = v[0] * v[0] + v[1] * v[1]
         vh = math.sqrt(vh2)
