@@ -317,8 +317,8 @@ def test_physics_same_t_same_values_and_fresh_noise_per_t():
     np.testing.assert_array_equal(again.physics(0.5)["acc"], a["acc"])
 
 
-def _readings(blocks_or_dicts, key):
-    return np.array([r[key] for r in blocks_or_dicts])
+def _stacked(readings, key):
+    return np.array([r[key] for r in readings])
 
 
 @pytest.mark.parametrize("errors", ["analog", "quantised"])
@@ -343,9 +343,9 @@ def test_physics_block_is_the_per_time_physics_draw_for_draw(errors):
         got = block.physics_block(t, period)
         assert len(got) == len(t)
         for key in ("gyr", "acc", "mag"):
-            np.testing.assert_array_equal(getattr(got, key), _readings(want, key))
+            np.testing.assert_array_equal(getattr(got, key), _stacked(want, key))
             np.testing.assert_array_equal(got.saturated[key], [w["saturated"][key] for w in want])
-        np.testing.assert_array_equal(got.temperature_c, _readings(want, "temperature_c"))
+        np.testing.assert_array_equal(got.temperature_c, _stacked(want, "temperature_c"))
         np.testing.assert_array_equal([s.q for s in got.truth], [w["truth"].q for w in want])
         # the magnetometer reads at its own (earlier) time between two bursts
         tm = float(t[-1]) - 0.0043

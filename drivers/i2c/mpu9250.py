@@ -302,8 +302,10 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
         the source's ``physics_block``: the data registers end with the last sample, as
         after :meth:`latch` of each, and with the FIFO on each sample's frame goes in, in
         order, the same bytes as :meth:`_fifo_push` writes, with the same room and overflow
-        rules. Sources without ``physics_block`` are latched sample by sample."""
-        if self._physics_block is None:
+        rules. Sources without ``physics_block``, and runs of one sample (a bus transfer
+        shortly after the last: cheaper per sample than an array call), are latched sample
+        by sample."""
+        if self._physics_block is None or len(t) == 1:
             super().latch_run(t, period)
             return
         block = self._physics_block(t, period)

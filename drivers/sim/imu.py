@@ -159,7 +159,7 @@ class SimulatedImu:
         the same reading)."""
         t = np.array(t, dtype=float).reshape(-1)
         n = len(t)
-        if n == 0 or (n > 1 and not np.all(t[1:] > t[:-1])) \
+        if n == 0 or (n > 1 and not (t[1:] > t[:-1]).all()) \
                 or (self._last is not None and t[0] == self._last_t):
             return self._stacked([self.physics(x, period) for x in t.tolist()], t)
         dts = np.empty(n)

@@ -160,17 +160,20 @@ class SensorErrorModel:
         generator, ``saturated``) where the ``n`` calls would."""
         dts = np.asarray(dts, dtype=float)
         n = len(dts)
-        if not np.all(dts > 0.0):
+        if not (dts > 0.0).all():
             raise ValueError(f"dt must be > 0 s, got {dts[~(dts > 0.0)][0]!r}")
-        x = np.asarray(true_values, dtype=float) @ self._gain.T + self._offset
+        x = np.asarray(true_values, dtype=float) @ self._gain.T
+        x += self._offset
         walk, noisy = self.bias_random_walk > 0.0, self.noise_density > 0.0
         z = self._rng.standard_normal((n, 3 * (walk + noisy))) if walk or noisy else None
         if walk:
-            steps = z[:, :3] * (self.bias_random_walk * np.sqrt(dts))[:, None]
-            drifts = np.cumsum(np.vstack([self.drift[None, :], steps]), axis=0)[1:]
+            # drift_i = drift_{i-1} + step_i, summed in that order (cumsum is sequential)
+            drifts = z[:, :3] * (self.bias_random_walk * np.sqrt(dts))[:, None]
+            drifts[0] += self.drift
+            np.cumsum(drifts, axis=0, out=drifts)
             self.drift = drifts[-1].copy()
         else:
-            drifts = np.broadcast_to(self.drift, (n, 3))
+            drifts = self.drift
         x += (self.bias + self.turn_on_bias) + drifts
         if temperatures_c is not None:
             x += self.temp_coeff * (np.asarray(temperatures_c, dtype=float)[:, None] - self.reference_temp_c)
@@ -180,7 +183,7 @@ class SensorErrorModel:
             else:  # noise_std(dt) of each reading: the Nyquist band of its own interval
                 std = (self.noise_density * np.sqrt(0.5 / dts))[:, None]
             x += z[:, 3 * walk:] * std
-        saturated = np.any(np.abs(x) > self.range, axis=1)
+        saturated = (np.abs(x) > self.range).any(axis=1)
         if saturated.any():
             np.clip(x, -self.range, self.range, out=x)
         self.saturated = bool(saturated[-1]) if n else self.saturated
