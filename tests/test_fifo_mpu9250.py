@@ -170,6 +170,62 @@ def test_a_fast_part_keeps_its_sample_spacing_from_the_host_read():
     assert 1005 <= twin.samples_latched <= 1011
 
 
+class PerSampleSource:
+    """A simulator seen through ``physics`` only (no ``physics_block``): the twin latches it
+    one sample at a time, the reference its burst latching must match."""
+
+    def __init__(self, imu) -> None:
+        self.imu, self.clock = imu, imu.clock
+
+    def physics(self, t: float, period: float | None = None) -> dict:
+        return self.imu.physics(t, period)
+
+
+@pytest.mark.parametrize("keep_oldest", [True, False], ids=["FIFO_MODE 1", "FIFO_MODE 0"])
+def test_the_twin_latches_a_burst_at_once_as_it_latches_it_sample_by_sample(keep_oldest):
+    """The twin fed by ``SimulatedImu.physics_block`` (a FIFO burst's samples in one call) and
+    the twin fed sample by sample: the same registers, FIFO bytes, sample times, overflow
+    counts and rows after every read — drains, stops longer than the FIFO, raw partial reads
+    of FIFO_R_W and reads past its end."""
+    from ahrs_service.drivers.sim.imu import ManualClock, SimulatedImu
+    from ahrs_service.drivers.sim.motion import profile
+    from ahrs_service.drivers.sim.sensor_model import board_models
+
+    def board(per_sample: bool):
+        models = {k: m_.analog() for k, m_ in board_models("MPU9250", seed=2).items()}
+        imu = SimulatedImu(profile("figure8", looping=True), models, clock=ManualClock(), seed=5)
+        b = make_simulated_board("mpu9250", PerSampleSource(imu) if per_sample else imu)
+        b.open()
+        twin = b.bus.device(0x68)
+        if not keep_oldest:
+            twin.regs[m.CONFIG] &= ~m.FIFO_MODE
+        return imu, b, twin
+
+    (imu_a, burst, twin_a), (imu_b, single, twin_b) = board(False), board(True)
+    assert twin_a._physics_block is not None and twin_b._physics_block is None
+    rng = np.random.default_rng(3)
+    for i in range(300):
+        dt = float(rng.choice([0.001, 0.004, 0.010, 0.060]))  # 60 ms: beyond the 42 ms FIFO
+        imu_a.clock.advance(dt)
+        imu_b.clock.advance(dt)
+        if rng.random() < 0.1:
+            n = int(rng.integers(1, 33))
+            assert burst.bus.read_i2c_block_data(0x68, m.FIFO_R_W, n) == \
+                single.bus.read_i2c_block_data(0x68, m.FIFO_R_W, n)
+        a, b = burst.read_block(), single.read_block()
+        assert twin_a.regs == twin_b.regs and twin_a.fifo == twin_b.fifo, i
+        assert [t for t, _ in twin_a.fifo_samples] == [t for t, _ in twin_b.fifo_samples]
+        assert (twin_a.fifo_overflowed, twin_a.fifo_discarded, twin_a.samples_latched) == \
+            (twin_b.fifo_overflowed, twin_b.fifo_discarded, twin_b.samples_latched)
+        for key in ("t_ns", "gyr", "acc", "mag", "flags", "truth_q"):
+            np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
+        assert a.lost == b.lost
+    assert twin_a.fifo_overflowed > 0 and twin_a.samples_latched > 2000
+    # an empty FIFO reads 0xFF for every byte past its end, as byte by byte
+    twin_a.fifo.clear()
+    assert burst.bus.read_i2c_block_data(0x68, m.FIFO_R_W, 4) == [0xFF] * 4
+
+
 def test_fifo_helpers():
     lay = FifoLayout(depth_frames=32, frame_bytes=6, data_register=0xA8, frames_per_transfer=1)
     assert lay.transfers(10) == 10 and lay.transfers(0) == 0

@@ -81,3 +81,15 @@ def test_gy80_validation_manoeuvre_through_registers_and_madgwick():
     assert np.max(total) < 2.0
     assert np.mean(total) < 0.5
     assert np.max(incl) < 1.5
+
+
+def test_counts_array_rounds_and_clips_as_to_counts():
+    """The twins' vectorised digitisation is the per-value one: ties to even, clipped to the
+    register's range, +inf to the top, −inf and NaN to the bottom."""
+    from ahrs_service.drivers.i2c.device import counts_array, to_counts
+
+    values = np.array([0.0, 0.5, 1.5, 2.5, -0.5, -1.5, 0.49999999, 1e9, -1e9, np.inf, -np.inf, np.nan,
+                       32767.4, 32767.6, -32768.5, -32769.0, 123.456])
+    for lsb in (1.0, 0.25, 1 / 333.87):
+        assert counts_array(values, lsb, -32768, 32767).tolist() == \
+            [to_counts(v, lsb, -32768, 32767) for v in values.tolist()]

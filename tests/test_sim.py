@@ -317,6 +317,49 @@ def test_physics_same_t_same_values_and_fresh_noise_per_t():
     np.testing.assert_array_equal(again.physics(0.5)["acc"], a["acc"])
 
 
+def _stacked(readings, key):
+    return np.array([r[key] for r in readings])
+
+
+@pytest.mark.parametrize("errors", ["analog", "quantised"])
+def test_physics_block_is_the_per_time_physics_draw_for_draw(errors):
+    """A FIFO burst's readings in one call are those of one ``physics`` call per time, bit for
+    bit (noise, drift, quantisation, saturation, truth), and leave the simulator where those
+    calls leave it — with another part's reading (an earlier time) in between."""
+    def imu():
+        models = board_models("MPU9250", seed=4)
+        if errors == "analog":
+            models = {k: m.analog() for k, m in models.items()}
+        return SimulatedImu(profile("figure8", looping=True), models, clock=ManualClock(), seed=7,
+                            temperature_c=lambda t: 25.0 + 0.5 * t)
+
+    one, block = imu(), imu()
+    rng = np.random.default_rng(1)
+    t0 = 0.0
+    for _ in range(40):
+        period = 1 / 1007.0
+        t = t0 + period * np.arange(1, int(rng.integers(1, 45)) + 1)
+        want = [one.physics(x, period) for x in t.tolist()]
+        got = block.physics_block(t, period)
+        assert len(got) == len(t)
+        for key in ("gyr", "acc", "mag"):
+            np.testing.assert_array_equal(getattr(got, key), _stacked(want, key))
+            np.testing.assert_array_equal(got.saturated[key], [w["saturated"][key] for w in want])
+        np.testing.assert_array_equal(got.temperature_c, _stacked(want, "temperature_c"))
+        np.testing.assert_array_equal([s.q for s in got.truth], [w["truth"].q for w in want])
+        # the magnetometer reads at its own (earlier) time between two bursts
+        tm = float(t[-1]) - 0.0043
+        np.testing.assert_array_equal(one.physics(tm, 0.01)["mag"], block.physics(tm, 0.01)["mag"])
+        t0 = float(t[-1])
+    for key in ("gyr", "acc", "mag"):
+        np.testing.assert_array_equal(one.models[key].drift, block.models[key].drift)
+    # a burst that starts at the previous call's time gets that reading again, then moves on
+    last = block.physics(t0 + 0.001)
+    again = block.physics_block([t0 + 0.001, t0 + 0.002])
+    np.testing.assert_array_equal(again.gyr[0], last["gyr"])
+    assert not np.array_equal(again.gyr[1], last["gyr"])
+
+
 def test_imu_mounting_rotates_truth_into_sensor_axes():
     m = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # x↔y, z flipped
     imu = SimulatedImu(StaticTrajectory(roll=0.2), mounting=m, clock=ManualClock())

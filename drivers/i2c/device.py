@@ -269,6 +269,15 @@ def to_counts(value: float, lsb: float, lo: int, hi: int) -> int:
     return lo if c < lo else hi if c > hi else c
 
 
+def counts_array(values: np.ndarray, lsb: float, lo: int, hi: int) -> np.ndarray:
+    """:func:`to_counts` element-wise over an array: int64 counts, the same rounding (half to
+    even, as Python's ``round``) and clipping; +inf → ``hi``, −inf and NaN → ``lo``."""
+    c = np.asarray(values, dtype=float) / lsb
+    out = np.clip(np.rint(c), lo, hi)
+    out[np.isnan(c)] = lo
+    return out.astype(np.int64)
+
+
 def i16_bytes(v: int, big_endian: bool) -> tuple[int, int]:
     """Two's-complement 16-bit value as (first byte, second byte) in the given order."""
     v &= 0xFFFF
@@ -300,6 +309,9 @@ class SimulatedRegisterDevice:
 
     def __init__(self, source: Any = None, address: int | None = None) -> None:
         self.address = self.DEFAULT_ADDRESS if address is None else int(address)
+        #: the source's ``physics_block(t, period)`` when it has one (``SimulatedImu``): a
+        #: FIFO burst's readings in one call (see :meth:`latch_run`)
+        self._physics_block: Callable[[np.ndarray, float], Any] | None = None
         if source is None:
             self._physics: Callable[[float, float], dict] | None = None
         else:
@@ -307,6 +319,7 @@ class SimulatedRegisterDevice:
             if not callable(physics):
                 raise TypeError(f"{self.PART}: source needs physics(t) -> dict, got {source!r}")
             self._physics = _with_period(physics)
+            self._physics_block = getattr(source, "physics_block", None)
         self.regs = bytearray(256)
         self.latched: dict | None = None  # physics dict of the sample now in the data registers
         self.latched_t: float | None = None
@@ -398,13 +411,19 @@ class SimulatedRegisterDevice:
         first = self._k + 1 if self.fifo_keeps_oldest() else k - push + 1
         if due > push:
             self.fifo_dropped(due - push)
-        for j in range(first, first + push):
-            t = self._t0 + j / rate
-            phys = self._physics(t, 1.0 / rate) if self._physics is not None else _ZERO_PHYSICS
-            self.latched, self.latched_t = phys, t
-            self.samples_latched += 1
-            self.latch(phys, t, 0)
+        self.latch_run(self._t0 + np.arange(first, first + push) / rate, 1.0 / rate)
         self._k = k
+
+    def latch_run(self, t: np.ndarray, period: float) -> None:
+        """Latches the samples at the ascending times ``t`` (s) one after the other, as a
+        FIFO takes them (:meth:`latch` each). Hook: a twin may latch the run at once from
+        the source's ``physics_block`` (the MPU-9250's does), with the same registers,
+        bytes and FIFO behaviour."""
+        for x in t.tolist():
+            phys = self._physics(x, period) if self._physics is not None else _ZERO_PHYSICS
+            self.latched, self.latched_t = phys, x
+            self.samples_latched += 1
+            self.latch(phys, x, 0)
 
     def fifo_room(self) -> int | None:
         """Frames the FIFO can still take, or None while the FIFO is off (hook: FIFO parts)."""

@@ -54,6 +54,7 @@ from ahrs_service.drivers.i2c.device import (
     FifoStatus,
     I2CDevice,
     SimulatedRegisterDevice,
+    counts_array,
     i16_bytes,
     to_counts,
 )
@@ -296,6 +297,69 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
         self.fifo += frame
         self.fifo_samples.append((self.latched_t, (self.latched or {}).get("truth")))
 
+    def latch_run(self, t: np.ndarray, period: float) -> None:
+        """The samples of a run (due at the times ``t``, s, ascending) latched at once from
+        the source's ``physics_block``: the data registers end with the last sample, as
+        after :meth:`latch` of each, and with the FIFO on each sample's frame goes in, in
+        order, the same bytes as :meth:`_fifo_push` writes, with the same room and overflow
+        rules. Sources without ``physics_block``, and runs of one sample (a bus transfer
+        shortly after the last: cheaper per sample than an array call), are latched sample
+        by sample."""
+        if self._physics_block is None or len(t) == 1:
+            super().latch_run(t, period)
+            return
+        block = self._physics_block(t, period)
+        n = len(t)
+        a_lsb = STANDARD_GRAVITY / ACC_LSB_PER_G[(self.regs[ACCEL_CONFIG] >> 3) & 3]
+        g_lsb = DEG2RAD / GYRO_LSB_PER_DPS[(self.regs[GYRO_CONFIG] >> 3) & 3]
+        # the 14 data registers of each sample, 0x3B…0x48: ACCEL X Y Z, TEMP, GYRO X Y Z
+        counts = np.empty((n, 7), np.int64)
+        counts[:, 0:3] = counts_array(block.acc, a_lsb, -32768, 32767)
+        counts[:, 3] = counts_array(block.temperature_c - TEMP_OFFSET_C, 1 / TEMP_LSB_PER_C, -32768, 32767)
+        counts[:, 4:7] = counts_array(block.gyr, g_lsb, -32768, 32767)
+        data = counts.astype(">i2").view(np.uint8).reshape(n, 14)
+        self.regs[ACCEL_XOUT_H:ACCEL_XOUT_H + 14] = data[-1].tobytes()
+        self.latched, self.latched_t = block.reading(n - 1), float(t[-1])
+        self.samples_latched += n
+        self.regs[INT_STATUS] |= RAW_DATA_RDY
+        if self.fifo_enabled():
+            self._fifo_push_run(data, t, block.truth)
+
+    def _fifo_push_run(self, data: np.ndarray, t: np.ndarray, truths: list[Any]) -> None:
+        """The frames of a run's samples into the FIFO, oldest first, as :meth:`_fifo_push`
+        of each would put them: the data registers (``data``, (n, 14) bytes) in the FIFO_EN
+        order (§4.7); a frame that does not fit is dropped (FIFO_MODE 1) or makes room by
+        dropping the oldest (FIFO_MODE 0), each counted by :meth:`fifo_dropped`."""
+        en = self.regs[FIFO_EN_REG]
+        cols: list[int] = []
+        if en & 0x08:
+            cols += range(0, 6)  # ACCEL_XOUT_H … ACCEL_ZOUT_L
+        if en & 0x80:
+            cols += (6, 7)  # TEMP_OUT
+        for bit, first in ((0x40, 8), (0x20, 10), (0x10, 12)):  # GYRO X, Y, Z
+            if en & bit:
+                cols += (first, first + 1)
+        frame = len(cols)
+        n = len(t)
+        if frame == 0:  # FIFO_EN without a data bit: empty frames, one truth each
+            self.fifo_samples.extend(zip(t.tolist(), truths))
+            return
+        fit = max(0, (FIFO_BYTES - len(self.fifo)) // frame)
+        if n > fit and self.fifo_keeps_oldest():
+            for _ in range(n - fit):
+                self.fifo_dropped(1)
+            n = fit
+        self.fifo += data[:n, cols].tobytes()
+        self.fifo_samples.extend(zip(t[:n].tolist(), truths[:n]))
+        over = len(self.fifo) - FIFO_BYTES
+        if over > 0:  # FIFO_MODE 0: the oldest samples make room, one frame each
+            drop = -(-over // frame)
+            for _ in range(drop):
+                self.fifo_dropped(1)
+            del self.fifo[:drop * frame]
+            for _ in range(min(drop, len(self.fifo_samples))):
+                self.fifo_samples.popleft()
+
     def pop_truth(self, n: int) -> list[tuple[float, Any]]:
         """(time s, truth) of the ``n`` oldest samples the host has read from the FIFO."""
         return [self.fifo_samples.popleft() for _ in range(min(n, len(self.fifo_samples)))]
@@ -316,6 +380,19 @@ class SimulatedMPU9250(SimulatedRegisterDevice):
     def next_pointer(self, reg: int) -> int:
         # a burst at FIFO_R_W keeps popping the FIFO (§4.31)
         return reg if reg == FIFO_R_W else (reg + 1) & 0xFF
+
+    def bus_read(self, sub: int, n: int, now: float) -> list[int]:
+        """A burst at FIFO_R_W pops ``n`` bytes at once (0xFF for each byte beyond the
+        FIFO's end, as :meth:`read_register` returns one by one); others as every twin."""
+        if sub != FIFO_R_W:
+            return super().bus_read(sub, n, now)
+        self.update(now)
+        take = min(n, len(self.fifo))
+        out = list(self.fifo[:take])
+        del self.fifo[:take]
+        out += [0xFF] * (n - take)
+        self.on_read([FIFO_R_W] * n, now)
+        return out
 
     def on_write(self, reg: int, value: int, old: int, now: float) -> None:
         if reg == USER_CTRL and value & USER_FIFO_RST:

@@ -367,16 +367,18 @@ class FigureEight(Trajectory):
         self.altitude, self.climb = float(altitude), float(climb)
         self.duration = math.inf if laps is None else _positive_duration(laps * self.period)
 
-    def _path(self, t: float) -> tuple[np.ndarray, ...]:
-        """Position and its first three derivatives (NED) at time t."""
+    def _path(self, t: float) -> tuple[tuple[float, float, float], ...]:
+        """Position and its first three derivatives (NED) at time t, as Python floats: the
+        scalar algebra of :meth:`_kinematics` costs a third of what it does on numpy's
+        float64 scalars (the same IEEE operations, the same bits)."""
         w = 2.0 * math.pi / self.period
         L, W, C = self.length, self.width, self.climb
         s1, c1 = math.sin(w * t), math.cos(w * t)
         s2, c2 = math.sin(2 * w * t), math.cos(2 * w * t)
-        p = np.array([L * s1, W * s2, -self.altitude - C * s1])
-        v = np.array([L * w * c1, 2 * W * w * c2, -C * w * c1])
-        a = np.array([-L * w * w * s1, -4 * W * w * w * s2, C * w * w * s1])
-        j = np.array([-L * w**3 * c1, -8 * W * w**3 * c2, C * w**3 * c1])
+        p = (L * s1, W * s2, -self.altitude - C * s1)
+        v = (L * w * c1, 2 * W * w * c2, -C * w * c1)
+        a = (-L * w * w * s1, -4 * W * w * w * s2, C * w * w * s1)
+        j = (-L * w**3 * c1, -8 * W * w**3 * c2, C * w**3 * c1)
         return p, v, a, j
 
     def _kinematics(self, t: float) -> Kinematics:

@@ -144,6 +144,53 @@ class SensorErrorModel:
             x = np.round(x / self.quantisation) * self.quantisation
         return x
 
+    def apply_block(self, true_values: np.ndarray, dts: np.ndarray,
+                    temperatures_c: np.ndarray | None = None,
+                    noise_dt: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`apply` over ``n`` readings in order, vectorised: (readings (n, 3),
+        saturated (n,) bool). ``true_values`` (n, 3), ``dts`` (n,) s since each reading's
+        previous one, ``temperatures_c`` (n,) or None, ``noise_dt`` as in :meth:`apply`.
+
+        The same model, draw for draw: the random generator gives the drift step and the
+        noise of reading 1, then of reading 2, … as ``n`` calls of :meth:`apply` draw them
+        (a ziggurat normal is one draw per value whatever the batch size), and the drift is
+        the running sum in the same order, so the noise and drift are bit for bit those of
+        the per-reading calls; only the linear part (``distortion · true``, one matrix
+        product for the block) may differ from them in the last bit. Leaves the state (drift,
+        generator, ``saturated``) where the ``n`` calls would."""
+        dts = np.asarray(dts, dtype=float)
+        n = len(dts)
+        if not (dts > 0.0).all():
+            raise ValueError(f"dt must be > 0 s, got {dts[~(dts > 0.0)][0]!r}")
+        x = np.asarray(true_values, dtype=float) @ self._gain.T
+        x += self._offset
+        walk, noisy = self.bias_random_walk > 0.0, self.noise_density > 0.0
+        z = self._rng.standard_normal((n, 3 * (walk + noisy))) if walk or noisy else None
+        if walk:
+            # drift_i = drift_{i-1} + step_i, summed in that order (cumsum is sequential)
+            drifts = z[:, :3] * (self.bias_random_walk * np.sqrt(dts))[:, None]
+            drifts[0] += self.drift
+            np.cumsum(drifts, axis=0, out=drifts)
+            self.drift = drifts[-1].copy()
+        else:
+            drifts = self.drift
+        x += (self.bias + self.turn_on_bias) + drifts
+        if temperatures_c is not None:
+            x += self.temp_coeff * (np.asarray(temperatures_c, dtype=float)[:, None] - self.reference_temp_c)
+        if noisy:
+            if noise_dt is not None or self.bandwidth_hz is not None:
+                std = self.noise_std(dts[0] if noise_dt is None else noise_dt)  # one band
+            else:  # noise_std(dt) of each reading: the Nyquist band of its own interval
+                std = (self.noise_density * np.sqrt(0.5 / dts))[:, None]
+            x += z[:, 3 * walk:] * std
+        saturated = (np.abs(x) > self.range).any(axis=1)
+        if saturated.any():
+            np.clip(x, -self.range, self.range, out=x)
+        self.saturated = bool(saturated[-1]) if n else self.saturated
+        if self.quantisation > 0.0:
+            x = np.round(x / self.quantisation) * self.quantisation
+        return x, saturated
+
     def analog(self) -> "SensorErrorModel":
         """A fresh copy without range and quantisation: for simulated register devices that
         digitise (clip and round to their configured full scale) themselves."""
