@@ -203,6 +203,20 @@ class ICM42688P(TransportDevice):
         # FIFO_DATA is a byte stream: transfers may split packets (full 32-byte SMBus blocks)
         return decode_hires(self.read_fifo(FIFO_DATA, n * PACKET))
 
+    def read_status_and_packets(self, count_bytes: int) -> tuple[int, int, dict[str, np.ndarray]]:
+        """(INT_STATUS, FIFO count in bytes, the whole packets among ``count_bytes`` decoded),
+        read from INT_STATUS on: the address increments through FIFO_COUNTH/L to FIFO_DATA,
+        which does not increment, so status, count and data come in one transfer (PX4's
+        ``FIFOTransferBuffer``; on I2C the first 32-byte block). The status is the one of the
+        moment the data start: a FIFO_FULL raised since the level read (a host held between
+        the two at a nearly full FIFO) shows with the packets it follows."""
+        n = min(count_bytes, FIFO_BYTES) // PACKET * PACKET
+        head = self.read_regs(INT_STATUS, min(STATUS_BYTES + n, self.transport.max_read))
+        data = head[STATUS_BYTES:]
+        if len(data) < n:
+            data += self.read_fifo(FIFO_DATA, n - len(data))
+        return head[0], (head[1] << 8) | head[2], decode_hires(data)
+
     @staticmethod
     def temperature_c(raw: np.ndarray) -> np.ndarray:
         return raw / TEMP_LSB_PER_C + TEMP_OFFSET_C

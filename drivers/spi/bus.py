@@ -170,6 +170,7 @@ class SimulatedSPIBus(SimulatedBusBase, SPIBus):
             raise err
         if slot is None or not slot.present or not data:
             return b"\xff" * len(data)
+        self.catch_up(slot.device)  # the simulation's cost before the transfer, not inside it
         return spi_answer(slot.device, data, self.clock.now())
 
 
