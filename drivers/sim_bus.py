@@ -75,7 +75,11 @@ class SimulatedBusBase:
         the transfer, that cost fell between the FIFO level the transfer latched and the
         data read that follows it — where a real part leaves microseconds — and the FIFO
         overflowed in between (issue 15). Done first, it falls before the transfer, as a
-        host delayed before its read would: the level then counts every sample made."""
+        host delayed before its read would: the level then counts every sample made.
+        Buses call it at each transfer and when the host reads their clock (it times a
+        transfer next): the transfer's own time is then its own, as on a real bus, and the
+        sensor clock's bounds stay tight (a transfer that took the simulation's 30 ms
+        allowed its latch anywhere in them)."""
         for _ in range(self.CATCH_UP_PASSES):
             before = device.samples_due
             device.update(self.clock.now())

@@ -161,6 +161,13 @@ class SimulatedSPIBus(SimulatedBusBase, SPIBus):
     # faults: inject_errors(cs, …) and set_present(cs, …) (SimulatedBusBase; a vanished
     # device leaves MISO floating: reads 0xFF)
 
+    def now_ns(self) -> int:
+        # the host times a transfer next: its parts make their due samples first (catch_up)
+        for slot in self._slots.values():
+            if slot.present:
+                self.catch_up(slot.device)
+        return super().now_ns()
+
     def transfer(self, cs: int, data: bytes) -> bytes:
         self.transfers += 1
         self.bytes_moved += len(data)
