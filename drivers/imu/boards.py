@@ -249,8 +249,9 @@ class ICM42688PBoard(FifoBoard):
         self.part = icm42688p.ICM42688P(transport, odr_hz=odr_hz, watermark=watermark, **self._kw())
         self.odr_hz = float(odr_hz)
         self.wakeup_rate_hz = self.odr_hz / watermark
+        # per burst besides the packets: the level read, and the status again ahead of the data
         check_bus_rate(transport, "source.board_options.odr_hz", self.odr_hz, icm42688p.PACKET,
-                       min(self.odr_hz, self.odr_hz / watermark), icm42688p.STATUS_BYTES, "ICM-42688-P")
+                       min(self.odr_hz, self.odr_hz / watermark), 2 * icm42688p.STATUS_BYTES, "ICM-42688-P")
 
     def _configure(self) -> None:
         self.part.configure()
