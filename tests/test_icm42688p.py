@@ -363,3 +363,16 @@ def test_the_twins_level_counts_the_samples_made_while_the_simulation_made_them(
     _, count = b.part.read_status()
     due_now = math.floor((imu.clock.now() - twin._t0) * twin.rate_hz())
     assert due_now - count // 20 <= 1
+
+
+def test_data_registers_show_the_newest_sample_at_the_configured_range():
+    # TEMP_DATA1 … GYRO_DATA_Z0 (0x1D…0x2A), big-endian 16 bit: ±16 g → 2048 LSB/g,
+    # ±2000 °/s → 16.4 LSB/(°/s), T = raw / 132.48 + 25 °C (filled when read)
+    b, imu, twin = board(odr_hz=1000)
+    b.open()
+    imu.clock.advance(0.0035)
+    raw = bytes(b.part.read_regs(0x1D, 14))
+    v = [int.from_bytes(raw[i:i + 2], "big", signed=True) for i in range(0, 14, 2)]
+    assert v[0] == round((31.0 - 25.0) * 132.48)
+    assert v[1:4] == [round(a / G0 * 2048) for a in imu.acc]
+    assert v[4:7] == [round(w / D2R * 16.4) for w in imu.gyr]
