@@ -129,7 +129,9 @@ class SpidevSPI(SPIBus):
 class SimulatedSPIBus(SimulatedBusBase, SPIBus):
     """Simulated register devices on chip selects, on ``clock`` (``now()`` in s, ``to_ns``).
 
-    ``transfers`` counts transfers, ``bytes_moved`` the bytes clocked.
+    ``transfers`` counts transfers, ``bytes_moved`` the bytes clocked. The devices make the
+    samples due before each transfer and when the host reads the bus clock
+    (:meth:`~ahrs_service.drivers.sim_bus.SimulatedBusBase.catch_up`), not inside a transfer.
     """
 
     simulated = True
