@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     from ahrs_service.drivers.boards import make_transport_board
     from ahrs_service.drivers.gpio.drdy import SimulatedDataReadyLine
     from ahrs_service.drivers.imu.boards import _twin
-    from ahrs_service.drivers.imu.icm42688p import FIFO_DATA, INT_STATUS
+    from ahrs_service.drivers.imu.icm42688p import FIFO_DATA, INT_STATUS, STATUS_BYTES
     from ahrs_service.drivers.sim.imu import MonotonicClock
 
     clock = MonotonicClock()
@@ -160,9 +160,11 @@ def main(argv: list[str] | None = None) -> int:
         transfer = bus.transfer
 
         def timed_transfer(cs, data):  # what a real spidev ioctl would replace: measured apart
-            if data[0] == 0x80 | INT_STATUS:  # the driver reads the FIFO's level: a drain starts
+            level_read = data[0] == 0x80 | INT_STATUS and len(data) == 1 + STATUS_BYTES
+            if level_read:  # the driver reads the FIFO's level: a drain starts
                 status_read[0] = time.monotonic()
-            elif data[0] == 0x80 | FIFO_DATA and status_read[0]:  # its first data transfer pops the FIFO
+            elif data[0] in (0x80 | INT_STATUS, 0x80 | FIFO_DATA) and status_read[0]:
+                # its first data transfer (from INT_STATUS on, as PX4's) pops the FIFO
                 drains.append((status_read[0], time.monotonic()))
                 status_read[0] = 0.0
             c = time.thread_time_ns()
@@ -171,7 +173,16 @@ def main(argv: list[str] | None = None) -> int:
             finally:
                 simulated_ns[0] += time.thread_time_ns() - c
 
-        bus.transfer = timed_transfer
+        now_ns = bus.now_ns
+
+        def timed_now_ns():  # the simulated bus has its part make the due samples here too
+            c = time.thread_time_ns()
+            try:
+                return now_ns()
+            finally:
+                simulated_ns[0] += time.thread_time_ns() - c
+
+        bus.transfer, bus.now_ns = timed_transfer, timed_now_ns
         if args.drdy:
             board.data_ready_line = SimulatedDataReadyLine(_twin(board.transport), clock)
         boards.append(board)
@@ -199,8 +210,9 @@ def main(argv: list[str] | None = None) -> int:
         # what each overflow followed. A drain pops the samples its level read counted, so the
         # FIFO fills from the previous drain's *level read* to this drain's *data read*: the
         # window that must stay under the FIFO's depth. (The simulated part computes its
-        # samples during the level read, in Python, a few ms of real time at 8 kHz during
-        # which the part's clock runs on; a real part's level read takes microseconds.) The
+        # samples in Python, a few ms of real time at 8 kHz, before the level read — when the
+        # host reads the bus clock — not inside it as until issue 15's fix; a real part's
+        # samples cost nothing and its level read takes microseconds.) The
         # driver leaves the FIFO undrained while it holds 4 FIFO depths of rows the loop has
         # not taken yet (a loop slower than the part): that shows as a long window too.
         board = boards[0]

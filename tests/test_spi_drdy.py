@@ -96,9 +96,10 @@ def test_icm42688p_runs_through_the_spidev_backend(fake_spidev, monkeypatch):
     blk = b.read_block()
     assert len(blk) == 16 and np.abs(blk.gyr - imu.gyr).max() < 1e-4
     dev = fake_spidev.instances[0]
-    # the burst: status + count (3 bytes from 0x2D), then the FIFO (0x30) in one transfer
+    # the burst: status + count (3 bytes from 0x2D), then status, count and the FIFO (0x30)
+    # again from 0x2D in one transfer, as PX4's FIFOTransferBuffer
     assert dev.transfers[-2][:1] == [0xAD] and len(dev.transfers[-2]) == 4
-    assert dev.transfers[-1][0] == 0xB0 and len(dev.transfers[-1]) == 1 + 16 * 20  # one transfer
+    assert dev.transfers[-1][0] == 0xAD and len(dev.transfers[-1]) == 1 + 3 + 16 * 20  # one transfer
     b.close()
     assert dev.closed
 

@@ -249,8 +249,9 @@ class ICM42688PBoard(FifoBoard):
         self.part = icm42688p.ICM42688P(transport, odr_hz=odr_hz, watermark=watermark, **self._kw())
         self.odr_hz = float(odr_hz)
         self.wakeup_rate_hz = self.odr_hz / watermark
+        # per burst besides the packets: the level read, and the status again ahead of the data
         check_bus_rate(transport, "source.board_options.odr_hz", self.odr_hz, icm42688p.PACKET,
-                       min(self.odr_hz, self.odr_hz / watermark), icm42688p.STATUS_BYTES, "ICM-42688-P")
+                       min(self.odr_hz, self.odr_hz / watermark), 2 * icm42688p.STATUS_BYTES, "ICM-42688-P")
 
     def _configure(self) -> None:
         self.part.configure()
@@ -269,11 +270,23 @@ class ICM42688PBoard(FifoBoard):
             raise OSError(5, f"FIFO count {count} > {icm42688p.FIFO_BYTES}: bad transfer or part gone")
         # FIFO_FULL clears on reading INT_STATUS: remember it until the FIFO is drained
         self._overflow_pending |= bool(status & icm42688p.FIFO_FULL_INT)
+        # the level read found the FIFO filled: its newest sample is older than the read
+        full = self._overflow_pending
         packets = min(count // icm42688p.PACKET, max_samples)
         if packets == 0:
             return self._empty()
-        pk = part.read_packets(packets * icm42688p.PACKET)
-        drained = packets * icm42688p.PACKET > count - icm42688p.PACKET
+        # the packets come after INT_STATUS and the count again, in the same transfer (PX4):
+        # a FIFO that filled after the level read is known with the packets it follows —
+        # the oldest, contiguous with the last burst (stop-on-full) — not a drain later,
+        # mixed with what came after the turned-away samples
+        status, count_now, pk = part.read_status_and_packets(packets * icm42688p.PACKET)
+        if count_now > icm42688p.FIFO_BYTES:
+            raise OSError(5, f"FIFO count {count_now} > {icm42688p.FIFO_BYTES}: bad transfer or part gone")
+        filled_since = bool(status & icm42688p.FIFO_FULL_INT)
+        self._overflow_pending |= filled_since
+        # reset after these packets: they emptied the FIFO, or it filled since the level
+        # read (the rest of it is flushed and counted with the turned-away samples)
+        drained = packets * icm42688p.PACKET > count_now - icm42688p.PACKET or filled_since
         overflow = self._overflow_pending
         if overflow and self._stale_start(part):
             return SampleBlock.empty()
@@ -282,7 +295,7 @@ class ICM42688PBoard(FifoBoard):
             (pk["acc20"] != icm42688p.INVALID_20BIT).all(axis=1) & \
             (pk["gyr20"] != icm42688p.INVALID_20BIT).all(axis=1)
         # a full FIFO's newest sample is older than the read: timed from the clock's fit
-        t = self.timeline.stamp(host, len(header), full=overflow, read_end_ns=host_done,
+        t = self.timeline.stamp(host, len(header), full=full, read_end_ns=host_done,
                                 level=count // icm42688p.PACKET)[ok]
         lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and drained:

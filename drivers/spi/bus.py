@@ -129,7 +129,9 @@ class SpidevSPI(SPIBus):
 class SimulatedSPIBus(SimulatedBusBase, SPIBus):
     """Simulated register devices on chip selects, on ``clock`` (``now()`` in s, ``to_ns``).
 
-    ``transfers`` counts transfers, ``bytes_moved`` the bytes clocked.
+    ``transfers`` counts transfers, ``bytes_moved`` the bytes clocked. The devices make the
+    samples due before each transfer and when the host reads the bus clock
+    (:meth:`~ahrs_service.drivers.sim_bus.SimulatedBusBase.catch_up`), not inside a transfer.
     """
 
     simulated = True
@@ -161,6 +163,13 @@ class SimulatedSPIBus(SimulatedBusBase, SPIBus):
     # faults: inject_errors(cs, …) and set_present(cs, …) (SimulatedBusBase; a vanished
     # device leaves MISO floating: reads 0xFF)
 
+    def now_ns(self) -> int:
+        # the host times a transfer next: its parts make their due samples first (catch_up)
+        for slot in self._slots.values():
+            if slot.present:
+                self.catch_up(slot.device)
+        return super().now_ns()
+
     def transfer(self, cs: int, data: bytes) -> bytes:
         self.transfers += 1
         self.bytes_moved += len(data)
@@ -170,6 +179,7 @@ class SimulatedSPIBus(SimulatedBusBase, SPIBus):
             raise err
         if slot is None or not slot.present or not data:
             return b"\xff" * len(data)
+        self.catch_up(slot.device)  # the simulation's cost before the transfer, not inside it
         return spi_answer(slot.device, data, self.clock.now())
 
 
