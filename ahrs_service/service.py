@@ -622,19 +622,27 @@ class Service:
         if lost != self._last_lost:
             self._last_lost = lost
             self.report(f"sensor lost: {diag.get('last_error', '')}" if lost else "sensor back", 3 if lost else 6)
-        if self.live is not None or self.log_writer is not None:
-            loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced)
-            if self.log_writer is not None:
-                loop["log"] = self.log_writer.stats()  # docs/logs.md: /loop `log`, what was not logged
-            if self._autopilot_link is not None:  # the link, TIMESYNC's offset and drift (docs/autopilot.md)
-                loop["autopilot"] = self._autopilot_link.status()
-            if self.live is not None:
-                self.live.publish("/loop", now, loop)
+        self._record_loop(now, st, diag)
+        if self.log_writer is not None:
+            self._report_log_status(self.log_writer)
+
+    def _record_loop(self, now: int, st: LoopStats, diag: dict[str, Any]) -> None:
+        """The loop's, the source's and the estimator's counters on ``/loop`` (log and live
+        view) and the links' on ``/mavlink``: once a second, and once more at :meth:`close`
+        so that the log's last counters cover its last samples."""
+        if self.live is None and self.log_writer is None:
+            return
+        loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced)
+        if self.log_writer is not None:
+            loop["log"] = self.log_writer.stats()  # docs/logs.md: /loop `log`, what was not logged
+        if self._autopilot_link is not None:  # the link, TIMESYNC's offset and drift (docs/autopilot.md)
+            loop["autopilot"] = self._autopilot_link.status()
+        if self.live is not None:
+            self.live.publish("/loop", now, loop)
         if self.log_writer is not None:
             self.log_writer.write_loop(now, loop)
             if self.mavlink is not None:
                 self.log_writer.write_mavlink(now, self.mavlink.stats())
-            self._report_log_status(self.log_writer)
 
     def _report_log_status(self, writer: Any) -> None:
         """STATUSTEXT + journal + /log when logging stops (the path and the system's error
@@ -861,6 +869,13 @@ class Service:
             self._settle_live_fit(LIVE_FIT_CLOSE_WAIT_S)
         except Exception as exc:  # applying it must not keep the parts below open
             log.warning("live calibration at shutdown: %s", exc)
+        if self.log_writer is not None and self.source is not None:
+            try:  # the last second's losses and counters, after the last housekeeping's record
+                if self.source.skipped_ticks_lose_samples:
+                    self._count_skipped_ticks()
+                self._record_loop(time.monotonic_ns(), self.scheduler.stats(), self.source.diagnostics.as_dict())
+            except Exception as exc:  # the log is closed below all the same
+                log.warning("final /loop record: %s", exc)
         for part in (self.live, self.mavlink, self.log_writer, self.source):
             if part is None:
                 continue

@@ -73,6 +73,34 @@ def test_log_info_prints_the_loss_by_cause_of_a_real_run(tmp_path, capsys):
     assert info["lost_samples"] == got.last.as_dict() and info["not_logged_samples"] == 0
 
 
+def test_the_logs_last_counters_cover_a_loss_just_before_the_stop(tmp_path):
+    # /loop is written once a second; a loss in the last second before the stop (a loaded host
+    # skipping ticks on its way out) must still reach the log: the service writes one more
+    # /loop when it closes, so the log's last counters are the run's final ones
+    conn, port = make_gcs()
+    run = RunningService(service_config(tmp_path, port, source={"board": "mpu9250", "profile": "static"}))
+    svc = run.service
+    lost = svc.source.diagnostics.lost
+    try:
+        assert _wait(lambda: svc.pipeline.samples > 200)
+        tick = svc.mavlink.tick
+        stalled = []
+
+        def stall_once(now_ns):
+            if not stalled:
+                stalled.append(now_ns)
+                time.sleep(0.3)  # longer than the MPU-9250's FIFO holds at 200 Hz with its drain
+            tick(now_ns)
+
+        svc.mavlink.tick = stall_once
+        assert _wait(lambda: lost.fifo_overflow > 0)
+    finally:
+        run.stop()  # at once: no housekeeping second after the loss
+        conn.close()
+    got = log_losses(svc.log_writer.files[0])
+    assert got.last == lost.copy() and got.last.fifo_overflow > 0
+
+
 def test_log_info_of_a_log_without_loss_counters_says_so(tmp_path, capsys):
     from ahrs_service.logs.writer import FlightLogWriter
     import numpy as np
