@@ -215,6 +215,16 @@ class _SendErrorTap:
         setattr(self._inner, name, value)
 
 
+def check_can_open(urls: Sequence[str], system_id: int, component_id: int) -> None:
+    """Opens each of ``urls`` and closes it again: raises the OSError of :class:`Endpoint`
+    (``cannot open MAVLink endpoint 'URL': why``) for the first that cannot be opened (an
+    address this computer does not have, a port another process holds, a device that is no
+    serial port, a refused TCP connection). A reload checks the endpoints it adds before it
+    closes the running ones, so that one it cannot open leaves the running links as they are."""
+    for url in urls:
+        Endpoint(url, system_id, component_id).close()
+
+
 class Endpoint:
     """A pymavlink connection with a MAVLink 2 common parser/packer and error counters."""
 
