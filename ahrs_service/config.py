@@ -533,9 +533,12 @@ def _unreadable(exc: OSError) -> str:
 
 def read_toml(path: Path) -> dict[str, Any]:
     """The parsed TOML document at ``path``; every way of not being readable is a one-line
-    :class:`ConfigError` (missing, a directory, no permission, not UTF-8, not TOML)."""
+    :class:`ConfigError` (missing, a directory, a FIFO or device, no permission, not UTF-8,
+    not TOML): a FIFO would block a reload, and with it the service's loop."""
+    from ahrs_service.paths import regular_file
+
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = regular_file(path).read_bytes().decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ConfigError(f"configuration file {path}: not UTF-8 text (byte {exc.start}: "
                           f"{exc.object[exc.start:exc.start + 1]!r}); TOML files are UTF-8") from None
@@ -667,8 +670,10 @@ def _check_recorded_path(path: str) -> None:
         raise ConfigError(f"{key}: required when source.type = 'recorded'; {_RECORDED_HELP}")
     p = Path(path)
     hdf5 = p.suffix.lower() in (".hdf5", ".h5")
+    from ahrs_service.paths import regular_file
+
     try:
-        with p.open("rb") as f:
+        with regular_file(p).open("rb") as f:
             head = f.read(8)
     except OSError as exc:
         raise ConfigError(f"{key}: {path!r} {_unreadable(exc)}; {_RECORDED_HELP}") from None

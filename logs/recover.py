@@ -39,6 +39,8 @@ from mcap.records import (
 )
 from mcap.writer import CompressionType, Writer
 
+from ahrs_service.paths import regular_file
+
 MAGIC = bytes([137, 77, 67, 65, 80, 48, 13, 10])
 
 _RECORDS = {
@@ -271,8 +273,9 @@ def recover(path: str | os.PathLike, out_path: str | os.PathLike | None = None) 
     """
     src = Path(path)
     out = Path(out_path) if out_path is not None else default_output(src)
-    if out.resolve() == src.resolve():
-        raise ValueError("recover() must not overwrite its input")
+    regular_file(src)  # OSError naming it: missing, a directory, a FIFO (open() would block)
+    if os.path.realpath(out) == os.path.realpath(src):  # realpath: a symbolic-link loop does not raise
+        raise ValueError(f"{out}: is the input; recover writes a new file beside it (give another OUTPUT)")
     with open(src, "rb") as f:
         if f.read(len(MAGIC)) != MAGIC:  # nothing to recover: write no empty "recovered" file
             raise ValueError(f"{src}: not an MCAP file (bad magic): nothing to recover")

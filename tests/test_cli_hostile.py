@@ -168,3 +168,51 @@ def test_param_value_refused_in_the_file_is_refused_on_the_command_line_by_the_s
     assert rc == 2 and err.endswith(in_file), (err, in_file)
     # a value inside the range is replayed
     assert main(["replay", str(log_path), "--param", "beta=0.3"]) == 0
+
+
+
+def _special(tmp_path, kind):
+    """A FIFO without a writer, or a symbolic link in a loop, at tmp_path/bad."""
+    import os
+
+    bad = tmp_path / "bad"
+    if kind == "fifo":
+        os.mkfifo(bad)
+    else:
+        os.symlink(tmp_path / "other", bad)
+        os.symlink(bad, tmp_path / "other")
+    return bad
+
+
+SPECIAL_TEXT = {"fifo": "not a regular file (a FIFO)", "loop": "Too many levels of symbolic links"}
+
+
+@pytest.mark.timeout(60)  # before the fix a FIFO blocked open() for good
+@pytest.mark.parametrize("kind", ["fifo", "loop"])
+@pytest.mark.parametrize("argv", [
+    ["log", "info", "{bad}"],
+    ["log", "recover", "{bad}", "{tmp}/out.mcap"],
+    ["replay", "{bad}", "--estimator", "madgwick"],
+    ["config", "--check", "{bad}"],
+    ["run", "-c", "{bad}", "--no-log", "--duration", "0.1"],
+])
+def test_an_input_path_that_is_a_fifo_or_a_symlink_loop_is_one_line(tmp_path, capsys, kind, argv):
+    """Issue 14 re-probe (h14): ``log info``, ``log recover``, ``replay``, ``config --check``
+    and ``run -c`` of a FIFO hung for good in open() (and a reload of one would hang the
+    loop); ``log recover`` of a symbolic-link loop ended in a RuntimeError traceback."""
+    bad = _special(tmp_path, kind)
+    rc, err = _run(capsys, [a.format(tmp=tmp_path, bad=bad) for a in argv])
+    assert rc == 2 and "\n" not in err and "Traceback" not in err, err
+    assert str(bad) in err and SPECIAL_TEXT[kind] in err, err
+    assert not (tmp_path / "out.mcap").exists()
+
+
+@pytest.mark.parametrize("argv", [["log", "recover", "{log}", "{bad}"], ["replay", "{log}", "--out", "{bad}"]])
+def test_an_output_path_that_is_a_symlink_loop_is_one_line(tmp_path, capsys, log_path, argv):
+    """``log recover LOG LOOP`` and ``replay LOG --out LOOP``: a RuntimeError traceback from
+    Path.resolve() (the check that the output is not the input). (An output FIFO blocks
+    until a reader comes, as for any Unix tool.)"""
+    bad = _special(tmp_path, "loop")
+    rc, err = _run(capsys, [a.format(log=log_path, bad=bad) for a in argv])
+    assert rc == 2 and "\n" not in err and "Traceback" not in err, err
+    assert str(bad) in err and SPECIAL_TEXT["loop"] in err, err
