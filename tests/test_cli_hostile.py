@@ -216,3 +216,49 @@ def test_an_output_path_that_is_a_symlink_loop_is_one_line(tmp_path, capsys, log
     rc, err = _run(capsys, [a.format(log=log_path, bad=bad) for a in argv])
     assert rc == 2 and "\n" not in err and "Traceback" not in err, err
     assert str(bad) in err and SPECIAL_TEXT["loop"] in err, err
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("sig, rc, name", [("SIGINT", 130, "SIGINT"), ("SIGTERM", 143, "SIGTERM")])
+def test_ctrl_c_or_sigterm_during_a_long_command_is_one_line(tmp_path, sig, rc, name):
+    """Issue 14 re-probe (h14): Ctrl-C during ``compile``, ``replay``, ``log recover``,
+    ``log plot``, ``evaluate`` ended in a KeyboardInterrupt traceback of 17–215 lines (SIGTERM
+    killed them silently, a half-written ``recover`` output left). ``compile`` into an empty
+    numba cache runs for tens of seconds: the signal comes while it works."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    proc = subprocess.Popen([sys.executable, "-m", "ahrs_service.cli", "compile", "ekf"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    time.sleep(3.0)
+    assert proc.poll() is None, "compile ended before the signal: the test proves nothing"
+    proc.send_signal(getattr(signal, sig))
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == rc, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1] == (
+        f"ahrs-service: interrupted ({name}) before the command finished"), err
+
+
+def test_an_interrupted_recover_leaves_no_half_written_output(tmp_path, capsys, log_path, monkeypatch):
+    """Ctrl-C (or SIGTERM) in the middle of ``log recover`` left the output cut short: the
+    file is removed and the command says it was interrupted."""
+    from mcap.writer import Writer
+
+    calls = {"n": 0}
+    add = Writer.add_message
+
+    def interrupted(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 20:
+            raise KeyboardInterrupt
+        return add(self, *args, **kwargs)
+
+    monkeypatch.setattr(Writer, "add_message", interrupted)
+    out = tmp_path / "out.mcap"
+    rc, err = _run(capsys, ["log", "recover", str(log_path), str(out)])
+    assert rc == 130 and err == "ahrs-service: interrupted (SIGINT) before the command finished", err
+    assert calls["n"] == 20 and not out.exists()
