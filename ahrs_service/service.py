@@ -662,7 +662,9 @@ class Service:
         samples, messages = sum(g.samples for g in gone), sum(g.messages for g in gone)
         seconds, outages = sum(g.seconds for g in gone), sum(x.outages for x in writers)
         kept = [p for x in writers for p in x.files if p.exists()]  # a file deleted while written is not kept
-        files = f"log: {len(kept)} file{'s' if len(kept) != 1 else ''} in {w.directory}"
+        # the folders the files are in (a reload may have moved the log), else the configured one
+        folders = list(dict.fromkeys(str(p.parent) for p in kept)) or [str(w.directory)]
+        files = f"log: {len(kept)} file{'s' if len(kept) != 1 else ''} in {' and '.join(folders)}"
         if not messages:
             return f"{files}, everything logged"
         last_error = next((x.last_error for x in reversed(writers) if x.last_error), "none")

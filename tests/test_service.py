@@ -460,6 +460,33 @@ def test_a_reload_to_an_endpoint_that_cannot_be_opened_is_refused_and_the_links_
         held.close()
 
 
+def test_the_summary_names_the_folder_the_files_are_in_after_a_reload_moved_the_log(tmp_path, gcs):
+    """Issue 14 re-probe (h14): a reload moved [log] to a folder that could not be written (a
+    full disk); the summary said "log: 4 files in <the new folder>", which held none."""
+    conn, port = gcs
+    (tmp_path / "blocker").write_text("a file where the new log folder's parent should be\n")
+    cfg_file = tmp_path / "ahrs.toml"
+
+    def write(folder) -> None:
+        cfg_file.write_text(f'[source]\ntype = "simulated_i2c"\nsensor_errors = false\n\n[estimator]\n'
+                            f'name = "madgwick"\n\n[log]\ndirectory = "{folder}"\n\n'
+                            f'[mavlink]\nendpoints = ["udpout:127.0.0.1:{port}"]\n')
+
+    write(tmp_path / "logs")
+    run = RunningService(config_mod.load(cfg_file), duration_s=120.0)
+    try:
+        collect(conn, 30.0, until=lambda m: m.get_type() == "ATTITUDE")
+        write(tmp_path / "blocker" / "logs")
+        run.service.request_reload()
+        got = collect(conn, 30.0, until=lambda m: m.get_type() == "STATUSTEXT" and "reload" in m.text)
+        assert got and got[-1].text == "configuration reloaded"
+    finally:
+        run.stop()
+    summary = run.service.log_summary()
+    assert summary.startswith(f"log: 1 file in {tmp_path / 'logs'}"), summary
+    assert "blocker" not in summary.partition(", not logged")[0], summary
+
+
 # ------------------------------------------------------------------ live calibration: the fit off the loop
 FITTED_HARD_IRON = np.array([1.0, 2.0, 3.0])  # µT, what the replaced fit "finds"
 MAG_CAL = (mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 1, 0, 0, 0, 0, 0)  # param2 = 1: magnetometer
