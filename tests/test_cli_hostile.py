@@ -262,3 +262,16 @@ def test_an_interrupted_recover_leaves_no_half_written_output(tmp_path, capsys, 
     rc, err = _run(capsys, ["log", "recover", str(log_path), str(out)])
     assert rc == 130 and err == "ahrs-service: interrupted (SIGINT) before the command finished", err
     assert calls["n"] == 20 and not out.exists()
+
+
+@pytest.mark.timeout(120)  # before the fix the FIFO blocked read_text() for good
+def test_evaluate_preset_that_is_a_fifo_is_one_line(tmp_path, capsys, broad_dir):
+    """Issue 14 re-probe (h14): ``evaluate --preset FIFO`` hung (the file read to find its
+    estimator); now refused like any file that is no preset."""
+    fifo = _special(tmp_path, "fifo")
+    trial = sorted(broad_dir.glob("*.hdf5"))[0].stem
+    rc, err = _run(capsys, ["evaluate", "--data", str(broad_dir), "--estimators", "madgwick", "--preset",
+                            str(fifo), "--trials", trial, "--quiet", "--workers", "1", "--out", str(tmp_path / "ev")])
+    assert rc == 2 and "\n" not in err and "Traceback" not in err, err
+    assert f"--preset {str(fifo)!r}: not a preset file" in err, err
+    assert not (tmp_path / "ev").exists()
