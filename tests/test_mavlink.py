@@ -1095,3 +1095,14 @@ def test_a_udp_port_another_program_holds_is_refused_not_shared(scheme):
         holder.close()
     with MavlinkComponent([f"{scheme}:127.0.0.1:{port}"]):
         pass
+
+
+def test_param_set_of_negative_zero_stores_zero():
+    """Issue 14 re-probe (h14): PARAM_SET RATE_ATT_HZ = -0.0 was stored and echoed as -0.0
+    (a rate of "-0 Hz" in the ground station); 0.0 is stored, as for +0.0."""
+    store = {"rate": 50.0}
+    table = ParameterTable()
+    table.add("RATE_ATT_HZ", lambda: store["rate"], lambda v: store.__setitem__("rate", v), minimum=0.0, maximum=200.0)
+    result = table.set("RATE_ATT_HZ", -0.0)
+    assert result.accepted and store["rate"] == 0.0 and math.copysign(1.0, store["rate"]) == 1.0
+    assert math.copysign(1.0, result.value) == 1.0
