@@ -520,6 +520,12 @@ def load(path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = 
     return cfg
 
 
+def _short(value: str, limit: int = 80) -> str:
+    """``repr(value)``, cut to about ``limit`` characters (a 5000-character path in an error)."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit - 5]}…{text[-4:]} ({len(value)} characters)"
+
+
 def _unreadable(exc: OSError) -> str:
     """What is wrong with a path that could not be read, as a phrase after its name."""
     if isinstance(exc, FileNotFoundError):
@@ -567,6 +573,9 @@ def _check_estimator_params(section: dict[str, Any]) -> None:
             estimators.create(section["name"], **preset)
         except (ValueError, TypeError, OverflowError) as exc:
             raise ConfigError(f"estimator.preset: {exc}") from None
+        except OSError as exc:  # a name too long for the file system, a folder not searchable …
+            raise ConfigError(f"estimator.preset: {_short(section['preset'])} cannot be read: "
+                              f"{exc.strerror or exc}; accepted: 'paper' or a preset file") from None
         references.append(preset)
         # what runs is the preset with the table's own values over it (service, reload, live)
         section["params"] = {**preset, **section["params"]}

@@ -307,3 +307,15 @@ def test_a_listening_endpoint_on_an_address_this_computer_lacks_is_refused_by_ch
             in err), err
     path.write_text('[mavlink]\nendpoints = ["udpin:127.0.0.1:14560", "tcpin:0.0.0.0:14561"]\n')
     assert cli.main(["config", "--check", str(path)]) == 0
+
+
+def test_a_preset_path_the_file_system_cannot_take_names_the_key(tmp_path, capsys):
+    """``estimator.preset`` of 5000 characters: "ahrs-service: aaaa…: File name too long" (the
+    5000 characters, no key; a reload said "reload refused: [Errno 36] …")."""
+    path = tmp_path / "c.toml"
+    path.write_text(f'[estimator]\nname = "madgwick"\npreset = "{"a" * 5000}"\n')
+    with pytest.raises(config_mod.ConfigError) as exc:
+        config_mod.load(path)
+    msg = str(exc.value)
+    assert msg.startswith("estimator.preset: 'aaaa") and "(5000 characters) cannot be read: File name too long" in msg
+    assert len(msg) < 200 and "\n" not in msg
