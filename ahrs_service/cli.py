@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Callable
 
@@ -83,6 +85,23 @@ def missing_extra(exc: ModuleNotFoundError) -> str | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Runs one subcommand (:func:`_main`). Ctrl-C (SIGINT) or SIGTERM ends any command with
+    one line, exit status 130 or 143 (``run`` handles both itself once its loop is set up: it
+    stops and prints its summary)."""
+    terminate = threading.current_thread() is threading.main_thread()  # handlers: main thread only
+    previous = signal.signal(signal.SIGTERM, _interrupt) if terminate else None
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as exc:
+        name = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
+        print(f"ahrs-service: interrupted ({name}) before the command finished", file=sys.stderr)
+        return 143 if isinstance(exc, Terminated) else 130
+    finally:
+        if terminate:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: list[str] | None) -> int:
     """Runs one subcommand. A path that cannot be opened (missing, a directory where a file is
     expected, no permission), a missing extra, an execution layer that cannot start (a
     Dask scheduler out of reach, a bad ``--workers``) or no folder numba can cache the kernels
@@ -122,6 +141,15 @@ def main(argv: list[str] | None = None) -> int:
         text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"ahrs-service {args.command}: error: {text}", file=sys.stderr)
         return 2
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (until ``run`` installs its own handler): unwinds like Ctrl-C, so that files being
+    written are closed or removed (``log recover``) and the command ends with one line."""
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise Terminated()
 
 
 def numba_cache_error(exc: RuntimeError) -> str:

@@ -196,11 +196,12 @@ def _endpoints(key: str, v: Any) -> list[str]:
 def check_endpoint_hosts(cfg: "Config") -> list[str]:
     """``config --check``'s look at the hosts of ``mavlink.endpoints`` now (a DNS lookup:
     never done by :func:`validate`, which ``run`` and reloads use). A listening endpoint
-    (``udpin``, ``udp``, ``tcpin``) whose host does not resolve is a :class:`ConfigError`:
-    ``run`` cannot bind it either. A destination (``udpout``, ``udpbcast``, ``tcp``) that
-    does not resolve *now* is a warning, returned as one line each: a companion may start
-    before DNS is up; ``run`` then resolves a ``udpout``/``udpbcast`` name off the loop and
-    retries (docs/mavlink.md, "Connection strings"), while ``tcp`` connects once at start. A
+    (``udpin``, ``udp``, ``tcpin``) whose host does not resolve, or is not an address of this
+    computer, is a :class:`ConfigError`: ``run`` cannot bind it either. A destination
+    (``udpout``, ``udpbcast``, ``tcp``) that does not resolve *now* is a warning, returned as
+    one line each: a companion may start before DNS is up; ``run`` then resolves a
+    ``udpout``/``udpbcast`` name off the loop and retries (docs/mavlink.md, "Connection
+    strings"), while ``tcp`` connects once at start. A
     serial device that does not exist now is a warning too (``run`` opens it once at start).
     The autopilot link (``source.mavlink_connection``, with ``source.type = "mavlink"``) is
     looked at the same way."""
@@ -220,10 +221,12 @@ def check_endpoint_hosts(cfg: "Config") -> list[str]:
             continue
         dest = destination_host(url)
         host = dest[0] if dest is not None else (rest.rpartition(":")[0] if scheme in ("udpin", "udp", "tcpin") else "")
-        if not host or is_numeric(host):
+        if not host:
             continue
         try:
-            resolve(host)
+            address = host if is_numeric(host) else resolve(host)
+            if dest is None:  # a listening endpoint: an address this computer has
+                _check_local_address(key, url, address)
         except OSError as exc:
             why = getattr(exc, "strerror", None) or str(exc)
             if dest is None:
@@ -233,6 +236,37 @@ def check_endpoint_hosts(cfg: "Config") -> list[str]:
                     else "run connects once at start and exits with an error while it does not resolve")
             warnings.append(f"{key}: {url!r}: host {host!r} does not resolve now ({why}); {then}")
     return warnings
+
+
+def _check_local_address(key: str, url: str, address: str) -> None:
+    """A listening endpoint's address must be one this computer has: a bind to it (on a port
+    the system picks, closed at once) that fails with EADDRNOTAVAIL is what ``run`` meets."""
+    import errno
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.bind((address, 0))
+        except OSError as exc:
+            if exc.errno != errno.EADDRNOTAVAIL:
+                return  # not the address's fault: run reports what it meets
+            raise ConfigError(f"{key}: {url!r}: {address} is not an address of this computer ({exc.strerror}); "
+                              f"accepted: a local address to listen on (0.0.0.0, 127.0.0.1, this computer's "
+                              f"name)") from None
+
+
+def _check_listening_ports(source: dict[str, Any], endpoints: list[str]) -> None:
+    """The autopilot link (``source.mavlink_connection``, ``source.type = "mavlink"``) and the
+    ground links must not listen on one port: both sockets bind it (SO_REUSEADDR) and each gets
+    part of the datagrams, so the IMU stream or the ground station's messages go missing."""
+    if source["type"] != "mavlink":
+        return
+    connection = source["mavlink_connection"]
+    port = _listening_port(connection)
+    for i, url in enumerate(endpoints):
+        if port is not None and _listening_port(url) == port:
+            raise ConfigError(f"source.mavlink_connection: {connection!r} listens on the same port as "
+                              f"mavlink.endpoints[{i}] {url!r}; accepted: one listening endpoint per port")
 
 
 def _listening_port(endpoint: str) -> tuple[str, int] | None:
@@ -464,6 +498,7 @@ def validate(data: dict[str, Any]) -> Config:
     if (out["location"]["latitude_deg"] is None) != (out["location"]["longitude_deg"] is None):
         raise ConfigError("location: give both latitude_deg and longitude_deg, or neither")
     _check_source(out["source"])
+    _check_listening_ports(out["source"], out["mavlink"]["endpoints"])
     return Config(out)
 
 
@@ -485,6 +520,12 @@ def load(path: str | Path | None, overrides: dict[str, dict[str, Any]] | None = 
     return cfg
 
 
+def _short(value: str, limit: int = 80) -> str:
+    """``repr(value)``, cut to about ``limit`` characters (a 5000-character path in an error)."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit - 5]}…{text[-4:]} ({len(value)} characters)"
+
+
 def _unreadable(exc: OSError) -> str:
     """What is wrong with a path that could not be read, as a phrase after its name."""
     if isinstance(exc, FileNotFoundError):
@@ -498,9 +539,12 @@ def _unreadable(exc: OSError) -> str:
 
 def read_toml(path: Path) -> dict[str, Any]:
     """The parsed TOML document at ``path``; every way of not being readable is a one-line
-    :class:`ConfigError` (missing, a directory, no permission, not UTF-8, not TOML)."""
+    :class:`ConfigError` (missing, a directory, a FIFO or device, no permission, not UTF-8,
+    not TOML): a FIFO would block a reload, and with it the service's loop."""
+    from ahrs_service.paths import regular_file
+
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = regular_file(path).read_bytes().decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ConfigError(f"configuration file {path}: not UTF-8 text (byte {exc.start}: "
                           f"{exc.object[exc.start:exc.start + 1]!r}); TOML files are UTF-8") from None
@@ -529,6 +573,9 @@ def _check_estimator_params(section: dict[str, Any]) -> None:
             estimators.create(section["name"], **preset)
         except (ValueError, TypeError, OverflowError) as exc:
             raise ConfigError(f"estimator.preset: {exc}") from None
+        except OSError as exc:  # a name too long for the file system, a folder not searchable …
+            raise ConfigError(f"estimator.preset: {_short(section['preset'])} cannot be read: "
+                              f"{exc.strerror or exc}; accepted: 'paper' or a preset file") from None
         references.append(preset)
         # what runs is the preset with the table's own values over it (service, reload, live)
         section["params"] = {**preset, **section["params"]}
@@ -632,8 +679,10 @@ def _check_recorded_path(path: str) -> None:
         raise ConfigError(f"{key}: required when source.type = 'recorded'; {_RECORDED_HELP}")
     p = Path(path)
     hdf5 = p.suffix.lower() in (".hdf5", ".h5")
+    from ahrs_service.paths import regular_file
+
     try:
-        with p.open("rb") as f:
+        with regular_file(p).open("rb") as f:
             head = f.read(8)
     except OSError as exc:
         raise ConfigError(f"{key}: {path!r} {_unreadable(exc)}; {_RECORDED_HELP}") from None

@@ -36,6 +36,7 @@ from ahrs_service.calibration.live import LiveCalibrationResult, LiveCalibrator
 from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
 from ahrs_service.mavlink_bridge import LatestEstimate, LinkHealth, ServiceLink
 from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline
+from ahrs_service.protocols.mavlink.endpoints import check_can_open
 from ahrs_service.scheduler import DataReadyScheduler, FixedRateScheduler, LoopStats
 from ahrs_service.sources import make_source
 from ahrs_service.vibration import VibrationMonitor
@@ -669,7 +670,9 @@ class Service:
         samples, messages = sum(g.samples for g in gone), sum(g.messages for g in gone)
         seconds, outages = sum(g.seconds for g in gone), sum(x.outages for x in writers)
         kept = [p for x in writers for p in x.files if p.exists()]  # a file deleted while written is not kept
-        files = f"log: {len(kept)} file{'s' if len(kept) != 1 else ''} in {w.directory}"
+        # the folders the files are in (a reload may have moved the log), else the configured one
+        folders = list(dict.fromkeys(str(p.parent) for p in kept)) or [str(w.directory)]
+        files = f"log: {len(kept)} file{'s' if len(kept) != 1 else ''} in {' and '.join(folders)}"
         if not messages:
             return f"{files}, everything logged"
         last_error = next((x.last_error for x in reversed(writers) if x.last_error), "none")
@@ -805,6 +808,13 @@ class Service:
         if new.source != self.cfg.source:
             self.report("reload: source changes need a restart; source kept", 4)
             new.raw["source"] = self.cfg.source
+        added = [url for url in new.mavlink["endpoints"] if url not in self.cfg.mavlink["endpoints"]]
+        try:  # before anything is applied: an endpoint that cannot be opened refuses the reload
+            check_can_open(added, new.mavlink["system_id"], 0)
+        except OSError as exc:
+            self.report(f"reload refused: mavlink.endpoints: {exc}", 3)
+            self.notifier.ready(self.status_line())
+            return
         name = new.estimator["name"]
         if self.compiler.needed(name, self.estimator.name, self._loop_counters()):
             # numba holds the interpreter lock while compiling: a child compiles, the loop runs
@@ -846,7 +856,12 @@ class Service:
         if not same_filter or new.mavlink != old_cfg.mavlink or new.rates != old_cfg.rates:
             # another filter has other EST_* parameters: the table is rebuilt with the component
             self.mavlink.close()
-            self._open_mavlink(new)
+            try:
+                self._open_mavlink(new)
+            except OSError as exc:  # taken since the check above: the running endpoints again
+                new.raw["mavlink"] = old_cfg.mavlink
+                self._open_mavlink(new)
+                self.report(f"reload: mavlink.endpoints: {exc}; the running endpoints kept", 3)
         if new.monitor != old_cfg.monitor:
             self._open_monitor(new)
         if new.live != old_cfg.live:  # a new address, rate, or switched on or off

@@ -21,6 +21,7 @@ from mcap.records import Channel, Message, Metadata
 from ahrs_service.logs.fields import BadMessage, decoded, integer, integers, numbers, obj, scalar, string, vector, vectors
 from ahrs_service.logs.recover import MAX_CHUNK_BYTES, Damage, RecordScanner
 from ahrs_service.logs.schemas import CHANNELS
+from ahrs_service.paths import regular_file
 
 
 class MessageSource:
@@ -164,7 +165,9 @@ def _align(t_ns: np.ndarray, times: list[int], values: list[list[float]]) -> np.
 
 
 def read_log(path: str | os.PathLike) -> RecordedLog:
-    """Reads a flight log (MCAP) into a :class:`RecordedLog`; damaged files up to the damage."""
+    """Reads a flight log (MCAP) into a :class:`RecordedLog`; damaged files up to the damage.
+    OSError naming the path when it is no regular file (missing, a directory, a FIFO …)."""
+    regular_file(path)  # a FIFO would block open() until some process writes to it
     log = _read(MessageSource(path))
     if log.damage is not None and log.indexed:
         # a complete file with a damaged chunk: read it again in file order, up to the damage

@@ -39,6 +39,8 @@ from mcap.records import (
 )
 from mcap.writer import CompressionType, Writer
 
+from ahrs_service.paths import regular_file
+
 MAGIC = bytes([137, 77, 67, 65, 80, 48, 13, 10])
 
 _RECORDS = {
@@ -271,8 +273,9 @@ def recover(path: str | os.PathLike, out_path: str | os.PathLike | None = None) 
     """
     src = Path(path)
     out = Path(out_path) if out_path is not None else default_output(src)
-    if out.resolve() == src.resolve():
-        raise ValueError("recover() must not overwrite its input")
+    regular_file(src)  # OSError naming it: missing, a directory, a FIFO (open() would block)
+    if os.path.realpath(out) == os.path.realpath(src):  # realpath: a symbolic-link loop does not raise
+        raise ValueError(f"{out}: is the input; recover writes a new file beside it (give another OUTPUT)")
     with open(src, "rb") as f:
         if f.read(len(MAGIC)) != MAGIC:  # nothing to recover: write no empty "recovered" file
             raise ValueError(f"{src}: not an MCAP file (bad magic): nothing to recover")
@@ -281,54 +284,58 @@ def recover(path: str | os.PathLike, out_path: str | os.PathLike | None = None) 
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
     topics: dict[int, str] = {}
-    with open(out, "wb") as f:
-        w = Writer(f, chunk_size=1024 * 1024, compression=CompressionType.ZSTD)
-        profile, library = "", "ahrs-service recover"
-        started = False
-        for rec in scanner:
-            if isinstance(rec, Header):
-                profile = rec.profile
-                library = f"{rec.library} (recovered by ahrs-service)"
-                continue
+    try:
+        with open(out, "wb") as f:
+            w = Writer(f, chunk_size=1024 * 1024, compression=CompressionType.ZSTD)
+            profile, library = "", "ahrs-service recover"
+            started = False
+            for rec in scanner:
+                if isinstance(rec, Header):
+                    profile = rec.profile
+                    library = f"{rec.library} (recovered by ahrs-service)"
+                    continue
+                if not started:
+                    w.start(profile=profile, library=library)
+                    started = True
+                if isinstance(rec, Schema):
+                    if rec.id not in schema_ids:
+                        schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+                elif isinstance(rec, Channel):
+                    if rec.id not in channel_ids:
+                        channel_ids[rec.id] = w.register_channel(
+                            rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), rec.metadata
+                        )
+                        topics[rec.id] = rec.topic
+                elif isinstance(rec, Message):
+                    cid = channel_ids.get(rec.channel_id)
+                    if cid is None:
+                        continue  # a message whose channel record was lost cannot be decoded
+                    w.add_message(cid, rec.log_time, rec.data, rec.publish_time, rec.sequence)
+                    topic = topics[rec.channel_id]
+                    report.messages[topic] = report.messages.get(topic, 0) + 1
+                    report.start_ns = rec.log_time if report.start_ns is None else min(report.start_ns, rec.log_time)
+                    report.end_ns = rec.log_time if report.end_ns is None else max(report.end_ns, rec.log_time)
+                elif isinstance(rec, Metadata):
+                    w.add_metadata(rec.name, rec.metadata)
+                elif isinstance(rec, Attachment):
+                    w.add_attachment(rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data)
             if not started:
                 w.start(profile=profile, library=library)
-                started = True
-            if isinstance(rec, Schema):
-                if rec.id not in schema_ids:
-                    schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
-            elif isinstance(rec, Channel):
-                if rec.id not in channel_ids:
-                    channel_ids[rec.id] = w.register_channel(
-                        rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), rec.metadata
-                    )
-                    topics[rec.id] = rec.topic
-            elif isinstance(rec, Message):
-                cid = channel_ids.get(rec.channel_id)
-                if cid is None:
-                    continue  # a message whose channel record was lost cannot be decoded
-                w.add_message(cid, rec.log_time, rec.data, rec.publish_time, rec.sequence)
-                topic = topics[rec.channel_id]
-                report.messages[topic] = report.messages.get(topic, 0) + 1
-                report.start_ns = rec.log_time if report.start_ns is None else min(report.start_ns, rec.log_time)
-                report.end_ns = rec.log_time if report.end_ns is None else max(report.end_ns, rec.log_time)
-            elif isinstance(rec, Metadata):
-                w.add_metadata(rec.name, rec.metadata)
-            elif isinstance(rec, Attachment):
-                w.add_attachment(rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data)
-        if not started:
-            w.start(profile=profile, library=library)
-        report.bytes_valid = scanner.valid_end
-        report.damage = scanner.damage
-        w.add_metadata(
-            "recovery",
-            {
-                "source": src.name,
-                "damage": str(scanner.damage) if scanner.damage else "none",
-                "bytes_lost": str(report.bytes_lost),
-                "messages": json.dumps(report.messages),
-            },
-        )
-        w.finish()
+            report.bytes_valid = scanner.valid_end
+            report.damage = scanner.damage
+            w.add_metadata(
+                "recovery",
+                {
+                    "source": src.name,
+                    "damage": str(scanner.damage) if scanner.damage else "none",
+                    "bytes_lost": str(report.bytes_lost),
+                    "messages": json.dumps(report.messages),
+                },
+            )
+            w.finish()
+    except BaseException:  # Ctrl-C, SIGTERM, a full disk: no half-written "recovered" file
+        out.unlink(missing_ok=True)
+        raise
     if report.total_messages == 0:  # a "recovered" file with nothing in it is no recovery
         out.unlink()
         damage = f" ({report.damage})" if report.damage else ""

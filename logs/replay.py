@@ -235,7 +235,7 @@ def write_replay(
     does not reproduce it).
     """
     out_path = Path(out_path)
-    if out_path.resolve() == Path(log.path).resolve():
+    if os.path.realpath(out_path) == os.path.realpath(log.path):  # no RuntimeError on a symlink loop
         raise ValueError("the replay must not overwrite its input")
     config = json.loads(json.dumps(log.config)) if log.config else {}
     config["estimator"] = {"name": estimator, "params": _effective_start(log, estimator, params)}

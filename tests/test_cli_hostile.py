@@ -168,3 +168,110 @@ def test_param_value_refused_in_the_file_is_refused_on_the_command_line_by_the_s
     assert rc == 2 and err.endswith(in_file), (err, in_file)
     # a value inside the range is replayed
     assert main(["replay", str(log_path), "--param", "beta=0.3"]) == 0
+
+
+
+def _special(tmp_path, kind):
+    """A FIFO without a writer, or a symbolic link in a loop, at tmp_path/bad."""
+    import os
+
+    bad = tmp_path / "bad"
+    if kind == "fifo":
+        os.mkfifo(bad)
+    else:
+        os.symlink(tmp_path / "other", bad)
+        os.symlink(bad, tmp_path / "other")
+    return bad
+
+
+SPECIAL_TEXT = {"fifo": "not a regular file (a FIFO)", "loop": "Too many levels of symbolic links"}
+
+
+@pytest.mark.timeout(60)  # before the fix a FIFO blocked open() for good
+@pytest.mark.parametrize("kind", ["fifo", "loop"])
+@pytest.mark.parametrize("argv", [
+    ["log", "info", "{bad}"],
+    ["log", "recover", "{bad}", "{tmp}/out.mcap"],
+    ["replay", "{bad}", "--estimator", "madgwick"],
+    ["config", "--check", "{bad}"],
+    ["run", "-c", "{bad}", "--no-log", "--duration", "0.1"],
+])
+def test_an_input_path_that_is_a_fifo_or_a_symlink_loop_is_one_line(tmp_path, capsys, kind, argv):
+    """Issue 14 re-probe (h14): ``log info``, ``log recover``, ``replay``, ``config --check``
+    and ``run -c`` of a FIFO hung for good in open() (and a reload of one would hang the
+    loop); ``log recover`` of a symbolic-link loop ended in a RuntimeError traceback."""
+    bad = _special(tmp_path, kind)
+    rc, err = _run(capsys, [a.format(tmp=tmp_path, bad=bad) for a in argv])
+    assert rc == 2 and "\n" not in err and "Traceback" not in err, err
+    assert str(bad) in err and SPECIAL_TEXT[kind] in err, err
+    assert not (tmp_path / "out.mcap").exists()
+
+
+@pytest.mark.parametrize("argv", [["log", "recover", "{log}", "{bad}"], ["replay", "{log}", "--out", "{bad}"]])
+def test_an_output_path_that_is_a_symlink_loop_is_one_line(tmp_path, capsys, log_path, argv):
+    """``log recover LOG LOOP`` and ``replay LOG --out LOOP``: a RuntimeError traceback from
+    Path.resolve() (the check that the output is not the input). (An output FIFO blocks
+    until a reader comes, as for any Unix tool.)"""
+    bad = _special(tmp_path, "loop")
+    rc, err = _run(capsys, [a.format(log=log_path, bad=bad) for a in argv])
+    assert rc == 2 and "\n" not in err and "Traceback" not in err, err
+    assert str(bad) in err and SPECIAL_TEXT["loop"] in err, err
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("sig, rc, name", [("SIGINT", 130, "SIGINT"), ("SIGTERM", 143, "SIGTERM")])
+def test_ctrl_c_or_sigterm_during_a_long_command_is_one_line(tmp_path, sig, rc, name):
+    """Issue 14 re-probe (h14): Ctrl-C during ``compile``, ``replay``, ``log recover``,
+    ``log plot``, ``evaluate`` ended in a KeyboardInterrupt traceback of 17–215 lines (SIGTERM
+    killed them silently, a half-written ``recover`` output left). ``compile`` into an empty
+    numba cache runs for tens of seconds: the signal comes while it works."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    proc = subprocess.Popen([sys.executable, "-m", "ahrs_service.cli", "compile", "ekf"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    time.sleep(3.0)
+    assert proc.poll() is None, "compile ended before the signal: the test proves nothing"
+    proc.send_signal(getattr(signal, sig))
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == rc, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1] == (
+        f"ahrs-service: interrupted ({name}) before the command finished"), err
+
+
+def test_an_interrupted_recover_leaves_no_half_written_output(tmp_path, capsys, log_path, monkeypatch):
+    """Ctrl-C (or SIGTERM) in the middle of ``log recover`` left the output cut short: the
+    file is removed and the command says it was interrupted."""
+    from mcap.writer import Writer
+
+    calls = {"n": 0}
+    add = Writer.add_message
+
+    def interrupted(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 20:
+            raise KeyboardInterrupt
+        return add(self, *args, **kwargs)
+
+    monkeypatch.setattr(Writer, "add_message", interrupted)
+    out = tmp_path / "out.mcap"
+    rc, err = _run(capsys, ["log", "recover", str(log_path), str(out)])
+    assert rc == 130 and err == "ahrs-service: interrupted (SIGINT) before the command finished", err
+    assert calls["n"] == 20 and not out.exists()
+
+
+@pytest.mark.timeout(120)  # before the fix the FIFO blocked read_text() for good
+def test_evaluate_preset_that_is_a_fifo_is_one_line(tmp_path, capsys, broad_dir):
+    """Issue 14 re-probe (h14): ``evaluate --preset FIFO`` hung (the file read to find its
+    estimator); now refused like any file that is no preset."""
+    fifo = _special(tmp_path, "fifo")
+    trial = sorted(broad_dir.glob("*.hdf5"))[0].stem
+    rc, err = _run(capsys, ["evaluate", "--data", str(broad_dir), "--estimators", "madgwick", "--preset",
+                            str(fifo), "--trials", trial, "--quiet", "--workers", "1", "--out", str(tmp_path / "ev")])
+    assert rc == 2 and "\n" not in err and "Traceback" not in err, err
+    assert f"--preset {str(fifo)!r}: not a preset file" in err, err
+    assert not (tmp_path / "ev").exists()

@@ -274,3 +274,48 @@ def test_two_listening_endpoints_on_one_port_are_refused(endpoints):
     # one listener and one sender on a port, or UDP and TCP on the same number, are fine
     config_mod.validate({"mavlink": {"endpoints": ["udpin:127.0.0.1:14551", "udpout:127.0.0.1:14551",
                                                    "tcpin:127.0.0.1:14551"]}})
+
+
+# --- re-probe of issue 14 (h14) ----------------------------------------------------------------
+
+
+def test_the_autopilot_link_and_a_ground_link_listening_on_one_port_are_refused():
+    """``source.mavlink_connection`` and a ``mavlink.endpoints`` entry on one listening port
+    both bound it and `run` started: each link got part of the datagrams (IMU stream or ground
+    station lost). Only two ground links on one port were refused."""
+    source = {"type": "mavlink", "mavlink_connection": "udpin:127.0.0.1:14560"}
+    with pytest.raises(config_mod.ConfigError) as exc:
+        config_mod.validate({"source": source, "mavlink": {"endpoints": ["udpin:0.0.0.0:14560"]}})
+    msg = str(exc.value)
+    assert msg.startswith("source.mavlink_connection: 'udpin:127.0.0.1:14560' listens on the same port as "
+                          "mavlink.endpoints[0] 'udpin:0.0.0.0:14560'"), msg
+    # another port, a sender on the port, or a source that is not the autopilot: fine
+    config_mod.validate({"source": source, "mavlink": {"endpoints": ["udpin:127.0.0.1:14561",
+                                                                     "udpout:127.0.0.1:14560"]}})
+    config_mod.validate({"mavlink": {"endpoints": ["udpin:127.0.0.1:14540"]}})
+
+
+def test_a_listening_endpoint_on_an_address_this_computer_lacks_is_refused_by_check(tmp_path, capsys):
+    """``udpin:192.0.2.1:14560`` (TEST-NET-1: never a local address) passed ``config --check``
+    and ``run`` refused it ("cannot assign requested address")."""
+    path = tmp_path / "c.toml"
+    path.write_text('[mavlink]\nendpoints = ["udpout:127.0.0.1:14550", "udpin:192.0.2.1:14560"]\n')
+    rc = cli.main(["config", "--check", str(path)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert ("mavlink.endpoints[1]: 'udpin:192.0.2.1:14560': 192.0.2.1 is not an address of this computer"
+            in err), err
+    path.write_text('[mavlink]\nendpoints = ["udpin:127.0.0.1:14560", "tcpin:0.0.0.0:14561"]\n')
+    assert cli.main(["config", "--check", str(path)]) == 0
+
+
+def test_a_preset_path_the_file_system_cannot_take_names_the_key(tmp_path, capsys):
+    """``estimator.preset`` of 5000 characters: "ahrs-service: aaaa…: File name too long" (the
+    5000 characters, no key; a reload said "reload refused: [Errno 36] …")."""
+    path = tmp_path / "c.toml"
+    path.write_text(f'[estimator]\nname = "madgwick"\npreset = "{"a" * 5000}"\n')
+    with pytest.raises(config_mod.ConfigError) as exc:
+        config_mod.load(path)
+    msg = str(exc.value)
+    assert msg.startswith("estimator.preset: 'aaaa") and "(5000 characters) cannot be read: File name too long" in msg
+    assert len(msg) < 200 and "\n" not in msg

@@ -156,3 +156,41 @@ def test_duplicates_overtaken_messages_and_a_clock_step_keep_times_increasing_an
     assert src.diagnostics.lost.total == 0  # half an hour of the autopilot's clock is no loss
     t = np.array([s.t_ns for s in got])
     assert np.all(np.diff(t) > 0)
+
+
+def test_imu_stamps_that_jump_1e9_s_ahead_and_back_are_never_placed_in_the_future():
+    """Issue 14 re-probe (h14): the autopilot's IMU stamps jump 1e9 s ahead for 100 rows and
+    come back (a corrupt clock, TIMESYNC's replies unaffected). TIMESYNC's offset put those
+    samples 31 years after their arrival (dt = 1e9 s into the estimator), and every sample
+    after the stamps came back was then dropped as older (100 of 600 handed out, 400
+    out_of_order). A sample is never taken after it arrived: the times stay on our clock."""
+    n, period_us = 600, 2000
+
+    def warp(i: int, t_us: int) -> list[int]:
+        return [t_us + (10**15 if 100 <= i < 200 else 0)]
+
+    parts = _still()
+    rec = Recording.uniform(*(np.resize(parts[k], (n, parts[k].shape[1])) for k in ("gyr", "acc", "mag", "q")),
+                            period_us)
+    port = free_udp_port()
+    link = AutopilotLink(f"udpin:127.0.0.1:{port}")
+    src = MavlinkImuSource(link, rate_hz=1e6 / period_us)
+    src.open()
+    got = []
+    sim = _WarpedClock(UdpTransport(port), rec, warp=warp).start()
+    try:
+        end = time.monotonic() + 20.0
+        while time.monotonic() < end and len(got) < n:
+            block = src.read_block()
+            got.extend(block.samples()) if len(block) else time.sleep(0.005)
+            if sim.join(0.0) and not len(block) and len(got) >= n - 100:
+                break
+    finally:
+        sim.stop()
+        src.close()
+    done_ns = time.monotonic_ns()
+    t = np.array([s.t_ns for s in got])
+    assert src.timeline_resets == 2  # ahead, and back
+    assert len(got) >= n - 100  # the 400 rows after the stamps came back are handed out
+    assert np.all(np.diff(t) > 0) and np.diff(t).max() < 0.5e9  # no dt of 1e9 s
+    assert t.max() <= done_ns  # no sample after its arrival

@@ -1073,3 +1073,36 @@ def test_bounded_fuzz_keeps_the_schedule_the_values_and_the_parameters(comp, gcs
                 assert math.isfinite(value), (m.get_type(), field)
     assert comp.stats.malformed > 0 and comp.stats.statustext_suppressed > 0
     assert len(of(received, "STATUSTEXT")) < 200  # thousands were triggered
+
+
+@pytest.mark.parametrize("scheme", ["udpin", "udp"])
+def test_a_udp_port_another_program_holds_is_refused_not_shared(scheme):
+    """Issue 14 re-probe (h14): a second ``ahrs-service run`` on the first one's ``udpin`` port
+    started (exit 0): mavutil binds with SO_REUSEADDR, so the second socket took the ground
+    station's datagrams meant for the first. The port is refused while another socket holds it,
+    and free again once it is closed (a reload reopens its own endpoints)."""
+    import socket
+
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as mavutil's udpin does
+    holder.bind(("127.0.0.1", 0))
+    port = holder.getsockname()[1]
+    try:
+        with pytest.raises(OSError, match=rf"^cannot open MAVLink endpoint '{scheme}:127.0.0.1:{port}': "
+                                          rf".*UDP port {port} is in use by another program"):
+            MavlinkComponent([f"{scheme}:127.0.0.1:{port}"])
+    finally:
+        holder.close()
+    with MavlinkComponent([f"{scheme}:127.0.0.1:{port}"]):
+        pass
+
+
+def test_param_set_of_negative_zero_stores_zero():
+    """Issue 14 re-probe (h14): PARAM_SET RATE_ATT_HZ = -0.0 was stored and echoed as -0.0
+    (a rate of "-0 Hz" in the ground station); 0.0 is stored, as for +0.0."""
+    store = {"rate": 50.0}
+    table = ParameterTable()
+    table.add("RATE_ATT_HZ", lambda: store["rate"], lambda v: store.__setitem__("rate", v), minimum=0.0, maximum=200.0)
+    result = table.set("RATE_ATT_HZ", -0.0)
+    assert result.accepted and store["rate"] == 0.0 and math.copysign(1.0, store["rate"]) == 1.0
+    assert math.copysign(1.0, result.value) == 1.0

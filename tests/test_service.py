@@ -431,6 +431,62 @@ def test_reload_to_another_estimator_rebuilds_its_parameters_and_keeps_command_l
         run.stop()
 
 
+def test_a_reload_to_an_endpoint_that_cannot_be_opened_is_refused_and_the_links_stay(tmp_path, gcs):
+    """Issue 14 re-probe: SIGHUP after ``mavlink.endpoints`` gained a link that cannot be opened
+    (here a TCP port that refuses: bound, not listening) ended the service with exit 2, its
+    links already closed. The reload is refused with one line naming the key; the running
+    configuration and links stay."""
+    import socket
+
+    conn, port = gcs
+    held = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    held.bind(("127.0.0.1", 0))  # bound, never listening: a connection to it is refused
+    cfg_file = tmp_path / "ahrs.toml"
+    text = (f'[source]\ntype = "simulated_i2c"\nsensor_errors = false\n\n[estimator]\nname = "madgwick"\n\n'
+            f'[mavlink]\nendpoints = ["udpout:127.0.0.1:{port}"]\n')
+    cfg_file.write_text(text)
+    run = RunningService(config_mod.load(cfg_file, {"log": {"enabled": False}}), duration_s=120.0)
+    try:
+        collect(conn, 30.0, until=lambda m: m.get_type() == "ATTITUDE")
+        before = run.service.cfg
+        cfg_file.write_text(text.replace(f'{port}"]', f'{port}", "tcp:127.0.0.1:{held.getsockname()[1]}"]'))
+        run.service.request_reload()
+        got = collect(conn, 30.0, until=lambda m: m.get_type() == "STATUSTEXT" and "reload" in m.text)
+        assert got and got[-1].text.startswith("reload refused: mavlink.endpoints")
+        assert run.service.cfg is before and run.thread.is_alive()
+        assert collect(conn, 10.0, until=lambda m: m.get_type() == "ATTITUDE")[-1].get_type() == "ATTITUDE"
+    finally:
+        run.stop()
+        held.close()
+
+
+def test_the_summary_names_the_folder_the_files_are_in_after_a_reload_moved_the_log(tmp_path, gcs):
+    """Issue 14 re-probe (h14): a reload moved [log] to a folder that could not be written (a
+    full disk); the summary said "log: 4 files in <the new folder>", which held none."""
+    conn, port = gcs
+    (tmp_path / "blocker").write_text("a file where the new log folder's parent should be\n")
+    cfg_file = tmp_path / "ahrs.toml"
+
+    def write(folder) -> None:
+        cfg_file.write_text(f'[source]\ntype = "simulated_i2c"\nsensor_errors = false\n\n[estimator]\n'
+                            f'name = "madgwick"\n\n[log]\ndirectory = "{folder}"\n\n'
+                            f'[mavlink]\nendpoints = ["udpout:127.0.0.1:{port}"]\n')
+
+    write(tmp_path / "logs")
+    run = RunningService(config_mod.load(cfg_file), duration_s=120.0)
+    try:
+        collect(conn, 30.0, until=lambda m: m.get_type() == "ATTITUDE")
+        write(tmp_path / "blocker" / "logs")
+        run.service.request_reload()
+        got = collect(conn, 30.0, until=lambda m: m.get_type() == "STATUSTEXT" and "reload" in m.text)
+        assert got and got[-1].text == "configuration reloaded"
+    finally:
+        run.stop()
+    summary = run.service.log_summary()
+    assert summary.startswith(f"log: 1 file in {tmp_path / 'logs'}"), summary
+    assert "blocker" not in summary.partition(", not logged")[0], summary
+
+
 # ------------------------------------------------------------------ live calibration: the fit off the loop
 FITTED_HARD_IRON = np.array([1.0, 2.0, 3.0])  # µT, what the replaced fit "finds"
 MAG_CAL = (mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 1, 0, 0, 0, 0, 0)  # param2 = 1: magnetometer

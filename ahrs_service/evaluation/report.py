@@ -513,6 +513,7 @@ def with_presets(items: list[str], names: list[str], params: dict[str, dict[str,
     that declares paper values (``presets.paper_params``; not robust, triad, quest) its source
     paper's values; a preset file gives its own estimator (which must be selected) its params."""
     from ahrs_service.estimators.presets import PAPER, has_paper_preset, load_preset
+    from ahrs_service.paths import regular_file
 
     out = {k: dict(v) for k, v in params.items()}
     for item in items:
@@ -520,7 +521,8 @@ def with_presets(items: list[str], names: list[str], params: dict[str, dict[str,
             targets = [n for n in names if has_paper_preset(estimators.get(n).Params)]
         else:
             try:
-                target = json.loads(Path(item).read_text(encoding="utf-8")).get("estimator")
+                # regular_file: a FIFO would block read_text() until some process wrote to it
+                target = json.loads(regular_file(item).read_text(encoding="utf-8")).get("estimator")
             except (OSError, ValueError, AttributeError):
                 target = None
             if target is None:

@@ -160,14 +160,22 @@ class RemoteTimeline:
                 self._bins.append((b, off))
 
     def estimate_ns(self, remote_us: int) -> int | None:
-        """The best current estimate of local − remote, ns (None before any arrival)."""
+        """The best current estimate of local − remote, ns (None before any arrival).
+
+        A sample is never taken after it arrived: an offset above the arrivals' floor by more
+        than ``deadband_ns`` is impossible, and TIMESYNC's is not used then. That is the case
+        when the autopilot's IMU stamps jump (a clock stepped by 1e9 s) while its TIMESYNC
+        replies do not: TIMESYNC's offset put every sample 31 years after its arrival, and
+        once the stamps came back, every later sample was dropped as older than those."""
+        with self._lock:
+            floor = min(o for _, o in self._bins) if self._bins else None
         ts = self.timesync
         if ts is not None:
             with self.timesync_lock:
-                if ts.synced:
-                    return int(ts.to_local_ns(int(remote_us))) - int(remote_us) * 1000
-        with self._lock:
-            return min(o for _, o in self._bins) if self._bins else None
+                synced = int(ts.to_local_ns(int(remote_us))) - int(remote_us) * 1000 if ts.synced else None
+            if synced is not None and (floor is None or synced <= floor + self.deadband_ns):
+                return synced
+        return floor
 
     def to_local_ns(self, remote_us: int) -> int | None:
         """``remote_us`` (autopilot µs) on our monotonic clock, ns; None before anything arrived."""

@@ -36,6 +36,7 @@ nothing is sent before a peer has spoken), ``tcp:HOST:PORT``, ``tcpin:HOST:PORT`
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import ipaddress
 import socket
@@ -215,12 +216,44 @@ class _SendErrorTap:
         setattr(self._inner, name, value)
 
 
+def _check_udp_port_free(url: str) -> None:
+    """For a listening UDP endpoint (``udpin:``, ``udp:``): raises OSError(EADDRINUSE) when
+    another socket holds its port. mavutil binds with SO_REUSEADDR, with which a second service
+    started on the same port (or any program) binds it too and silently takes the datagrams
+    meant for the first; a bind without it fails while the port is taken."""
+    scheme, _, rest = url.partition(":")
+    if scheme not in ("udpin", "udp"):
+        return
+    host, _, port = rest.rpartition(":")
+    if not port.isdigit():
+        return  # mavutil reports it
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind((host, int(port)))
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise OSError(errno.EADDRINUSE, f"UDP port {port} is in use by another program "
+                              f"(another ahrs-service?)") from None
+            # anything else (an address that is not ours …) is mavutil's to report
+
+
+def check_can_open(urls: Sequence[str], system_id: int, component_id: int) -> None:
+    """Opens each of ``urls`` and closes it again: raises the OSError of :class:`Endpoint`
+    (``cannot open MAVLink endpoint 'URL': why``) for the first that cannot be opened (an
+    address this computer does not have, a port another process holds, a device that is no
+    serial port, a refused TCP connection). A reload checks the endpoints it adds before it
+    closes the running ones, so that one it cannot open leaves the running links as they are."""
+    for url in urls:
+        Endpoint(url, system_id, component_id).close()
+
+
 class Endpoint:
     """A pymavlink connection with a MAVLink 2 common parser/packer and error counters."""
 
     def __init__(self, url: str, system_id: int, component_id: int) -> None:
         self.url = url
         try:
+            _check_udp_port_free(url)
             # one connection attempt, no sleeping between retries: the service loop must not stall
             conn = mavutil.mavlink_connection(url, source_system=system_id, source_component=component_id,
                                               autoreconnect=True, retries=0, reconnect_delay=0)

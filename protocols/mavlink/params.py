@@ -126,7 +126,8 @@ class ParameterTable:
         p = self._params[self._index[name]]
         reason = self._check(p, value)
         if not reason:
-            new = int(value) if p.param_type == INT32 else float(value)
+            # + 0.0: a PARAM_SET of -0.0 stores (and echoes) 0.0, not "-0" (RATE_ATT_HZ = -0 Hz)
+            new = int(value) if p.param_type == INT32 else float(value) + 0.0
             old = self.get(name)
             try:
                 p.setter(new)  # type: ignore[misc]  # _check rejected read-only parameters
