@@ -275,3 +275,14 @@ def test_evaluate_preset_that_is_a_fifo_is_one_line(tmp_path, capsys, broad_dir)
     assert rc == 2 and "\n" not in err and "Traceback" not in err, err
     assert f"--preset {str(fifo)!r}: not a preset file" in err, err
     assert not (tmp_path / "ev").exists()
+
+
+@pytest.mark.parametrize("spec", ["", " , "])
+def test_evaluate_with_no_estimator_named_is_one_line_not_every_estimator(tmp_path, capsys, spec):
+    """``evaluate --estimators ""`` (an empty shell variable) ran every estimator: a long run
+    nobody asked for. Only ``all`` (or no option) means every estimator."""
+    rc, err = _run(capsys, ["evaluate", "--estimators", spec, "--quiet", "--workers", "1",
+                            "--out", str(tmp_path / "ev")])
+    assert rc == 2 and "\n" not in err and "Traceback" not in err, err
+    assert f"--estimators {spec.strip()!r}: no estimator named" in err, err
+    assert not (tmp_path / "ev").exists()

@@ -90,7 +90,7 @@ def select_estimators(spec: str | None) -> tuple[list[str], list[str]]:
 
     "all" skips estimators whose module is not there yet; a name given explicitly must load.
     """
-    spec = (spec or "all").strip()
+    spec = "all" if spec is None else spec.strip()
     if spec == "all":
         chosen, skipped = [], []
         for name in estimators.names():
@@ -106,8 +106,8 @@ def select_estimators(spec: str | None) -> tuple[list[str], list[str]]:
         if name and name not in chosen:
             estimators.get(name)  # ValueError for unknown names, ImportError when not built
             chosen.append(name)
-    if not chosen:
-        raise ValueError("no estimator selected")
+    if not chosen:  # "" or ",": a typo, not a request for every estimator (a long run)
+        raise ValueError(f"--estimators {spec!r}: no estimator named (comma-separated names, or all)")
     return chosen, []
 
 
