@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from numba import njit
@@ -44,8 +45,8 @@ from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.uncertainty import (
     AttitudeVariance,
+    CovarianceErrorModel,
     euler_variance_of_quaternion_covariance,
-    with_unmodelled_floor,
 )
 from ahrs_service.quaternion import quat_normalize, quat_rotate, quat_rotate_inv
 
@@ -375,11 +376,15 @@ class QuaternionEKF(Estimator):
         p[np.arange(4, N), np.arange(4, N)] = self.params.init_bias_std**2
         return s
 
+    #: P plus the floors, scaled (``uncertainty.CovarianceErrorModel``); the scales: BROAD,
+    #: leave-one-recording-out (docs/autopilot.md "Attitude covariance")
+    observed_error_model: ClassVar[CovarianceErrorModel] = CovarianceErrorModel(tilt_scale=0.32, heading_scale=0.57)
+
     def attitude_variance(self) -> AttitudeVariance:
         """Roll, pitch, yaw variances (rad²) from the quaternion block of P (J P_qq Jᵀ), plus
-        the floors of what the model leaves out (``uncertainty.with_unmodelled_floor``)."""
+        the floors of what the model leaves out, scaled (``uncertainty.CovarianceErrorModel``)."""
         s = self.state
         if not s[K.INITIALISED]:
             return AttitudeVariance.unknown()
         p = s[STATE.slices.p].reshape(N, N)[:4, :4]
-        return with_unmodelled_floor(euler_variance_of_quaternion_covariance(s[K.HEADER_SLICES.q], p))
+        return self.observed_error_model.variance(euler_variance_of_quaternion_covariance(s[K.HEADER_SLICES.q], p))

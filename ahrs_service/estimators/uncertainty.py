@@ -92,11 +92,99 @@ class ErrorModel:
         return AttitudeVariance(tilt, tilt, yaw)
 
 
+@dataclass(frozen=True, slots=True)
+class ObservedErrorState:
+    """What a filter records about the errors it has not yet corrected (``ObservedErrorModel``).
+
+    tilt_drift, yaw_drift: gyro drift of the inclination / heading since the corrections last
+        removed it, rad (accumulated from the residual bias and the scale error, shrunk by each
+        correction's gain: ``robust._drift_of_the_error_model``).
+    field_mean_square: mean square heading error of the fields that corrected the heading,
+        rad², from their norm and dip deviations from the learned reference.
+    field_norm, field_dip: the learned reference field, µT and rad.
+    has_field: False before the first usable field sample (heading unknown).
+    """
+
+    tilt_drift: float
+    yaw_drift: float
+    field_mean_square: float
+    field_norm: float
+    field_dip: float
+    has_field: bool
+
+
+@dataclass(frozen=True, slots=True)
+class ObservedErrorModel:
+    """Attitude variances from what the filter observes (``robust``):
+
+    v_tilt = s_tilt² · (tilt_floor² + u_tilt²)
+    v_yaw  = s_yaw² · ((field_floor / (B cos d))² + e_field² + u_yaw² + tan² d · v_tilt / s_tilt²)
+
+    u: the uncorrected gyro drifts; e_field²: mean square heading error of the used fields;
+    B, d: the reference field's norm and dip. A tilt error ε turns an inclined field's
+    horizontal part by up to ε tan d, which the heading filter then follows.
+
+    tilt_floor: σ left without motion, rad: a calibrated accelerometer's residual offset of
+        0.05 m/s² tilts gravity by atan(0.05 / 9.81) = 0.3°.
+    field_floor: a calibrated magnetometer's residual (hard and soft iron) plus the
+        building's distortion that the norm and dip tests cannot see, µT: 0.5 µT.
+    tilt_scale, heading_scale: the one calibration each angle gets, chosen on BROAD by
+        leave-one-recording-out cross-validation (``python -m ahrs_service.evaluation.coverage
+        --calibrate``, docs/autopilot.md "Attitude covariance"); 1.0 is the model uncalibrated.
+    """
+
+    tilt_floor: float = math.atan(0.05 / 9.81)
+    field_floor: float = 0.5
+    tilt_scale: float = 1.0
+    heading_scale: float = 1.0
+
+    def raw_variance(self, e: ObservedErrorState) -> tuple[float, float]:
+        """(tilt, yaw) variances before the scales, rad² (yaw NaN without a field)."""
+        tilt = self.tilt_floor**2 + e.tilt_drift**2
+        yaw = math.nan
+        horizontal = e.field_norm * math.cos(e.field_dip)
+        if e.has_field and horizontal > 0.0:
+            yaw = (self.field_floor / horizontal) ** 2 + e.field_mean_square + e.yaw_drift**2 + math.tan(e.field_dip) ** 2 * tilt
+        return tilt, yaw
+
+    def variance(self, e: ObservedErrorState) -> AttitudeVariance:
+        """The scaled variances (NaN where unknown or not finite)."""
+        tilt, yaw = self.raw_variance(e)
+        tilt *= self.tilt_scale**2
+        yaw *= self.heading_scale**2
+        if not math.isfinite(tilt):
+            tilt = math.nan
+        if not math.isfinite(yaw):
+            yaw = math.nan
+        return AttitudeVariance(tilt, tilt, yaw)
+
+
 def with_unmodelled_floor(var: AttitudeVariance, model: ErrorModel = ErrorModel()) -> AttitudeVariance:
     """``var`` plus the model's tilt and heading floors (variances add: independent errors);
     NaN stays NaN."""
     t, h = model.tilt_sigma**2, model.heading_sigma**2
     return AttitudeVariance(var.roll + t, var.pitch + t, var.yaw + h)
+
+
+@dataclass(frozen=True, slots=True)
+class CovarianceErrorModel:
+    """Variances of a filter with a covariance P (``ekf``): its own J P Jᵀ plus the floors of
+    what its model leaves out (``with_unmodelled_floor``), times one calibration scale per
+    angle:  v = s² · (J P Jᵀ + floor²).
+
+    P is state-dependent (it grows while corrections are gated out and shrinks with them);
+    the floors are the a-priori ``ErrorModel`` values. tilt_scale, heading_scale: chosen on
+    BROAD by leave-one-recording-out cross-validation like ``ObservedErrorModel``'s.
+    """
+
+    floors: ErrorModel = ErrorModel()
+    tilt_scale: float = 1.0
+    heading_scale: float = 1.0
+
+    def variance(self, from_p: AttitudeVariance) -> AttitudeVariance:
+        var = with_unmodelled_floor(from_p, self.floors)
+        t, h = self.tilt_scale**2, self.heading_scale**2
+        return AttitudeVariance(var.roll * t, var.pitch * t, var.yaw * h)
 
 
 def euler_jacobian(q: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Does the reported attitude uncertainty cover the actual error? A check on BROAD.
+"""Does the reported attitude uncertainty cover the actual error? A check on BROAD and DIDO.
 
 For each estimator and recording the estimator runs in blocks of ``STEP_S``; after each block
 its ``attitude_variance()`` (``estimators.uncertainty``) is compared with the error of that
@@ -12,11 +12,16 @@ A calibrated σ puts a one-dimensional Gaussian error (heading) within 1σ / 2σ
 95.4 % of the reads; the inclination is the length of a two-dimensional error (Rayleigh),
 within 1σ / 2σ in 39.3 % / 86.5 %.
 
-The error models' constants are a-priori values (``uncertainty.ErrorModel``); nothing here
-feeds back into them: BROAD is where they are checked, not where they are fitted.
+The error models' physical constants are a-priori values (``uncertainty``); ``robust`` and
+``ekf`` also carry one scale per angle, the only thing BROAD chooses. ``--calibrate`` shows how:
+for each recording left out, the scale that puts the claimed fraction within 1σ on the other
+eleven, applied to the left-out one (the held-out coverage), and the scale from all twelve.
+DIDO (``--dataset dido``: quadrotor flights with attitude truth, no magnetometer, so heading is
+not scored and the 6D estimators' yaw is NaN) is the check on data nothing was chosen on.
 
-Run: ``python -m ahrs_service.evaluation.coverage [--data DIR] [--estimators a,b] [--trials PATTERN]``
-(prints the table docs/autopilot.md quotes). Data: BROAD (see ``broad.CITATION``).
+Run: ``python -m ahrs_service.evaluation.coverage [--dataset broad|dido] [--data DIR]
+[--estimators a,b] [--trials PATTERN] [--calibrate]`` (prints the tables docs/autopilot.md
+quotes). Data: BROAD (see ``broad.CITATION``), DIDO (``dido.CITATION``).
 """
 
 from __future__ import annotations
@@ -29,8 +34,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ahrs_service import estimators
-from ahrs_service.estimators.base import stack_rows
-from ahrs_service.evaluation import broad
+from ahrs_service.estimators.base import stack_rows, time_steps
+from ahrs_service.evaluation import broad, dido
 from ahrs_service.evaluation.metrics import error_angles
 from ahrs_service.quaternion import ned_to_enu_array
 
@@ -38,6 +43,8 @@ from ahrs_service.quaternion import ned_to_enu_array
 STEP_S = 0.1
 ANGLES = ("heading", "inclination")
 #: what an error distributed as the reported σ says gives: (within 1σ, within 2σ)
+#: the data sets the check runs on (``--dataset``)
+DATASETS = {"broad": broad, "dido": dido}
 EXPECTED = {"heading": (0.683, 0.954), "inclination": (1.0 - math.exp(-0.5), 1.0 - math.exp(-2.0))}
 
 
@@ -79,16 +86,40 @@ class AngleCoverage:
 
 
 @dataclass
+class Reads:
+    """One recording's scored reads: per angle the absolute errors and the reported variances
+    (rad, rad²), and the scales the estimator's error model applied (1.0 where it has none)."""
+
+    errors: dict[str, np.ndarray]
+    variances: dict[str, np.ndarray]
+    scales: dict[str, float]
+
+
+@dataclass
 class Coverage:
     estimator: str
     angles: dict[str, AngleCoverage] = field(default_factory=lambda: {a: AngleCoverage() for a in ANGLES})
+    #: recording name → its reads (for the cross-validation of a calibration scale)
+    reads: dict[str, Reads] = field(default_factory=dict)
+
+
+def model_scales(est: estimators.Estimator) -> dict[str, float]:
+    """The calibration scales of an estimator's ``observed_error_model`` (1.0 without one):
+    {"heading": heading_scale, "inclination": tilt_scale}."""
+    model = getattr(est, "observed_error_model", None)
+    if model is None:
+        return {"heading": 1.0, "inclination": 1.0}
+    return {"heading": float(model.heading_scale), "inclination": float(model.tilt_scale)}
 
 
 def trial_coverage(name: str, trial: broad.Trial, into: Coverage | None = None, step_s: float = STEP_S) -> Coverage:
-    """Runs estimator ``name`` (defaults) over ``trial`` and adds its reads to ``into``."""
+    """Runs estimator ``name`` (defaults) over ``trial`` (a BROAD trial or a DIDO flight: its
+    recorded stamps are used when it has them) and adds its reads to ``into``."""
     cov = into if into is not None else Coverage(name)
     est = estimators.create(name)
-    rows = stack_rows(trial.gyr, trial.acc, trial.mag if est.uses_mag else None, 1.0 / trial.rate_hz)
+    stamps = getattr(trial, "timestamps", None)
+    dt = time_steps(len(trial), None, stamps) if stamps is not None else 1.0 / trial.rate_hz
+    rows = stack_rows(trial.gyr, trial.acc, trial.mag if est.uses_mag else None, dt)
     block = max(1, int(round(step_s * trial.rate_hz)))
     ends, q_est, var = [], [], []
     for start in range(0, len(rows) - block + 1, block):
@@ -104,17 +135,85 @@ def trial_coverage(name: str, trial: broad.Trial, into: Coverage | None = None, 
     scored = trial.movement[idx] & np.all(np.isfinite(ref), axis=1)
     _, heading, inclination = error_angles(ned_to_enu_array(q_est_a[scored]), ref[scored])
     v = var_a[scored]
-    cov.angles["heading"].add(heading, v[:, 2])
-    cov.angles["inclination"].add(inclination, 0.5 * (v[:, 0] + v[:, 1]))
+    per_angle = {"heading": (heading, v[:, 2]), "inclination": (inclination, 0.5 * (v[:, 0] + v[:, 1]))}
+    for angle, (err, var) in per_angle.items():
+        cov.angles[angle].add(err, var)
+    cov.reads[trial.name] = Reads(
+        errors={a: np.abs(e) for a, (e, _) in per_angle.items()},
+        variances={a: vv for a, (_, vv) in per_angle.items()},
+        scales=model_scales(est),
+    )
     return cov
 
 
-def broad_coverage(name: str, data_dir, trials: list[str] | None = None) -> Coverage:
-    """Coverage of estimator ``name`` over the BROAD recordings (all, or ``trials``)."""
+def broad_coverage(name: str, data_dir, trials: list[str] | None = None, dataset: str = "broad") -> Coverage:
+    """Coverage of estimator ``name`` over the recordings of ``dataset`` (all, or ``trials``)."""
+    source = DATASETS[dataset]
     cov = Coverage(name)
-    for t in trials if trials is not None else broad.list_trials(data_dir):
-        trial_coverage(name, broad.load_trial(data_dir, t), cov)
+    for t in trials if trials is not None else source.list_trials(data_dir):
+        trial_coverage(name, source.load_trial(data_dir, t), cov)
     return cov
+
+
+@dataclass
+class Calibration:
+    """The scale of one angle's σ that gives the claimed 1σ coverage, and how it holds out.
+
+    scale: relative to the model without its scale (1.0: the σ as the model computes it).
+    held_out_1, held_out_2: fractions within 1σ / 2σ of every recording's reads under the
+    scale chosen on the other recordings (leave-one-recording-out); per_recording: the
+    held-out 1σ fraction of each."""
+
+    angle: str
+    scale: float
+    current: float
+    held_out_1: float
+    held_out_2: float
+    per_recording: dict[str, float]
+
+
+def calibrate(cov: Coverage, angle: str) -> Calibration | None:
+    """Leave-one-recording-out choice of the scale of ``angle``'s σ: on each recording's
+    complement the scale is the EXPECTED 1σ quantile of |error| / σ_unscaled (so that the
+    claimed fraction falls within 1σ there), then applied to the left-out recording. None
+    when no recording has a finite σ. The returned ``scale`` is the one from all recordings."""
+    ratios: dict[str, np.ndarray] = {}
+    for name, r in cov.reads.items():
+        err, var = r.errors[angle], r.variances[angle]
+        ok = np.isfinite(err) & np.isfinite(var) & (var > 0)
+        if ok.any():
+            ratios[name] = err[ok] / (np.sqrt(var[ok]) / r.scales[angle])
+    if not ratios:
+        return None
+    q = EXPECTED[angle][0]
+    within_1 = within_2 = total = 0
+    per: dict[str, float] = {}
+    for name, r in ratios.items():
+        rest = [v for m, v in ratios.items() if m != name]
+        if not rest:
+            continue
+        k = float(np.quantile(np.concatenate(rest), q))
+        per[name] = float(np.mean(r <= k))
+        within_1 += int(np.count_nonzero(r <= k))
+        within_2 += int(np.count_nonzero(r <= 2.0 * k))
+        total += r.size
+    scale = float(np.quantile(np.concatenate(list(ratios.values())), q))
+    current = next(iter(cov.reads.values())).scales[angle]
+    return Calibration(angle, scale, current, within_1 / total if total else math.nan, within_2 / total if total else math.nan, per)
+
+
+def format_calibration(rows: list[tuple[str, Calibration]]) -> str:
+    lines = [
+        "| estimator | error | scale in use | scale (all recordings) | held out: within 1σ | within 2σ | per recording, within 1σ (min–max) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, c in rows:
+        lo, hi = (min(c.per_recording.values()), max(c.per_recording.values())) if c.per_recording else (math.nan, math.nan)
+        lines.append(
+            f"| {name} | {c.angle} | {c.current:.2f} | {c.scale:.3f} | {100 * c.held_out_1:.1f} % | {100 * c.held_out_2:.1f} % "
+            f"| {100 * lo:.0f}–{100 * hi:.0f} % |"
+        )
+    return "\n".join(lines)
 
 
 def format_table(rows: list[Coverage]) -> str:
@@ -134,25 +233,37 @@ def format_table(rows: list[Coverage]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m ahrs_service.evaluation.coverage", description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=None, help="BROAD folder (default $AHRS_BROAD_DIR or ../shared/data/broad)")
+    ap.add_argument("--dataset", choices=sorted(DATASETS), default="broad", help="broad (default) or dido (no magnetometer: inclination only)")
+    ap.add_argument("--data", default=None, help="data folder (default $AHRS_BROAD_DIR / $AHRS_DIDO_DIR or ../shared/data/<dataset>)")
     ap.add_argument("--estimators", default=",".join(estimators.names()), help="comma-separated names")
     ap.add_argument("--trials", default=None, help="shell pattern of recording names")
+    ap.add_argument("--calibrate", action="store_true", help="also print the leave-one-recording-out choice of each σ's scale")
     args = ap.parse_args(argv)
-    data = args.data or broad.default_dir()
+    source = DATASETS[args.dataset]
+    data = args.data or source.default_dir()
+    names = [n.strip() for n in args.estimators.split(",") if n.strip()]
+    unknown = [n for n in names if n not in estimators.names()]
+    if unknown:
+        print(f"error: --estimators: unknown estimator(s) {', '.join(unknown)}; known: {', '.join(estimators.names())}", file=sys.stderr)
+        return 2
     try:
-        trials = broad.list_trials(data, args.trials)
+        trials = source.list_trials(data, args.trials)
     except (FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     rows = []
-    for name in args.estimators.split(","):
-        rows.append(broad_coverage(name.strip(), data, trials))
+    for name in names:
+        rows.append(broad_coverage(name, data, trials, args.dataset))
         print("\n".join(format_table(rows[-1:]).splitlines()[2:]), flush=True)  # progress
     print()
     for angle, (one, two) in EXPECTED.items():
         print(f"calibrated σ, {angle}: {100 * one:.1f} % within 1σ, {100 * two:.1f} % within 2σ")
     print(format_table(rows))
-    print(f"\nData: {broad.CITATION}")
+    if args.calibrate:
+        cal = [(c.estimator, k) for c in rows for a in ANGLES if (k := calibrate(c, a)) is not None]
+        print("\nLeave-one-recording-out choice of the scale of σ (applied to the model's unscaled σ; 1.0 where a model has none):")
+        print(format_calibration(cal))
+    print(f"\nData: {source.CITATION}")
     return 0
 
 
