@@ -159,6 +159,67 @@ class ObservedErrorModel:
         return AttitudeVariance(tilt, tilt, yaw)
 
 
+@dataclass(frozen=True, slots=True)
+class SnapshotErrorState:
+    """The disturbance the newest samples of a single-sample solution (TRIAD, QUEST) show.
+
+    linear_acceleration: √| |f|² − g² | of the newest specific force, m/s² (a horizontal
+        acceleration a gives |f|² = g² + a²).
+    field_norm, field_dip: the slowly learned reference field, µT and rad (0: none yet).
+    field_norm_deviation, field_dip_deviation: the newest field's relative norm deviation and
+        dip deviation (rad) from it.
+    field_age, acc_age: time since the last usable field / accelerometer sample, s (inf: none).
+    """
+
+    linear_acceleration: float
+    field_norm: float
+    field_dip: float
+    field_norm_deviation: float
+    field_dip_deviation: float
+    field_age: float
+    acc_age: float
+
+
+@dataclass(frozen=True, slots=True)
+class SnapshotErrorModel:
+    """Variances of a single-sample solution: it takes each sample's specific force for
+    gravity and its field for the earth's, so its error is the disturbance of that sample:
+
+    v_tilt = s_tilt² · (tilt_floor² + atan²(a / g) + (drift t_acc)²)
+    v_yaw  = s_yaw² · ((field_floor / (B cos d))² + (Δn² + Δd²) / cos² d + tan² d · v_tilt / s_tilt² + (drift t_mag)²)
+
+    a: the linear acceleration the sample shows; Δn, Δd: the field's relative norm and dip
+    deviations, a disturbance of that size turning the horizontal field by about
+    √(Δn² + Δd²) / cos d; a tilt error turns it by up to tan d times itself; drift: the
+    gyro's while it carries the attitude between fixes (``ErrorModel.drift``). Floors as in
+    ``ObservedErrorModel``; the scales chosen on BROAD by leave-one-recording-out.
+    """
+
+    tilt_floor: float = math.atan(0.05 / 9.81)
+    field_floor: float = 0.5
+    drift: float = 0.2 * DEG
+    tilt_scale: float = 1.0
+    heading_scale: float = 1.0
+
+    def variance(self, e: SnapshotErrorState) -> AttitudeVariance:
+        tilt = self.tilt_floor**2 + math.atan(e.linear_acceleration / 9.81) ** 2 + (self.drift * e.acc_age) ** 2
+        yaw = math.nan
+        horizontal = e.field_norm * math.cos(e.field_dip)
+        if math.isfinite(e.field_age) and horizontal > 0.0:
+            c2 = math.cos(e.field_dip) ** 2
+            yaw = (
+                (self.field_floor / horizontal) ** 2
+                + (e.field_norm_deviation**2 + e.field_dip_deviation**2) / c2
+                + math.tan(e.field_dip) ** 2 * tilt
+                + (self.drift * e.field_age) ** 2
+            )
+        tilt *= self.tilt_scale**2
+        yaw *= self.heading_scale**2
+        return AttitudeVariance(
+            tilt if math.isfinite(tilt) else math.nan, tilt if math.isfinite(tilt) else math.nan, yaw if math.isfinite(yaw) else math.nan
+        )
+
+
 def with_unmodelled_floor(var: AttitudeVariance, model: ErrorModel = ErrorModel()) -> AttitudeVariance:
     """``var`` plus the model's tilt and heading floors (variances add: independent errors);
     NaN stays NaN."""
@@ -168,23 +229,38 @@ def with_unmodelled_floor(var: AttitudeVariance, model: ErrorModel = ErrorModel(
 
 @dataclass(frozen=True, slots=True)
 class CovarianceErrorModel:
-    """Variances of a filter with a covariance P (``ekf``): its own J P Jᵀ plus the floors of
-    what its model leaves out (``with_unmodelled_floor``), times one calibration scale per
-    angle:  v = s² · (J P Jᵀ + floor²).
+    """Variances of a filter with a covariance P that takes the specific force for gravity
+    (``ekf``): its own J P Jᵀ plus what the model leaves out, times one scale per angle:
 
-    P is state-dependent (it grows while corrections are gated out and shrinks with them);
-    the floors are the a-priori ``ErrorModel`` values. tilt_scale, heading_scale: chosen on
-    BROAD by leave-one-recording-out cross-validation like ``ObservedErrorModel``'s.
+    v_tilt = s_tilt² · (J P Jᵀ + tilt_floor² + ē²)
+    v_yaw  = s_yaw² · (J P Jᵀ + (field_floor / (B cos d))² + tan² d · ē²)
+
+    ē² is the mean square accelerometer innovation over the filter's own time constant: how far
+    the measured gravity direction disagreed with the estimate (linear acceleration, rad² for
+    small angles), which the filter partly follows; a tilt error turns an inclined field's
+    horizontal part by up to tan d times itself. P grows while corrections are gated out and
+    shrinks with them; ē² grows with the motion. The floors are ``ObservedErrorModel``'s
+    (accelerometer offset, magnetometer residual), B and d the filter's reference field.
+    tilt_scale, heading_scale: chosen on BROAD by leave-one-recording-out cross-validation
+    like ``ObservedErrorModel``'s. Only a fraction of ē² reaches the attitude (a disturbance
+    of correlation time T_c through a low-pass of time constant τ: T_c / (2 τ)), so the scales
+    come out well below 1.
     """
 
-    floors: ErrorModel = ErrorModel()
+    tilt_floor: float = math.atan(0.05 / 9.81)
+    field_floor: float = 0.5
     tilt_scale: float = 1.0
     heading_scale: float = 1.0
 
-    def variance(self, from_p: AttitudeVariance) -> AttitudeVariance:
-        var = with_unmodelled_floor(from_p, self.floors)
+    def variance(self, from_p: AttitudeVariance, acc_disagreement: float, field_norm: float, field_dip: float) -> AttitudeVariance:
+        """``from_p``: J P Jᵀ; ``acc_disagreement``: ē², rad²; ``field_norm`` (µT, 0: none
+        yet) and ``field_dip`` (rad): the reference field. NaN stays NaN."""
+        extra = self.tilt_floor**2 + acc_disagreement
         t, h = self.tilt_scale**2, self.heading_scale**2
-        return AttitudeVariance(var.roll * t, var.pitch * t, var.yaw * h)
+        horizontal = field_norm * math.cos(field_dip)
+        field = (self.field_floor / horizontal) ** 2 if horizontal > 0.0 else ErrorModel().heading_sigma ** 2
+        yaw = (from_p.yaw + field + math.tan(field_dip) ** 2 * acc_disagreement) * h
+        return AttitudeVariance((from_p.roll + extra) * t, (from_p.pitch + extra) * t, yaw)
 
 
 def euler_jacobian(q: np.ndarray) -> np.ndarray:

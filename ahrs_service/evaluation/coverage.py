@@ -136,6 +136,9 @@ def trial_coverage(name: str, trial: broad.Trial, into: Coverage | None = None, 
     _, heading, inclination = error_angles(ned_to_enu_array(q_est_a[scored]), ref[scored])
     v = var_a[scored]
     per_angle = {"heading": (heading, v[:, 2]), "inclination": (inclination, 0.5 * (v[:, 0] + v[:, 1]))}
+    if np.isnan(trial.mag).all():
+        # no magnetometer (DIDO): the reference's heading is arbitrary, heading is not scored
+        per_angle["heading"] = (heading, np.full_like(heading, np.nan))
     for angle, (err, var) in per_angle.items():
         cov.angles[angle].add(err, var)
     cov.reads[trial.name] = Reads(
