@@ -47,6 +47,11 @@ Magnetic rejection features (documented in docs/robust-estimator.md):
   only once it stayed steady while turning (VQF's magNewFirstTime);
 * **rejection timeout** and **new-field acceptance** as in VQF.
 
+Attitude uncertainty (``attitude_variance``): the step keeps a record of the gyro drift its
+corrections have not yet removed and of the disturbance of the fields it used
+(``_drift_of_the_error_model``, ``robust_mag.heading``); ``uncertainty.ObservedErrorModel``
+turns it into variances (docs/autopilot.md, "Attitude covariance").
+
 The published attitude is carried forward by ``output_lead`` (latency compensation, see
 ``RobustParams``); the filter state is not.
 

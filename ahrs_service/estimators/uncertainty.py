@@ -7,21 +7,25 @@ Every estimator answers ``Estimator.attitude_variance()`` with an :class:`Attitu
   covariance of the quaternion; :func:`euler_variance_of_quaternion_covariance` maps it onto
   the ZYX angles with the Jacobian of the angles against the normalised quaternion
   (Σ_e = J P Jᵀ, diagonal kept). P is how well the state is known *if the model holds*; both
-  models take the accelerometer for gravity alone and the field for undisturbed, so the
-  floors of the default :class:`ErrorModel` (linear acceleration, field distortion) are added
-  for what the model leaves out (:func:`with_unmodelled_floor`). On BROAD, P alone covers
-  the heading error 1σ in under a fifth of the reads (docs/autopilot.md). The roll/pitch
-  Kalman filter keeps its two variances itself (its paper's σ_ξ is large: no floor added).
-* **an error model** — the complementary filters (complementary, Mahony, Madgwick, Valenti,
-  immersion and invariance), the single-sample solutions (TRIAD, QUEST) and ``robust`` have
-  none. :class:`ErrorModel` gives each angle a floor σ (what the corrections leave: linear
-  acceleration seen by the accelerometer, field distortion seen by the magnetometer) plus the
+  models take the accelerometer for gravity alone and the field for undisturbed. The EKF adds
+  what that leaves out as it happens (:class:`CovarianceErrorModel`: its accelerometer
+  innovation's mean square over its own time constant); the quaternion KF adds the a-priori
+  floors of :class:`ErrorModel` (:func:`with_unmodelled_floor`). The roll/pitch Kalman filter
+  keeps its two variances itself (its paper's σ_ξ is large: no floor added).
+* **an error model over what the filter observes** — ``robust`` (:class:`ObservedErrorModel`):
+  the gyro drift its corrections have not yet removed (bias covariance, scale error times the
+  tilt rate and the net angle turned, the rejection state and the time without a field) and the
+  disturbance of the fields it used; TRIAD and QUEST (:class:`SnapshotErrorModel`): the linear
+  acceleration and field disturbance of the sample they were solved from.
+* **an a-priori error model** — the complementary filters (complementary, Mahony, Madgwick,
+  Valenti, immersion and invariance): :class:`ErrorModel` gives each angle a floor σ plus the
   gyro drift integrated since the last usable correction (the header's ``acc_age`` /
-  ``mag_age``, kept by the shared kernel; ``robust`` adds its rejection clock and its own bias
-  covariance). The default model's constants are a-priori values from sensor figures, not
-  fitted to any data; ``robust``'s floors (1.5°, 4°) have no such derivation: they are set
-  values, above the errors it leaves on BROAD (docs/autopilot.md, "Attitude covariance",
-  shows how both cover BROAD's errors).
+  ``mag_age``, kept by the shared kernel).
+
+The physical constants are sensor figures (each documented where defined). ``robust``, ``ekf``,
+``triad`` and ``quest`` carry one scale per angle, chosen on BROAD by leave-one-recording-out
+cross-validation (``python -m ahrs_service.evaluation.coverage --calibrate``); docs/autopilot.md,
+"Attitude covariance", gives the held-out coverage on BROAD and the check on DIDO.
 * **NaN** — heading of the estimators that do not observe it (the 6D filters: their yaw is the
   integrated gyro from an arbitrary start) and of any estimator before its first usable field
   sample; every angle before the estimator is initialised.
