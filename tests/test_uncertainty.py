@@ -1,8 +1,9 @@
 """Attitude uncertainty: every estimator reports it (NaN where it must), the covariance-based
 ones follow their P, the error models follow what the filter observes (time without
-corrections, angle turned, linear acceleration, field disturbance), and on BROAD (skipped
-without the recordings) the σ of ``robust`` and ``ekf`` is calibrated: its coverage is within
-a two-sided band of the claimed fractions, also held out (leave-one-recording-out)."""
+corrections, angle turned, linear acceleration, field disturbance), and on the recordings
+(BROAD, DIDO; each skipped without its data) the σ of ``robust`` and ``ekf`` is not
+overconfident on either data set (the scale is the largest either needs), nor absurdly
+conservative on BROAD, also held out (leave-one-recording-out)."""
 
 from __future__ import annotations
 
@@ -102,7 +103,7 @@ def shaken(n: int, amplitude: float, mag: bool = True):
     return gyr, acc, field
 
 
-@pytest.mark.parametrize("name", ["ekf", "triad", "quest"])
+@pytest.mark.parametrize("name", ["triad", "quest"])
 def test_tilt_sigma_grows_with_the_linear_acceleration_the_filter_sees(name):
     calm = estimators.create(name)
     calm.run(*shaken(2000, 0.0), dt=1.0 / RATE)
@@ -110,6 +111,19 @@ def test_tilt_sigma_grows_with_the_linear_acceleration_the_filter_sees(name):
     moved.run(*shaken(2000, 3.0), dt=1.0 / RATE)
     v0, v1 = calm.attitude_variance(), moved.attitude_variance()
     assert v1.roll > 4.0 * v0.roll and v1.yaw > v0.yaw
+
+
+def test_ekf_heading_sigma_grows_with_the_accelerometer_disagreement_and_tilt_follows_p():
+    """The EKF's tilt σ is its P plus the floor, scaled (its accelerometer disagreement made
+    the tilt σ fit handheld and quadrotor motion worse, docs/autopilot.md); the disagreement
+    still reaches the heading σ through the inclined field."""
+    calm = estimators.create("ekf")
+    calm.run(*shaken(2000, 0.0), dt=1.0 / RATE)
+    moved = estimators.create("ekf")
+    moved.run(*shaken(2000, 3.0), dt=1.0 / RATE)
+    v0, v1 = calm.attitude_variance(), moved.attitude_variance()
+    assert v1.yaw > 2.0 * v0.yaw
+    assert v1.roll == pytest.approx(v0.roll, rel=0.5)
 
 
 @pytest.mark.parametrize("name", ["triad", "quest"])
@@ -161,31 +175,81 @@ def test_robust_heading_sigma_counts_the_angle_turned_without_a_field_not_the_ba
     assert there_and_back < 0.5 * (still_only + one_way)
 
 
-#: the band the BROAD check holds robust and ekf to, two-sided: calibrated, within a few
-#: points of the claimed fractions (1σ) and not heavy-tailed beyond what the docs state (2σ)
-HEADING_BAND = ((0.60, 0.76), 0.84)  # (1σ min, max), 2σ min; calibrated: 0.683, 0.954
-INCLINATION_BAND = ((0.33, 0.46), 0.70)  # calibrated Rayleigh: 0.393, 0.865
-#: the shipped scales are the leave-one-recording-out choice: re-choosing them on the same
-#: data must land within this factor of the shipped value
+#: the checks on the recordings (skipped without them). The scale of each σ is the largest
+#: any data set needs for its claimed 1σ share (docs/autopilot.md "Attitude covariance"), so
+#: no data set may be overconfident beyond a small margin, and the one that did not bind is
+#: conservative but not absurdly so.
+CLAIM_1 = {"heading": 0.683, "inclination": 0.393}
+#: how far below the claimed 1σ share a data set may fall (the scales are rounded, and held out
+#: each recording is scored under a scale chosen without it)
+MARGIN = 0.03
+#: at most this share within 1σ on BROAD: conservative, not absurd
+BROAD_MAX_1 = {"heading": 0.90, "inclination": 0.75}
+#: the shipped scales are the rule's choice: re-choosing them on the same data must land within
+#: this factor of the shipped value
 SCALE_TOLERANCE = 0.05
+CHECKED = ("robust", "ekf")
 
 
-def test_reported_sigma_covers_the_broad_errors(broad_dir):
-    from ahrs_service.evaluation import broad
-    from ahrs_service.evaluation.coverage import Coverage, calibrate, trial_coverage
+def _coverages(source, data_dir):
+    from ahrs_service.evaluation.coverage import Coverage, trial_coverage
 
-    covs = {name: Coverage(name) for name in ("robust", "ekf")}
-    for t in broad.list_trials(broad_dir):
-        trial = broad.load_trial(broad_dir, t)
+    covs = {name: Coverage(name) for name in CHECKED}
+    for t in source.list_trials(data_dir):
+        trial = source.load_trial(data_dir, t)
         for name, cov in covs.items():
             trial_coverage(name, trial, cov)
-    for name, cov in covs.items():
-        for angle, ((lo_1, hi_1), min_2) in (("heading", HEADING_BAND), ("inclination", INCLINATION_BAND)):
+    return covs
+
+
+@pytest.fixture(scope="module")
+def broad_coverages(broad_dir):
+    from ahrs_service.evaluation import broad
+
+    return _coverages(broad, broad_dir)
+
+
+@pytest.fixture(scope="module")
+def dido_coverages():
+    from ahrs_service.evaluation import dido
+
+    reason = dido.missing_reason(dido.default_dir())
+    if reason:
+        pytest.skip(reason)
+    return _coverages(dido, dido.default_dir())
+
+
+@pytest.mark.timeout(900)
+def test_reported_sigma_is_not_overconfident_on_broad(broad_coverages):
+    for name, cov in broad_coverages.items():
+        for angle in ("heading", "inclination"):
             a = cov.angles[angle]
             assert a.n > 10_000, (name, angle, a.n)
-            assert lo_1 <= a.frac_1 <= hi_1 and a.frac_2 >= min_2, (name, angle, a.frac_1, a.frac_2)
-            cal = calibrate(cov, angle)
+            assert CLAIM_1[angle] - MARGIN <= a.frac_1 <= BROAD_MAX_1[angle], (name, angle, a.frac_1)
+
+
+@pytest.mark.timeout(900)
+def test_reported_inclination_sigma_is_not_overconfident_on_dido(dido_coverages):
+    for name, cov in dido_coverages.items():
+        a = cov.angles["inclination"]
+        assert a.n > 1_000, (name, a.n)
+        assert a.frac_1 >= CLAIM_1["inclination"] - MARGIN, (name, a.frac_1, a.rms_error_deg, a.rms_sigma_deg)
+        assert cov.angles["heading"].n == 0  # no magnetometer: heading not scored
+
+
+@pytest.mark.timeout(900)
+def test_shipped_scales_are_the_largest_need_of_the_data_sets(broad_coverages, dido_coverages):
+    """The rule, re-run: inclination's scale the larger of BROAD's and DIDO's needs, heading's
+    BROAD's alone; held out (each recording under the scale chosen without it) no data set is
+    overconfident beyond the margin."""
+    from ahrs_service.evaluation.coverage import calibrate_across
+
+    for name in CHECKED:
+        for angle in ("heading", "inclination"):
+            cal = calibrate_across({"broad": broad_coverages[name], "dido": dido_coverages[name]}, angle)
             assert cal is not None
-            # held out: each recording under the scale chosen on the other eleven
-            assert lo_1 <= cal.held_out_1 <= hi_1, (name, angle, cal.held_out_1)
-            assert abs(cal.scale / cal.current - 1.0) <= SCALE_TOLERANCE, (name, angle, cal.scale, cal.current)
+            assert set(cal.needed) == ({"broad", "dido"} if angle == "inclination" else {"broad"}), (name, angle, cal.needed)
+            assert cal.chosen == max(cal.needed.values())
+            assert abs(cal.chosen / cal.current - 1.0) <= SCALE_TOLERANCE, (name, angle, cal.chosen, cal.current)
+            for ds, (one, _) in cal.held_out.items():
+                assert one >= CLAIM_1[angle] - MARGIN, (name, angle, ds, one)

@@ -384,9 +384,10 @@ class QuaternionEKF(Estimator):
         p[np.arange(4, N), np.arange(4, N)] = self.params.init_bias_std**2
         return s
 
-    #: P plus the floors, scaled (``uncertainty.CovarianceErrorModel``); the scales: BROAD,
-    #: leave-one-recording-out (docs/autopilot.md "Attitude covariance")
-    observed_error_model: ClassVar[CovarianceErrorModel] = CovarianceErrorModel(tilt_scale=0.055, heading_scale=0.067)
+    #: P plus the floors, scaled (``uncertainty.CovarianceErrorModel``); the scales: the
+    #: largest either data set needs (inclination: BROAD or DIDO, which binds; heading: BROAD),
+    #: docs/autopilot.md "Attitude covariance"
+    observed_error_model: ClassVar[CovarianceErrorModel] = CovarianceErrorModel(tilt_scale=4.2, heading_scale=0.067)
 
     def attitude_variance(self) -> AttitudeVariance:
         """Roll, pitch, yaw variances (rad²) from the quaternion block of P (J P_qq Jᵀ), plus

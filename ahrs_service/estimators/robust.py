@@ -413,10 +413,11 @@ class RobustEstimator(Estimator):
         }
 
     #: the error model of ``attitude_variance`` (``uncertainty.ObservedErrorModel``)
-    #: scales: BROAD, leave-one-recording-out (docs/autopilot.md "Attitude covariance"); the
-    #: drift terms alone are about 4-5× the errors BROAD shows (the scale error's drift
-    #: partly cancels when the motion turns back)
-    observed_error_model: ClassVar[ObservedErrorModel] = ObservedErrorModel(tilt_scale=0.23, heading_scale=0.21)
+    #: scales: the largest either data set needs (inclination: BROAD or DIDO, which binds;
+    #: heading: BROAD), docs/autopilot.md "Attitude covariance"; the drift terms alone are
+    #: about 4-5× the errors BROAD shows (the scale error's drift partly cancels when the
+    #: motion turns back)
+    observed_error_model: ClassVar[ObservedErrorModel] = ObservedErrorModel(tilt_scale=0.39, heading_scale=0.21)
 
     def attitude_variance(self) -> AttitudeVariance:
         """Roll, pitch, yaw variances, rad²: ``ObservedErrorModel`` over the filter's own record

@@ -168,9 +168,9 @@ class Triad(Estimator):
     step = staticmethod(triad_step)
     batch = staticmethod(triad_batch)
     state_size = STATE_SIZE
-    #: single-sample error model (``uncertainty.SnapshotErrorModel``); scales: BROAD,
-    #: leave-one-recording-out (docs/autopilot.md "Attitude covariance")
-    observed_error_model: ClassVar[SnapshotErrorModel] = SnapshotErrorModel(tilt_scale=0.33, heading_scale=0.60)
+    #: single-sample error model (``uncertainty.SnapshotErrorModel``); scales: the largest
+    #: either data set needs (inclination: BROAD or DIDO; heading: BROAD), docs/autopilot.md
+    observed_error_model: ClassVar[SnapshotErrorModel] = SnapshotErrorModel(tilt_scale=0.41, heading_scale=0.60)
 
     def attitude_variance(self) -> AttitudeVariance:
         """Variances from the disturbance the newest samples show (``SnapshotErrorModel``)."""

@@ -8,8 +8,8 @@ Every estimator answers ``Estimator.attitude_variance()`` with an :class:`Attitu
   the ZYX angles with the Jacobian of the angles against the normalised quaternion
   (Σ_e = J P Jᵀ, diagonal kept). P is how well the state is known *if the model holds*; both
   models take the accelerometer for gravity alone and the field for undisturbed. The EKF adds
-  what that leaves out as it happens (:class:`CovarianceErrorModel`: its accelerometer
-  innovation's mean square over its own time constant); the quaternion KF adds the a-priori
+  floors and, to the heading, the tilt error its accelerometer innovation shows
+  (:class:`CovarianceErrorModel`); the quaternion KF adds the a-priori
   floors of :class:`ErrorModel` (:func:`with_unmodelled_floor`). The roll/pitch Kalman filter
   keeps its two variances itself (its paper's σ_ξ is large: no floor added).
 * **an error model over what the filter observes** — ``robust`` (:class:`ObservedErrorModel`):
@@ -23,9 +23,11 @@ Every estimator answers ``Estimator.attitude_variance()`` with an :class:`Attitu
   ``mag_age``, kept by the shared kernel).
 
 The physical constants are sensor figures (each documented where defined). ``robust``, ``ekf``,
-``triad`` and ``quest`` carry one scale per angle, chosen on BROAD by leave-one-recording-out
-cross-validation (``python -m ahrs_service.evaluation.coverage --calibrate``); docs/autopilot.md,
-"Attitude covariance", gives the held-out coverage on BROAD and the check on DIDO.
+``triad`` and ``quest`` carry one scale per angle: the largest any data set needs for its
+claimed 1σ share — inclination the larger of BROAD's (handheld) and DIDO's (quadrotor), heading
+BROAD's (DIDO has no magnetometer) — so that no data set sees its errors under-covered and the
+other is then conservative (``python -m ahrs_service.evaluation.coverage --calibrate``;
+docs/autopilot.md, "Attitude covariance", gives the held-out coverage on each).
 * **NaN** — heading of the estimators that do not observe it (the 6D filters: their yaw is the
   integrated gyro from an arbitrary start) and of any estimator before its first usable field
   sample; every angle before the estimator is initialised.
@@ -132,8 +134,8 @@ class ObservedErrorModel:
         0.05 m/s² tilts gravity by atan(0.05 / 9.81) = 0.3°.
     field_floor: a calibrated magnetometer's residual (hard and soft iron) plus the
         building's distortion that the norm and dip tests cannot see, µT: 0.5 µT.
-    tilt_scale, heading_scale: the one calibration each angle gets, chosen on BROAD by
-        leave-one-recording-out cross-validation (``python -m ahrs_service.evaluation.coverage
+    tilt_scale, heading_scale: the one calibration each angle gets, the largest scale any data
+        set needs for its claimed 1σ share (``python -m ahrs_service.evaluation.coverage
         --calibrate``, docs/autopilot.md "Attitude covariance"); 1.0 is the model uncalibrated.
     """
 
@@ -196,7 +198,7 @@ class SnapshotErrorModel:
     deviations, a disturbance of that size turning the horizontal field by about
     √(Δn² + Δd²) / cos d; a tilt error turns it by up to tan d times itself; drift: the
     gyro's while it carries the attitude between fixes (``ErrorModel.drift``). Floors as in
-    ``ObservedErrorModel``; the scales chosen on BROAD by leave-one-recording-out.
+    ``ObservedErrorModel``; the scales chosen like its.
     """
 
     tilt_floor: float = math.atan(0.05 / 9.81)
@@ -236,19 +238,20 @@ class CovarianceErrorModel:
     """Variances of a filter with a covariance P that takes the specific force for gravity
     (``ekf``): its own J P Jᵀ plus what the model leaves out, times one scale per angle:
 
-    v_tilt = s_tilt² · (J P Jᵀ + tilt_floor² + ē²)
+    v_tilt = s_tilt² · (J P Jᵀ + tilt_floor²)
     v_yaw  = s_yaw² · (J P Jᵀ + (field_floor / (B cos d))² + tan² d · ē²)
 
-    ē² is the mean square accelerometer innovation over the filter's own time constant: how far
-    the measured gravity direction disagreed with the estimate (linear acceleration, rad² for
-    small angles), which the filter partly follows; a tilt error turns an inclined field's
-    horizontal part by up to tan d times itself. P grows while corrections are gated out and
-    shrinks with them; ē² grows with the motion. The floors are ``ObservedErrorModel``'s
-    (accelerometer offset, magnetometer residual), B and d the filter's reference field.
-    tilt_scale, heading_scale: chosen on BROAD by leave-one-recording-out cross-validation
-    like ``ObservedErrorModel``'s. Only a fraction of ē² reaches the attitude (a disturbance
-    of correlation time T_c through a low-pass of time constant τ: T_c / (2 τ)), so the scales
-    come out well below 1.
+    P is how well the state is known if the specific force were gravity alone; what linear
+    acceleration adds is in the scale. ē² is the mean square accelerometer innovation over the
+    filter's own time constant (how far the measured gravity direction disagreed with the
+    estimate, rad² for small angles); a tilt error turns an inclined field's horizontal part by
+    up to tan d times itself, which the heading follows. ē² is *not* in the tilt: across BROAD
+    (jerky handheld motion, large ē² of which the filter follows little) and DIDO (smooth,
+    sustained quadrotor acceleration, small ē² of which it follows much) the tilt errors it
+    predicts differ by 3.7× in scale, without it by 2.3× (docs/autopilot.md "Attitude
+    covariance"). The floors are ``ObservedErrorModel``'s (accelerometer offset, magnetometer
+    residual), B and d the filter's reference field. tilt_scale, heading_scale: the largest
+    scale any data set needs (``python -m ahrs_service.evaluation.coverage --calibrate``).
     """
 
     tilt_floor: float = math.atan(0.05 / 9.81)
@@ -259,12 +262,12 @@ class CovarianceErrorModel:
     def variance(self, from_p: AttitudeVariance, acc_disagreement: float, field_norm: float, field_dip: float) -> AttitudeVariance:
         """``from_p``: J P Jᵀ; ``acc_disagreement``: ē², rad²; ``field_norm`` (µT, 0: none
         yet) and ``field_dip`` (rad): the reference field. NaN stays NaN."""
-        extra = self.tilt_floor**2 + acc_disagreement
         t, h = self.tilt_scale**2, self.heading_scale**2
         horizontal = field_norm * math.cos(field_dip)
         field = (self.field_floor / horizontal) ** 2 if horizontal > 0.0 else ErrorModel().heading_sigma ** 2
         yaw = (from_p.yaw + field + math.tan(field_dip) ** 2 * acc_disagreement) * h
-        return AttitudeVariance((from_p.roll + extra) * t, (from_p.pitch + extra) * t, yaw)
+        floor = self.tilt_floor**2
+        return AttitudeVariance((from_p.roll + floor) * t, (from_p.pitch + floor) * t, yaw)
 
 
 def euler_jacobian(q: np.ndarray) -> np.ndarray:

@@ -12,12 +12,17 @@ A calibrated σ puts a one-dimensional Gaussian error (heading) within 1σ / 2σ
 95.4 % of the reads; the inclination is the length of a two-dimensional error (Rayleigh),
 within 1σ / 2σ in 39.3 % / 86.5 %.
 
-The error models' physical constants are a-priori values (``uncertainty``); ``robust`` and
-``ekf`` also carry one scale per angle, the only thing BROAD chooses. ``--calibrate`` shows how:
-for each recording left out, the scale that puts the claimed fraction within 1σ on the other
-eleven, applied to the left-out one (the held-out coverage), and the scale from all twelve.
-DIDO (``--dataset dido``: quadrotor flights with attitude truth, no magnetometer, so heading is
-not scored and the 6D estimators' yaw is NaN) is the check on data nothing was chosen on.
+The error models' physical constants are a-priori values (``uncertainty``); ``robust``,
+``ekf``, ``triad`` and ``quest`` also carry one scale per angle, the only thing the data
+chooses. ``--calibrate`` shows how. Each data set present needs the scale that puts the
+claimed fraction of its errors within 1σ (BROAD: 12 handheld recordings; DIDO, ``--dataset
+dido``: 8 quadrotor flights with attitude truth and no magnetometer, so DIDO scores the
+inclination only and has no say in the heading scale). The **chosen scale is the largest of
+those needs**: no data set sees its errors under-covered (an overconfident σ, the dangerous
+direction for an autopilot fusing it); the others are then conservative. Held out: each
+recording (flight) scored under the scale chosen without it — its own data set's need
+re-chosen on the other recordings, the other data sets' needs from all of theirs. It also
+prints each data set alone (leave-one-recording-out), as before.
 
 Run: ``python -m ahrs_service.evaluation.coverage [--dataset broad|dido] [--data DIR]
 [--estimators a,b] [--trials PATTERN] [--calibrate]`` (prints the tables docs/autopilot.md
@@ -175,17 +180,25 @@ class Calibration:
     per_recording: dict[str, float]
 
 
-def calibrate(cov: Coverage, angle: str) -> Calibration | None:
-    """Leave-one-recording-out choice of the scale of ``angle``'s σ: on each recording's
-    complement the scale is the EXPECTED 1σ quantile of |error| / σ_unscaled (so that the
-    claimed fraction falls within 1σ there), then applied to the left-out recording. None
-    when no recording has a finite σ. The returned ``scale`` is the one from all recordings."""
+def scale_ratios(cov: Coverage, angle: str) -> dict[str, np.ndarray]:
+    """Recording name → |error| / σ_unscaled of its scored reads of ``angle`` (the σ the model
+    computes before its calibration scale; recordings without a finite σ left out)."""
     ratios: dict[str, np.ndarray] = {}
     for name, r in cov.reads.items():
         err, var = r.errors[angle], r.variances[angle]
         ok = np.isfinite(err) & np.isfinite(var) & (var > 0)
         if ok.any():
             ratios[name] = err[ok] / (np.sqrt(var[ok]) / r.scales[angle])
+    return ratios
+
+
+def calibrate(cov: Coverage, angle: str) -> Calibration | None:
+    """Leave-one-recording-out choice of the scale of ``angle``'s σ on one data set: on each
+    recording's complement the scale is the EXPECTED 1σ quantile of |error| / σ_unscaled (so
+    that the claimed fraction falls within 1σ there), then applied to the left-out recording.
+    None when no recording has a finite σ. The returned ``scale`` is the one from all
+    recordings: what this data set needs (``calibrate_across`` combines the data sets)."""
+    ratios = scale_ratios(cov, angle)
     if not ratios:
         return None
     q = EXPECTED[angle][0]
@@ -205,6 +218,60 @@ def calibrate(cov: Coverage, angle: str) -> Calibration | None:
     return Calibration(angle, scale, current, within_1 / total if total else math.nan, within_2 / total if total else math.nan, per)
 
 
+@dataclass
+class JointCalibration:
+    """The scale of one angle's σ chosen across data sets, and how it holds out on each.
+
+    The rule: every data set that scores the angle needs the scale that puts the claimed 1σ
+    fraction of its errors within 1σ (``calibrate``: the quantile over all its recordings);
+    the chosen scale is the largest of those, so that no data set sees its errors
+    under-covered (overconfident σ) and the others are then conservative.
+
+    needed: data set → the scale it needs; chosen: their maximum.
+    held_out: data set → (within 1σ, within 2σ) of each of its recordings under the scale
+    chosen without that recording (its own data set's need re-chosen on the other
+    recordings, the other data sets' needs from all of theirs); per_recording: data set →
+    recording → its held-out 1σ fraction."""
+
+    angle: str
+    current: float
+    needed: dict[str, float]
+    chosen: float
+    held_out: dict[str, tuple[float, float]]
+    per_recording: dict[str, dict[str, float]]
+
+
+def calibrate_across(covs: dict[str, Coverage], angle: str) -> JointCalibration | None:
+    """The largest of the scales each data set in ``covs`` (data set name → one estimator's
+    coverage on it) needs for ``angle``, with its leave-one-recording-out coverage on each
+    (``JointCalibration``). Data sets without a finite σ of the angle (DIDO's heading) take
+    no part; None when none has one."""
+    q = EXPECTED[angle][0]
+    ratios = {ds: r for ds, cov in covs.items() if (r := scale_ratios(cov, angle))}
+    if not ratios:
+        return None
+    needed = {ds: float(np.quantile(np.concatenate(list(r.values())), q)) for ds, r in ratios.items()}
+    held_out: dict[str, tuple[float, float]] = {}
+    per: dict[str, dict[str, float]] = {}
+    for ds, rs in ratios.items():
+        others = max((v for d, v in needed.items() if d != ds), default=0.0)
+        within_1 = within_2 = total = 0
+        per[ds] = {}
+        for name, r in rs.items():
+            rest = [v for m, v in rs.items() if m != name]
+            own = float(np.quantile(np.concatenate(rest), q)) if rest else 0.0
+            k = max(own, others)
+            if k <= 0.0:
+                continue
+            per[ds][name] = float(np.mean(r <= k))
+            within_1 += int(np.count_nonzero(r <= k))
+            within_2 += int(np.count_nonzero(r <= 2.0 * k))
+            total += r.size
+        held_out[ds] = (within_1 / total, within_2 / total) if total else (math.nan, math.nan)
+    current = next(iter(next(iter(covs.values())).reads.values())).scales[angle]
+    return JointCalibration(angle, current, needed, max(needed.values()), held_out, per)
+
+
 def format_calibration(rows: list[tuple[str, Calibration]]) -> str:
     lines = [
         "| estimator | error | scale in use | scale (all recordings) | held out: within 1σ | within 2σ | per recording, within 1σ (min–max) |",
@@ -216,6 +283,28 @@ def format_calibration(rows: list[tuple[str, Calibration]]) -> str:
             f"| {name} | {c.angle} | {c.current:.2f} | {c.scale:.3f} | {100 * c.held_out_1:.1f} % | {100 * c.held_out_2:.1f} % "
             f"| {100 * lo:.0f}–{100 * hi:.0f} % |"
         )
+    return "\n".join(lines)
+
+
+def format_joint_calibration(rows: list[tuple[str, JointCalibration]], datasets: list[str]) -> str:
+    """One row per estimator and angle: each data set's needed scale, the chosen (largest)
+    one, and each data set's held-out 1σ / 2σ coverage under the rule."""
+    need = " | ".join(f"{ds} needs" for ds in datasets)
+    held = " | ".join(f"{ds} held out: 1σ / 2σ (per recording 1σ min–max)" for ds in datasets)
+    lines = [f"| estimator | error | scale in use | {need} | chosen (largest) | {held} |", "|---" * (4 + 2 * len(datasets)) + "|"]
+    for name, c in rows:
+        cells_need, cells_held = [], []
+        for ds in datasets:
+            if ds not in c.needed:
+                cells_need.append("—")
+                cells_held.append("— (not scored)")
+                continue
+            cells_need.append(f"{c.needed[ds]:.3f}")
+            one, two = c.held_out[ds]
+            p = c.per_recording[ds]
+            span = f"{100 * min(p.values()):.0f}–{100 * max(p.values()):.0f} %" if p else ""
+            cells_held.append(f"{100 * one:.1f} % / {100 * two:.1f} % ({span})")
+        lines.append(f"| {name} | {c.angle} | {c.current:.3f} | {' | '.join(cells_need)} | {c.chosen:.3f} | {' | '.join(cells_held)} |")
     return "\n".join(lines)
 
 
@@ -240,7 +329,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", default=None, help="data folder (default $AHRS_BROAD_DIR / $AHRS_DIDO_DIR or ../shared/data/<dataset>)")
     ap.add_argument("--estimators", default=",".join(estimators.names()), help="comma-separated names")
     ap.add_argument("--trials", default=None, help="shell pattern of recording names")
-    ap.add_argument("--calibrate", action="store_true", help="also print the leave-one-recording-out choice of each σ's scale")
+    ap.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="also print each σ's scale: what each data set present needs (leave-one-recording-out) and the chosen, largest one",
+    )
     args = ap.parse_args(argv)
     source = DATASETS[args.dataset]
     data = args.data or source.default_dir()
@@ -264,8 +357,29 @@ def main(argv: list[str] | None = None) -> int:
     print(format_table(rows))
     if args.calibrate:
         cal = [(c.estimator, k) for c in rows for a in ANGLES if (k := calibrate(c, a)) is not None]
-        print("\nLeave-one-recording-out choice of the scale of σ (applied to the model's unscaled σ; 1.0 where a model has none):")
+        print(f"\n{args.dataset} alone, leave-one-recording-out (the scale of σ applied to the model's unscaled σ; 1.0 where a model has none):")
         print(format_calibration(cal))
+        # the other data sets, when present: the chosen scale is the largest any of them needs
+        per_set = {args.dataset: {c.estimator: c for c in rows}}
+        for ds, other in DATASETS.items():
+            if ds == args.dataset:
+                continue
+            try:
+                other_dir = other.default_dir()
+                other_trials = other.list_trials(other_dir)
+            except (FileNotFoundError, ValueError) as exc:
+                print(f"\n{ds} not included in the calibration: {exc}")
+                continue
+            print(f"\nrunning the estimators over {ds} ({other_dir}) for the calibration", flush=True)
+            per_set[ds] = {n: broad_coverage(n, other_dir, other_trials, ds) for n in names}
+        sets = sorted(per_set)
+        joint = [(n, k) for n in names for a in ANGLES if (k := calibrate_across({ds: per_set[ds][n] for ds in sets}, a)) is not None]
+        print(
+            "\nThe scale chosen across data sets (each data set needs the scale that puts the claimed share within 1σ;"
+            " the largest is chosen, so that no data set sees its errors under-covered and the others are conservative;"
+            " held out: each recording under the scale chosen without it):"
+        )
+        print(format_joint_calibration(joint, sets))
     print(f"\nData: {source.CITATION}")
     return 0
 
