@@ -45,6 +45,7 @@ from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.uncertainty import (
     AttitudeVariance,
+    SUSTAINED_ACCELERATION_TAU,
     CovarianceErrorModel,
     euler_variance_of_quaternion_covariance,
 )
@@ -64,10 +65,11 @@ STATE = Layout(
         Slot("mag_norm_ref", 1, "reference field magnitude, µT (0 until the first field sample)"),
         Slot("mag_dip_ref", 1, "reference sine of the field's dip below the horizon"),
         Slot("acc_innov2", 1, "mean square accelerometer innovation |f/|f| − h_a|² over the filter's time constant (error model)"),
+        Slot("acc_sustained", 2, "vector mean of the unit specific force's north and east parts, NED (error model)"),
     ],
     start=K.HEADER,
 )
-P0, FQ, M, PHT, KG, HQ, MAG_NORM_REF, MAG_DIP_REF, ACC_INNOV2 = STATE.index
+P0, FQ, M, PHT, KG, HQ, MAG_NORM_REF, MAG_DIP_REF, ACC_INNOV2, ACC_SUSTAINED = STATE.index
 STATE_SIZE = STATE.end
 
 #: time constant with which the field reference follows accepted samples, s
@@ -258,6 +260,13 @@ def _accelerometer_update(s, x, acc_noise, gyro_noise):
     e2 = (x[3] / na - h0) ** 2 + (x[4] / na - h1) ** 2 + (x[5] / na - h2) ** 2
     if gyro_noise > 0.0:
         s[ACC_INNOV2] += min(1.0, x[K.DT] * gyro_noise / acc_noise) * (e2 - s[ACC_INNOV2])
+    # and the vector mean of the unit specific force's horizontal part in NED (rows 1–2 of
+    # R(q)) over SUSTAINED_ACCELERATION_TAU: sustained acceleration, which the filter follows
+    k_s = min(1.0, x[K.DT] / SUSTAINED_ACCELERATION_TAU)
+    fn = (1.0 - 2.0 * (q2 * q2 + q3 * q3)) * x[3] + 2.0 * (q1 * q2 - q0 * q3) * x[4] + 2.0 * (q1 * q3 + q0 * q2) * x[5]
+    fe = 2.0 * (q1 * q2 + q0 * q3) * x[3] + (1.0 - 2.0 * (q1 * q1 + q3 * q3)) * x[4] + 2.0 * (q2 * q3 - q0 * q1) * x[5]
+    s[ACC_SUSTAINED] += k_s * (fn / na - s[ACC_SUSTAINED])
+    s[ACC_SUSTAINED + 1] += k_s * (fe / na - s[ACC_SUSTAINED + 1])
     hq = s[HQ : HQ + 12]
     hq[0:4] = (2.0 * q2, -2.0 * q3, 2.0 * q0, -2.0 * q1)
     hq[4:8] = (-2.0 * q1, -2.0 * q0, -2.0 * q3, -2.0 * q2)
@@ -387,7 +396,7 @@ class QuaternionEKF(Estimator):
     #: P plus the floors, scaled (``uncertainty.CovarianceErrorModel``); the scales: the
     #: largest either data set needs (inclination: BROAD or DIDO, which binds; heading: BROAD),
     #: docs/autopilot.md "Attitude covariance"
-    observed_error_model: ClassVar[CovarianceErrorModel] = CovarianceErrorModel(tilt_scale=4.2, heading_scale=0.067)
+    observed_error_model: ClassVar[CovarianceErrorModel] = CovarianceErrorModel(tilt_scale=0.21, heading_scale=0.067)
 
     def attitude_variance(self) -> AttitudeVariance:
         """Roll, pitch, yaw variances (rad²) from the quaternion block of P (J P_qq Jᵀ), plus
@@ -401,6 +410,7 @@ class QuaternionEKF(Estimator):
         var = self.observed_error_model.variance(
             euler_variance_of_quaternion_covariance(s[K.HEADER_SLICES.q], p),
             acc_disagreement=float(s[ACC_INNOV2]),
+            sustained_acceleration=float(s[ACC_SUSTAINED] ** 2 + s[ACC_SUSTAINED + 1] ** 2),
             field_norm=float(s[MAG_NORM_REF]),
             field_dip=math.asin(max(-1.0, min(1.0, sin_dip))),
         )

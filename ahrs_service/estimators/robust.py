@@ -48,8 +48,9 @@ Magnetic rejection features (documented in docs/robust-estimator.md):
 * **rejection timeout** and **new-field acceptance** as in VQF.
 
 Attitude uncertainty (``attitude_variance``): the step keeps a record of the gyro drift its
-corrections have not yet removed and of the disturbance of the fields it used
-(``_drift_of_the_error_model``, ``robust_mag.heading``); ``uncertainty.ObservedErrorModel``
+corrections have not yet removed, of the sustained acceleration the accelerometer shows (the
+vector mean of its horizontal part) and of the disturbance of the fields it used
+(``_drift_of_the_error_model``, ``_inclination_and_bias``, ``robust_mag.heading``); ``uncertainty.ObservedErrorModel``
 turns it into variances (docs/autopilot.md, "Attitude covariance").
 
 The published attitude is carried forward by ``output_lead`` (latency compensation, see
@@ -78,7 +79,7 @@ from ahrs_service.estimators import robust_blocks as B
 from ahrs_service.estimators.base import Estimator, sample_age
 from ahrs_service.estimators.robust_layout import DEG, N_PARAMS, P, ST, STATE, STATE_SIZE, RobustParams
 from ahrs_service.estimators.robust_mag import hard_iron_and_consistency, heading
-from ahrs_service.estimators.uncertainty import AttitudeVariance, ObservedErrorModel, ObservedErrorState
+from ahrs_service.estimators.uncertainty import SUSTAINED_ACCELERATION_TAU, AttitudeVariance, ObservedErrorModel, ObservedErrorState
 from ahrs_service.quaternion import quat_integrate, quat_mul, quat_normalize, quat_rotate
 
 _jit = njit(cache=True, inline="always")
@@ -186,6 +187,15 @@ def _inclination_and_bias(s, p, x, dt, qg, rg):
     lp1 = B.butter2_step(s, ca, ST.acc_lp, 3, 1, a_i[1])
     lp2 = B.butter2_step(s, ca, ST.acc_lp, 3, 2, a_i[2])
     qa = (s[ST.aq], s[ST.aq + 1], s[ST.aq + 2], s[ST.aq + 3])
+    # error model (attitude_variance): the vector mean of the unit specific force's horizontal
+    # part in E6 over SUSTAINED_ACCELERATION_TAU, the sustained acceleration the low-pass takes
+    # for gravity in part (a quadrotor's turns); jerks and vibration average out
+    f_e = quat_rotate(qa, a_i)
+    nf = math.sqrt(f_e[0] ** 2 + f_e[1] ** 2 + f_e[2] ** 2)
+    if nf > 0.0:
+        k_s = min(1.0, dt / SUSTAINED_ACCELERATION_TAU)
+        s[ST.acc_sustained] += k_s * (f_e[0] / nf - s[ST.acc_sustained])
+        s[ST.acc_sustained + 1] += k_s * (f_e[1] / nf - s[ST.acc_sustained + 1])
     a_e = quat_rotate(qa, (lp0, lp1, lp2))
     n = math.sqrt(a_e[0] ** 2 + a_e[1] ** 2 + a_e[2] ** 2)
     # down direction u = −f/|f| must become NED z: rotate u onto (0, 0, 1) (VQF eq. 9–10).
@@ -414,10 +424,10 @@ class RobustEstimator(Estimator):
 
     #: the error model of ``attitude_variance`` (``uncertainty.ObservedErrorModel``)
     #: scales: the largest either data set needs (inclination: BROAD or DIDO, which binds;
-    #: heading: BROAD), docs/autopilot.md "Attitude covariance"; the drift terms alone are
-    #: about 4-5× the errors BROAD shows (the scale error's drift partly cancels when the
-    #: motion turns back)
-    observed_error_model: ClassVar[ObservedErrorModel] = ObservedErrorModel(tilt_scale=0.39, heading_scale=0.21)
+    #: heading: BROAD), docs/autopilot.md "Attitude covariance"; well below 1: the drift terms
+    #: are worst cases (the scale error's drift partly cancels when the motion turns back) and
+    #: the filter follows only part of the sustained acceleration
+    observed_error_model: ClassVar[ObservedErrorModel] = ObservedErrorModel(tilt_scale=0.089, heading_scale=0.12)
 
     def attitude_variance(self) -> AttitudeVariance:
         """Roll, pitch, yaw variances, rad²: ``ObservedErrorModel`` over the filter's own record
@@ -433,5 +443,6 @@ class RobustEstimator(Estimator):
                 field_norm=float(s[ST.mag_ref_norm]),
                 field_dip=float(s[ST.mag_ref_dip]),
                 has_field=bool(np.isfinite(sample_age(s[K.MAG_AGE]))),
+                sustained_acceleration=float(s[ST.acc_sustained] ** 2 + s[ST.acc_sustained + 1] ** 2),
             )
         )

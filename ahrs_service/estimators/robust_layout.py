@@ -222,6 +222,7 @@ STATE = Layout(
         Slot("u_yaw", 1, "heading drift of the residual gyro bias not yet corrected by the field, rad"),
         Slot("u_turn", 1, "heading turned by the gyro since the field last corrected it (signed, shrunk like u_yaw), rad"),
         Slot("u_field", 1, "mean square heading error of the fields that corrected the heading, rad²"),
+        Slot("acc_sustained", 2, "vector mean of the unit specific force's horizontal part in E6 (error model)"),
     ],
     start=K.HEADER,
 )

@@ -44,6 +44,12 @@ from ahrs_service.quaternion import euler_of
 
 DEG = math.pi / 180.0
 
+#: time constant of the vector mean of the accelerometer's disagreement with the estimated
+#: vertical, s: what outlasts it is sustained acceleration (a vehicle's turn), which a filter
+#: follows into its attitude; hand jerks, taps and vibration average out. Chosen from 0.3, 1 and
+#: 3 s on BROAD and DIDO together (docs/autopilot.md "Attitude covariance")
+SUSTAINED_ACCELERATION_TAU = 0.3
+
 
 @dataclass(frozen=True, slots=True)
 class AttitudeVariance:
@@ -109,6 +115,10 @@ class ObservedErrorState:
         rad², from their norm and dip deviations from the learned reference.
     field_norm, field_dip: the learned reference field, µT and rad.
     has_field: False before the first usable field sample (heading unknown).
+    sustained_acceleration: |LP(e_h)|², the squared length of the vector mean (first-order
+        low-pass, ``SUSTAINED_ACCELERATION_TAU``) of the horizontal part of each unit specific
+        force in the inclination frame: the tilt sustained linear acceleration pulls the
+        estimate towards, rad² for small angles (0 at rest and for zero-mean jerks).
     """
 
     tilt_drift: float
@@ -117,16 +127,18 @@ class ObservedErrorState:
     field_norm: float
     field_dip: float
     has_field: bool
+    sustained_acceleration: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
 class ObservedErrorModel:
     """Attitude variances from what the filter observes (``robust``):
 
-    v_tilt = s_tilt² · (tilt_floor² + u_tilt²)
+    v_tilt = s_tilt² · (tilt_floor² + u_tilt² + ā²)
     v_yaw  = s_yaw² · ((field_floor / (B cos d))² + e_field² + u_yaw² + tan² d · v_tilt / s_tilt²)
 
-    u: the uncorrected gyro drifts; e_field²: mean square heading error of the used fields;
+    u: the uncorrected gyro drifts; ā²: the sustained acceleration's tilt
+    (``ObservedErrorState.sustained_acceleration``); e_field²: mean square heading error of the used fields;
     B, d: the reference field's norm and dip. A tilt error ε turns an inclined field's
     horizontal part by up to ε tan d, which the heading filter then follows.
 
@@ -146,7 +158,7 @@ class ObservedErrorModel:
 
     def raw_variance(self, e: ObservedErrorState) -> tuple[float, float]:
         """(tilt, yaw) variances before the scales, rad² (yaw NaN without a field)."""
-        tilt = self.tilt_floor**2 + e.tilt_drift**2
+        tilt = self.tilt_floor**2 + e.tilt_drift**2 + e.sustained_acceleration
         yaw = math.nan
         horizontal = e.field_norm * math.cos(e.field_dip)
         if e.has_field and horizontal > 0.0:
@@ -238,17 +250,19 @@ class CovarianceErrorModel:
     """Variances of a filter with a covariance P that takes the specific force for gravity
     (``ekf``): its own J P Jᵀ plus what the model leaves out, times one scale per angle:
 
-    v_tilt = s_tilt² · (J P Jᵀ + tilt_floor²)
+    v_tilt = s_tilt² · (J P Jᵀ + tilt_floor² + ā²)
     v_yaw  = s_yaw² · (J P Jᵀ + (field_floor / (B cos d))² + tan² d · ē²)
 
-    P is how well the state is known if the specific force were gravity alone; what linear
-    acceleration adds is in the scale. ē² is the mean square accelerometer innovation over the
-    filter's own time constant (how far the measured gravity direction disagreed with the
-    estimate, rad² for small angles); a tilt error turns an inclined field's horizontal part by
-    up to tan d times itself, which the heading follows. ē² is *not* in the tilt: across BROAD
-    (jerky handheld motion, large ē² of which the filter follows little) and DIDO (smooth,
-    sustained quadrotor acceleration, small ē² of which it follows much) the tilt errors it
-    predicts differ by 3.7× in scale, without it by 2.3× (docs/autopilot.md "Attitude
+    P is how well the state is known if the specific force were gravity alone. ā² is the
+    squared length of the vector mean (``SUSTAINED_ACCELERATION_TAU``) of the horizontal part
+    of each unit specific force in the navigation frame: sustained linear acceleration, which
+    the filter follows into its tilt (rad² for small angles). ē² is the mean square
+    accelerometer innovation over the filter's own time constant (how far the measured gravity
+    direction disagreed with the estimate); a tilt error turns an inclined field's horizontal
+    part by up to tan d times itself, which the heading follows. ē² is *not* in the tilt: it
+    counts jerks of which the filter follows little as much as sustained acceleration of which
+    it follows much; across BROAD (handheld) and DIDO (quadrotor) the tilt scales they need
+    differ by 3.7× with ē², 2.3× with neither, 1.0× with ā² (docs/autopilot.md "Attitude
     covariance"). The floors are ``ObservedErrorModel``'s (accelerometer offset, magnetometer
     residual), B and d the filter's reference field. tilt_scale, heading_scale: the largest
     scale any data set needs (``python -m ahrs_service.evaluation.coverage --calibrate``).
@@ -259,14 +273,17 @@ class CovarianceErrorModel:
     tilt_scale: float = 1.0
     heading_scale: float = 1.0
 
-    def variance(self, from_p: AttitudeVariance, acc_disagreement: float, field_norm: float, field_dip: float) -> AttitudeVariance:
+    def variance(
+        self, from_p: AttitudeVariance, acc_disagreement: float, field_norm: float, field_dip: float, sustained_acceleration: float = 0.0
+    ) -> AttitudeVariance:
         """``from_p``: J P Jᵀ; ``acc_disagreement``: ē², rad²; ``field_norm`` (µT, 0: none
-        yet) and ``field_dip`` (rad): the reference field. NaN stays NaN."""
+        yet) and ``field_dip`` (rad): the reference field; ``sustained_acceleration``: ā², rad².
+        NaN stays NaN."""
         t, h = self.tilt_scale**2, self.heading_scale**2
         horizontal = field_norm * math.cos(field_dip)
         field = (self.field_floor / horizontal) ** 2 if horizontal > 0.0 else ErrorModel().heading_sigma ** 2
         yaw = (from_p.yaw + field + math.tan(field_dip) ** 2 * acc_disagreement) * h
-        floor = self.tilt_floor**2
+        floor = self.tilt_floor**2 + sustained_acceleration
         return AttitudeVariance((from_p.roll + floor) * t, (from_p.pitch + floor) * t, yaw)
 
 
