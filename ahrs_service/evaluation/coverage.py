@@ -13,8 +13,8 @@ A calibrated σ puts a one-dimensional Gaussian error (heading) within 1σ / 2σ
 within 1σ / 2σ in 39.3 % / 86.5 %.
 
 The error models' physical constants are a-priori values (``uncertainty``); ``robust``,
-``ekf``, ``triad`` and ``quest`` also carry one scale per angle, the only thing the data
-chooses. ``--calibrate`` shows how. Each data set present needs the scale that puts the
+``ekf``, ``triad`` and ``quest`` also carry one scale per angle, chosen on the data.
+``--calibrate`` shows how. Each data set present needs the scale that puts the
 claimed fraction of its errors within 1σ (BROAD: 12 handheld recordings; DIDO, ``--dataset
 dido``: 8 quadrotor flights with attitude truth and no magnetometer, so DIDO scores the
 inclination only and has no say in the heading scale). The **chosen scale is the largest of
