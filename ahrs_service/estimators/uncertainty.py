@@ -8,14 +8,14 @@ Every estimator answers ``Estimator.attitude_variance()`` with an :class:`Attitu
   the ZYX angles with the Jacobian of the angles against the normalised quaternion
   (Σ_e = J P Jᵀ, diagonal kept). P is how well the state is known *if the model holds*; both
   models take the accelerometer for gravity alone and the field for undisturbed. The EKF adds
-  floors and, to the heading, the tilt error its accelerometer innovation shows
-  (:class:`CovarianceErrorModel`); the quaternion KF adds the a-priori
+  floors, the sustained acceleration it follows into its tilt and, to the heading, the tilt
+  error its accelerometer innovation shows (:class:`CovarianceErrorModel`); the quaternion KF adds the a-priori
   floors of :class:`ErrorModel` (:func:`with_unmodelled_floor`). The roll/pitch Kalman filter
   keeps its two variances itself (its paper's σ_ξ is large: no floor added).
 * **an error model over what the filter observes** — ``robust`` (:class:`ObservedErrorModel`):
   the gyro drift its corrections have not yet removed (bias covariance, scale error times the
-  tilt rate and the net angle turned, the rejection state and the time without a field) and the
-  disturbance of the fields it used; TRIAD and QUEST (:class:`SnapshotErrorModel`): the linear
+  tilt rate and the net angle turned, the rejection state and the time without a field), the
+  sustained acceleration it follows into its tilt and the disturbance of the fields it used; TRIAD and QUEST (:class:`SnapshotErrorModel`): the linear
   acceleration and field disturbance of the sample they were solved from.
 * **an a-priori error model** — the complementary filters (complementary, Mahony, Madgwick,
   Valenti, immersion and invariance): :class:`ErrorModel` gives each angle a floor σ plus the
