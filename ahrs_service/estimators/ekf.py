@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from numba import njit
@@ -44,8 +45,9 @@ from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.uncertainty import (
     AttitudeVariance,
+    SUSTAINED_ACCELERATION_TAU,
+    CovarianceErrorModel,
     euler_variance_of_quaternion_covariance,
-    with_unmodelled_floor,
 )
 from ahrs_service.quaternion import quat_normalize, quat_rotate, quat_rotate_inv
 
@@ -61,10 +63,12 @@ STATE = Layout(
         Slot("kg", N * 3, "Kalman gain, 7 × 3"),
         Slot("hq", 3 * 4, "H's quaternion columns (bias columns are zero), 3 × 4"),
         *K.MAG_REFERENCE_SLOTS,  # the magnetic-disturbance gate's reference (K.mag_gate_accepts)
+        Slot("acc_innov2", 1, "mean square accelerometer innovation |f/|f| − h_a|² over the filter's time constant (error model)"),
+        Slot("acc_sustained", 2, "vector mean of the unit specific force's north and east parts, NED (error model)"),
     ],
     start=K.HEADER,
 )
-P0, FQ, M, PHT, KG, HQ, MAG_NORM_REF, MAG_DIP_REF = STATE.index
+P0, FQ, M, PHT, KG, HQ, MAG_NORM_REF, MAG_DIP_REF, ACC_INNOV2, ACC_SUSTAINED = STATE.index
 STATE_SIZE = STATE.end
 
 
@@ -238,13 +242,27 @@ def _apply(s, y0, y1, y2):
 
 
 @_inline
-def _accelerometer_update(s, x, acc_noise):
+def _accelerometer_update(s, x, acc_noise, gyro_noise):
     q0, q1, q2, q3 = s[0], s[1], s[2], s[3]
     na = math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
     # eq. 18 (NED, specific force): h_a = R(q)ᵀ (0, 0, −1), minus R's third row
     h0 = -2.0 * (q1 * q3 - q0 * q2)
     h1 = -2.0 * (q2 * q3 + q0 * q1)
     h2 = -(q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3)
+    # error model (attitude_variance): the innovation's mean square over the time constant with
+    # which the filter follows the accelerometer, τ = acc_noise / gyro_noise (steady-state gain
+    # σ_g Δt / σ_a per sample); the model takes the specific force for gravity, so this is the
+    # disagreement that linear acceleration leaves and P does not know about
+    e2 = (x[3] / na - h0) ** 2 + (x[4] / na - h1) ** 2 + (x[5] / na - h2) ** 2
+    if gyro_noise > 0.0:
+        s[ACC_INNOV2] += min(1.0, x[K.DT] * gyro_noise / acc_noise) * (e2 - s[ACC_INNOV2])
+    # and the vector mean of the unit specific force's horizontal part in NED (rows 1–2 of
+    # R(q)) over SUSTAINED_ACCELERATION_TAU: sustained acceleration, which the filter follows
+    k_s = min(1.0, x[K.DT] / SUSTAINED_ACCELERATION_TAU)
+    fn = (1.0 - 2.0 * (q2 * q2 + q3 * q3)) * x[3] + 2.0 * (q1 * q2 - q0 * q3) * x[4] + 2.0 * (q1 * q3 + q0 * q2) * x[5]
+    fe = 2.0 * (q1 * q2 + q0 * q3) * x[3] + (1.0 - 2.0 * (q1 * q1 + q3 * q3)) * x[4] + 2.0 * (q2 * q3 - q0 * q1) * x[5]
+    s[ACC_SUSTAINED] += k_s * (fn / na - s[ACC_SUSTAINED])
+    s[ACC_SUSTAINED + 1] += k_s * (fe / na - s[ACC_SUSTAINED + 1])
     hq = s[HQ : HQ + 12]
     hq[0:4] = (2.0 * q2, -2.0 * q3, 2.0 * q0, -2.0 * q1)
     hq[4:8] = (-2.0 * q1, -2.0 * q0, -2.0 * q3, -2.0 * q2)
@@ -334,7 +352,7 @@ def ekf_step(s, p, x):
         return
     _predict(s, x[0], x[1], x[2], x[K.DT], gyro_noise, bias_noise)
     if acc_ok:
-        _accelerometer_update(s, x, acc_noise)
+        _accelerometer_update(s, x, acc_noise, gyro_noise)
     if mag_ok:
         _magnetometer_update(s, x, mag_noise, p[_P.mag_gate], x[K.DT])
 
@@ -365,11 +383,27 @@ class QuaternionEKF(Estimator):
         p[np.arange(4, N), np.arange(4, N)] = self.params.init_bias_std**2
         return s
 
+    #: P plus the floors, scaled (``uncertainty.CovarianceErrorModel``); the scales: the
+    #: largest either data set needs (inclination: BROAD or DIDO, which binds; heading: BROAD),
+    #: docs/autopilot.md "Attitude covariance"
+    observed_error_model: ClassVar[CovarianceErrorModel] = CovarianceErrorModel(tilt_scale=0.21, heading_scale=0.067)
+
     def attitude_variance(self) -> AttitudeVariance:
         """Roll, pitch, yaw variances (rad²) from the quaternion block of P (J P_qq Jᵀ), plus
-        the floors of what the model leaves out (``uncertainty.with_unmodelled_floor``)."""
+        what the model leaves out, scaled (``uncertainty.CovarianceErrorModel``); yaw NaN
+        until the first usable field sample."""
         s = self.state
         if not s[K.INITIALISED]:
             return AttitudeVariance.unknown()
         p = s[STATE.slices.p].reshape(N, N)[:4, :4]
-        return with_unmodelled_floor(euler_variance_of_quaternion_covariance(s[K.HEADER_SLICES.q], p))
+        sin_dip = float(s[MAG_DIP_REF])
+        var = self.observed_error_model.variance(
+            euler_variance_of_quaternion_covariance(s[K.HEADER_SLICES.q], p),
+            acc_disagreement=float(s[ACC_INNOV2]),
+            sustained_acceleration=float(s[ACC_SUSTAINED] ** 2 + s[ACC_SUSTAINED + 1] ** 2),
+            field_norm=float(s[MAG_NORM_REF]),
+            field_dip=math.asin(max(-1.0, min(1.0, sin_dip))),
+        )
+        if s[K.MAG_AGE] < 0.0:  # K.NO_SAMPLE_YET: no field yet, the heading is the start's guess
+            return AttitudeVariance(var.roll, var.pitch, math.nan)
+        return var

@@ -22,20 +22,27 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 from numba import njit
 
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.layout import Layout, Slot, param_index
-from ahrs_service.estimators.triad import down_direction, propagate_then_level
+from ahrs_service.estimators.triad import DISTURBANCE, down_direction, propagate_then_level, record_disturbance, snapshot_error_state
+from ahrs_service.estimators.uncertainty import AttitudeVariance, SnapshotErrorModel
 from ahrs_service.quaternion import quat_mul, quat_normalize
 
 _inline = njit(cache=True, inline="always")
 
 # state after the header: the earth field direction learned at start-up
-STATE = Layout("quest state", [Slot("dip", 2, "earth field direction (cos δ, sin δ), δ the dip")], start=K.HEADER)
-(DIP,) = STATE.index
+STATE = Layout(
+    "quest state",
+    [Slot("dip", 2, "earth field direction (cos δ, sin δ), δ the dip"), *DISTURBANCE.slots],
+    start=K.HEADER,
+)
+DIP = STATE.index.dip
+DIST = STATE.index.lin_acc  # first slot of the error model's record (triad.DISTURBANCE)
 STATE_SIZE = STATE.end
 
 
@@ -167,6 +174,7 @@ _P = param_index(QuestParams)  # indices of the packed parameter vector, by fiel
 def quest_step(s, p, x):
     w_acc, w_mag = p[_P.w_acc], p[_P.w_mag]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
+    record_disturbance(s, DIST, x, acc_ok, mag_ok)
     if s[DIP] == 0.0 and s[DIP + 1] == 0.0 and acc_ok and mag_ok:
         learn_dip(s, x)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok):
@@ -200,3 +208,12 @@ class Quest(Estimator):
     state_size = STATE_SIZE
     step = staticmethod(quest_step)
     batch = staticmethod(quest_batch)
+    #: single-sample error model (``uncertainty.SnapshotErrorModel``); scales: the largest
+    #: either data set needs (inclination: BROAD or DIDO; heading: BROAD), docs/autopilot.md
+    observed_error_model: ClassVar[SnapshotErrorModel] = SnapshotErrorModel(tilt_scale=0.41, heading_scale=0.64)
+
+    def attitude_variance(self) -> AttitudeVariance:
+        """Variances from the disturbance the newest samples show (``SnapshotErrorModel``)."""
+        if not self.state[K.INITIALISED]:
+            return AttitudeVariance.unknown()
+        return self.observed_error_model.variance(snapshot_error_state(self.state, DIST))

@@ -47,6 +47,12 @@ Magnetic rejection features (documented in docs/robust-estimator.md):
   only once it stayed steady while turning (VQF's magNewFirstTime);
 * **rejection timeout** and **new-field acceptance** as in VQF.
 
+Attitude uncertainty (``attitude_variance``): the step keeps a record of the gyro drift its
+corrections have not yet removed, of the sustained acceleration the accelerometer shows (the
+vector mean of its horizontal part) and of the disturbance of the fields it used
+(``_drift_of_the_error_model``, ``_inclination_and_bias``, ``robust_mag.heading``); ``uncertainty.ObservedErrorModel``
+turns it into variances (docs/autopilot.md, "Attitude covariance").
+
 The published attitude is carried forward by ``output_lead`` (latency compensation, see
 ``RobustParams``); the filter state is not.
 
@@ -63,6 +69,7 @@ rest by name and size (``s[ST.gq]``, ``p[P.tau_acc]``). Earth frame NED, body fr
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import numpy as np
 from numba import njit
@@ -72,10 +79,13 @@ from ahrs_service.estimators import robust_blocks as B
 from ahrs_service.estimators.base import Estimator, sample_age
 from ahrs_service.estimators.robust_layout import DEG, N_PARAMS, P, ST, STATE, STATE_SIZE, RobustParams
 from ahrs_service.estimators.robust_mag import hard_iron_and_consistency, heading
-from ahrs_service.estimators.uncertainty import AttitudeVariance, ErrorModel
+from ahrs_service.estimators.uncertainty import SUSTAINED_ACCELERATION_TAU, AttitudeVariance, ObservedErrorModel, ObservedErrorState
 from ahrs_service.quaternion import quat_integrate, quat_mul, quat_normalize, quat_rotate
 
 _jit = njit(cache=True, inline="always")
+
+#: unit of the bias covariance (robust_layout: bias_p in (0.01 °/s)²): σ_b = √p · BIAS_P_UNIT rad/s
+BIAS_P_UNIT = 0.01 * DEG
 
 
 @_jit
@@ -177,6 +187,15 @@ def _inclination_and_bias(s, p, x, dt, qg, rg):
     lp1 = B.butter2_step(s, ca, ST.acc_lp, 3, 1, a_i[1])
     lp2 = B.butter2_step(s, ca, ST.acc_lp, 3, 2, a_i[2])
     qa = (s[ST.aq], s[ST.aq + 1], s[ST.aq + 2], s[ST.aq + 3])
+    # error model (attitude_variance): the vector mean of the unit specific force's horizontal
+    # part in E6 over SUSTAINED_ACCELERATION_TAU, the sustained acceleration the low-pass takes
+    # for gravity in part (a quadrotor's turns); jerks and vibration average out
+    f_e = quat_rotate(qa, a_i)
+    nf = math.sqrt(f_e[0] ** 2 + f_e[1] ** 2 + f_e[2] ** 2)
+    if nf > 0.0:
+        k_s = min(1.0, dt / SUSTAINED_ACCELERATION_TAU)
+        s[ST.acc_sustained] += k_s * (f_e[0] / nf - s[ST.acc_sustained])
+        s[ST.acc_sustained + 1] += k_s * (f_e[1] / nf - s[ST.acc_sustained + 1])
     a_e = quat_rotate(qa, (lp0, lp1, lp2))
     n = math.sqrt(a_e[0] ** 2 + a_e[1] ** 2 + a_e[2] ** 2)
     # down direction u = −f/|f| must become NED z: rotate u onto (0, 0, 1) (VQF eq. 9–10).
@@ -248,6 +267,37 @@ def _inclination_and_bias(s, p, x, dt, qg, rg):
     return q6
 
 
+@_jit
+def _drift_of_the_error_model(s, p, dt, acc_ok, wx, wy, wz, q6):
+    """The gyro drift the corrections have not yet removed (``attitude_variance``).
+
+    Inclination: the gyro frame drifts in tilt by r = σ_b + ε |ω̄_h| (residual bias σ_b from
+    the bias covariance, scale and misalignment error ε = bias_sigma_motion / tilt_rate_ref
+    times the tilt rate: the figures ``_accel_time_constant`` is built on); the low-pass
+    removes a share dt/τ_acc of it per accelerometer sample, so u_tilt settles at r τ_acc
+    while the accelerometer corrects and grows by r t without it.
+    Heading: the residual bias turns it by σ_b per second (u_yaw), the scale error by ε times
+    the angle turned about the vertical (u_turn, signed: turning back undoes it); each used
+    field sample removes its gain's share k of both (``robust_mag.heading``), so they grow
+    while the field is rejected or missing. A ramp is not noise: drifts add as σ, not variance."""
+    sb2 = max(s[ST.bias_p], s[ST.bias_p + 4], s[ST.bias_p + 8])
+    sigma_b = math.sqrt(max(sb2, 0.0)) * BIAS_P_UNIT
+    s[ST.u_tilt] += (sigma_b + gyro_scale_error(p) * s[ST.tilt_rate]) * dt
+    if acc_ok:
+        s[ST.u_tilt] *= 1.0 - min(1.0, dt / s[ST.coef_tau_acc])
+    s[ST.u_yaw] += sigma_b * dt
+    # the body rate's component about the vertical of E6: R(q6) row 3 · ω
+    q0, q1, q2, q3 = q6
+    s[ST.u_turn] += (2.0 * (q1 * q3 - q0 * q2) * wx + 2.0 * (q2 * q3 + q0 * q1) * wy + (q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3) * wz) * dt
+
+
+@_jit
+def gyro_scale_error(p):
+    """ε, the gyro's scale and misalignment error (no unit): bias_sigma_motion / tilt_rate_ref
+    (0.1 °/s over 20 °/s = 0.5 %, see ``RobustParams.tilt_rate_ref``); 0 when the adaptation is off."""
+    return p[P.bias_sigma_motion] / p[P.tilt_rate_ref] if p[P.tilt_rate_ref] > 0.0 else 0.0
+
+
 # error_model="numpy": divisions by zero give inf/NaN instead of raising (every division is
 # guarded). No "nnan"/"reassoc" fast-math: the NaN checks of bad samples must hold.
 _step_jit = njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", "afn"})
@@ -296,6 +346,7 @@ def _update(s, params, x, acc_ok, mag_ok):
         q6 = _inclination_and_bias(s, p, x, dt, qg, rg)
     else:
         q6 = quat_mul((s[ST.aq], s[ST.aq + 1], s[ST.aq + 2], s[ST.aq + 3]), qg)
+    _drift_of_the_error_model(s, p, dt, acc_ok, wx, wy, wz, q6)
     if mag_ok:
         hard_iron_and_consistency(s, p, x, dt, rg)
         heading(s, p, x, q6)
@@ -335,9 +386,6 @@ def robust_step(s, params, row):
     robust_batch(s, params, row[np.newaxis, :], None)
 
 
-BIAS_P_UNIT = 0.01 * DEG
-
-
 class RobustEstimator(Estimator):
     """GIMLET, the project's robust estimator: VQF-structured inclination and bias, heading
     with norm/dip, gyro-consistency and hard-iron-learning magnetic rejection."""
@@ -374,23 +422,27 @@ class RobustEstimator(Estimator):
             "consistency_ratio": float(np.sqrt(max(s[ST.cons], 0.0))),
         }
 
-    #: floors of the error model (``uncertainty``): set values, not derived from sensor figures
-    #: as the default model's are (on BROAD its errors stay below them: docs/autopilot.md,
-    #: 0.72° / 2.35° RMS inclination / heading); the drift comes from the bias covariance,
-    #: whose unit (robust_layout: bias_p) is (0.01 °/s)²: σ_b = √p · BIAS_P_UNIT rad/s
-    error_model = ErrorModel(tilt_sigma=1.5 * DEG, heading_sigma=4.0 * DEG)
+    #: the error model of ``attitude_variance`` (``uncertainty.ObservedErrorModel``)
+    #: scales: the largest either data set needs (inclination: BROAD or DIDO, which binds;
+    #: heading: BROAD), docs/autopilot.md "Attitude covariance"; well below 1: the drift terms
+    #: are worst cases (the scale error's drift partly cancels when the motion turns back) and
+    #: the filter follows only part of the sustained acceleration
+    observed_error_model: ClassVar[ObservedErrorModel] = ObservedErrorModel(tilt_scale=0.089, heading_scale=0.12)
 
     def attitude_variance(self) -> AttitudeVariance:
-        """Error model (``uncertainty``): tilt floor plus the bias σ of the body x/y axes times
-        the age of the newest accelerometer sample; heading floor plus the body-z bias σ times
-        the time the heading has run on the gyro alone (no usable field, or a rejected one:
-        the rejection clock)."""
+        """Roll, pitch, yaw variances, rad²: ``ObservedErrorModel`` over the filter's own record
+        of what it has not corrected (``_drift_of_the_error_model``, docs/autopilot.md)."""
         s = self.state
         if not s[K.INITIALISED]:
             return AttitudeVariance.unknown()
-        sigma_b = np.sqrt(np.maximum(np.diag(s[STATE.slices.bias_p].reshape(3, 3)), 0.0)) * BIAS_P_UNIT
-        m = self.error_model
-        tilt = m.tilt_sigma**2 + (float(max(sigma_b[0], sigma_b[1])) * sample_age(s[K.ACC_AGE])) ** 2
-        unused = sample_age(s[K.MAG_AGE]) + (float(s[ST.mag_reject_t]) if s[ST.mag_dist] else 0.0)
-        yaw = m.heading_sigma**2 + (float(sigma_b[2]) * unused) ** 2 if np.isfinite(unused) else float("nan")
-        return AttitudeVariance(tilt, tilt, yaw)
+        return self.observed_error_model.variance(
+            ObservedErrorState(
+                tilt_drift=float(s[ST.u_tilt]),
+                yaw_drift=float(s[ST.u_yaw]) + float(gyro_scale_error(self._p)) * abs(float(s[ST.u_turn])),
+                field_mean_square=float(s[ST.u_field]),
+                field_norm=float(s[ST.mag_ref_norm]),
+                field_dip=float(s[ST.mag_ref_dip]),
+                has_field=bool(np.isfinite(sample_age(s[K.MAG_AGE]))),
+                sustained_acceleration=float(s[ST.acc_sustained] ** 2 + s[ST.acc_sustained + 1] ** 2),
+            )
+        )

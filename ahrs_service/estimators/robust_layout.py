@@ -217,6 +217,12 @@ STATE = Layout(
         Slot("delta_c", 1, "cos(δ/2) of q_δ, updated with δ"),
         Slot("delta_s", 1, "sin(δ/2) of q_δ, updated with δ"),
         Slot("tilt_rate", 1, "tilt rate |ω̄_h| about the horizontal axes, low-passed, rad/s"),
+        # the error model's accumulators (robust.attitude_variance, docs/autopilot.md)
+        Slot("u_tilt", 1, "gyro drift of the inclination not yet corrected by the accelerometer, rad"),
+        Slot("u_yaw", 1, "heading drift of the residual gyro bias not yet corrected by the field, rad"),
+        Slot("u_turn", 1, "heading turned by the gyro since the field last corrected it (signed, shrunk like u_yaw), rad"),
+        Slot("u_field", 1, "mean square heading error of the fields that corrected the heading, rad²"),
+        Slot("acc_sustained", 2, "vector mean of the unit specific force's horizontal part in E6 (error model)"),
     ],
     start=K.HEADER,
 )

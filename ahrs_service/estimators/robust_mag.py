@@ -188,7 +188,7 @@ def heading(s, p, x, q6):
         s[ST.mag_dist] = 0.0
         s[ST.mag_undist_t] = p[P.mag_min_undisturbed_time]
         s[ST.mag_cand_norm], s[ST.mag_cand_dip] = s[ST.mag_nd], s[ST.mag_nd + 1]
-        m = m_raw
+        m, nm, dm = m_raw, s[ST.mag_nd], s[ST.mag_nd + 1]
         s[ST.mag_used] = 1.0
         if p[P.mag_new_first_time] <= 0.0:
             s[ST.mag_confirmed] = 1.0
@@ -258,6 +258,16 @@ def heading(s, p, x, q6):
     else:
         s[ST.mag_reject_t] = max(s[ST.mag_reject_t] - p[P.mag_rejection_factor] * dtm, 0.0)
     if k != 0.0:  # a rejected field leaves δ, and so its cached half-angle cosine and sine
+        # error model (robust.attitude_variance): the correction removes the share k of the
+        # gyro drift and mixes in this field's heading error, a disturbance of relative size
+        # |Δn|/n and dip change Δd turning the horizontal field by about √(Δn²/n² + Δd²) / cos d
+        s[ST.u_yaw] *= 1.0 - min(k, 1.0)
+        s[ST.u_turn] *= 1.0 - min(k, 1.0)
+        ref = s[ST.mag_ref_norm]
+        c = math.cos(s[ST.mag_ref_dip])
+        if ref > 0.0 and c > 0.05:
+            ef2 = (((nm - ref) / ref) ** 2 + (dm - s[ST.mag_ref_dip]) ** 2) / (c * c)
+            s[ST.u_field] += min(k, 1.0) * (ef2 - s[ST.u_field])
         s[ST.delta] = wrap(s[ST.delta] + k * e)
         s[ST.delta_c], s[ST.delta_s] = math.cos(0.5 * s[ST.delta]), math.sin(0.5 * s[ST.delta])
 

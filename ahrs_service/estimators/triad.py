@@ -19,14 +19,67 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 from numba import njit
 
 from ahrs_service.estimators import _kernel as K
-from ahrs_service.estimators.base import Estimator
+from ahrs_service.estimators.base import Estimator, sample_age
+from ahrs_service.estimators.layout import Layout, Slot
+from ahrs_service.estimators.uncertainty import AttitudeVariance, SnapshotErrorModel, SnapshotErrorState
 from ahrs_service.quaternion import quat_from_down_and_field, quat_integrate, quat_mul, quat_normalize, quat_rotate
 
 _inline = njit(cache=True, inline="always")
+
+#: what a single-sample solution's error model needs of the newest sample (``record_disturbance``)
+DISTURBANCE = Layout(
+    "single-sample disturbance",
+    [
+        Slot("lin_acc", 1, "linear acceleration the newest accelerometer sample shows, √| |f|² − g² |, m/s²"),
+        Slot("field_ref", 2, "slowly learned field norm (µT) and sine of its dip (0, 0: none yet)"),
+        Slot("field_dev", 2, "newest field sample's relative norm deviation and dip deviation (rad) from the reference"),
+    ],
+)
+#: time constant with which the reference field follows the samples, s
+FIELD_REF_TAU = 10.0
+
+
+@_inline
+def record_disturbance(s, i, x, acc_ok, mag_ok):
+    """Writes the newest sample's disturbance into the DISTURBANCE slots starting at ``i``:
+    the linear acceleration its specific force shows (|f|² = g² + a² for a horizontal a) and
+    how far its field's norm and dip are from a reference learned over FIELD_REF_TAU."""
+    if acc_ok:
+        n2 = x[3] * x[3] + x[4] * x[4] + x[5] * x[5]
+        s[i] = math.sqrt(abs(n2 - K.GRAVITY * K.GRAVITY))
+    if acc_ok and mag_ok:
+        d = down_direction(x)
+        nm = math.sqrt(x[6] * x[6] + x[7] * x[7] + x[8] * x[8])
+        sd = min(1.0, max(-1.0, (d[0] * x[6] + d[1] * x[7] + d[2] * x[8]) / nm))
+        if s[i + 1] == 0.0:
+            s[i + 1], s[i + 2] = nm, sd
+        s[i + 3] = nm / s[i + 1] - 1.0
+        s[i + 4] = math.asin(sd) - math.asin(s[i + 2])
+        k = min(1.0, x[K.DT] / FIELD_REF_TAU) if x[K.DT] > 0.0 else 0.0
+        s[i + 1] += k * (nm - s[i + 1])
+        s[i + 2] += k * (sd - s[i + 2])
+
+
+def snapshot_error_state(s, i: int) -> SnapshotErrorState:
+    """The DISTURBANCE slots at ``i`` and the header's field age, for ``SnapshotErrorModel``."""
+    return SnapshotErrorState(
+        linear_acceleration=float(s[i]),
+        field_norm=float(s[i + 1]),
+        field_dip=math.asin(max(-1.0, min(1.0, float(s[i + 2])))),
+        field_norm_deviation=float(s[i + 3]),
+        field_dip_deviation=float(s[i + 4]),
+        field_age=sample_age(s[K.MAG_AGE]),
+        acc_age=sample_age(s[K.ACC_AGE]),
+    )
+
+
+STATE = Layout("triad state", list(DISTURBANCE.slots), start=K.HEADER)
+STATE_SIZE = STATE.end
 
 
 @_inline
@@ -83,6 +136,7 @@ class TriadParams:
 @njit(cache=True)
 def triad_step(s, p, x):
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
+    record_disturbance(s, K.HEADER, x, acc_ok, mag_ok)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok):
         return
     if acc_ok and mag_ok:
@@ -113,3 +167,13 @@ class Triad(Estimator):
     observes_heading = True
     step = staticmethod(triad_step)
     batch = staticmethod(triad_batch)
+    state_size = STATE_SIZE
+    #: single-sample error model (``uncertainty.SnapshotErrorModel``); scales: the largest
+    #: either data set needs (inclination: BROAD or DIDO; heading: BROAD), docs/autopilot.md
+    observed_error_model: ClassVar[SnapshotErrorModel] = SnapshotErrorModel(tilt_scale=0.41, heading_scale=0.60)
+
+    def attitude_variance(self) -> AttitudeVariance:
+        """Variances from the disturbance the newest samples show (``SnapshotErrorModel``)."""
+        if not self.state[K.INITIALISED]:
+            return AttitudeVariance.unknown()
+        return self.observed_error_model.variance(snapshot_error_state(self.state, K.HEADER))
