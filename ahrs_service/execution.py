@@ -28,12 +28,15 @@ Requires the ``fleet`` extra (``pip install 'ahrs-service[fleet]'``) for N > 1 o
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 import sys
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence, TypeVar
+from typing import Any, Callable, Iterator, Sequence, TypeVar
 
 J = TypeVar("J")
 R = TypeVar("R")
@@ -152,7 +155,9 @@ class Runner:
     def __enter__(self) -> "Runner":
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+        if exc_type is not None and issubclass(exc_type, KeyboardInterrupt) and self._client is not None:
+            _quiet_interrupted_cluster()
         self.close()
 
 
@@ -188,7 +193,14 @@ def open_runner(
         return Runner(info=RunnerInfo("serial", 1), retries=retries)
     from distributed import Client, LocalCluster
 
-    cluster = LocalCluster(
+    with _workers_ignore_ctrl_c():
+        cluster = _local_cluster(LocalCluster, n)
+    client = Client(cluster, set_as_default=False)
+    return Runner(client, cluster, RunnerInfo("local", n, cluster.scheduler_address), retries)
+
+
+def _local_cluster(LocalCluster: Any, n: int) -> Any:
+    return LocalCluster(
         n_workers=n,
         threads_per_worker=1,
         processes=True,
@@ -196,10 +208,36 @@ def open_runner(
         # no dashboard; what still listens (scheduler, workers, their small HTTP servers for
         # /health and /metrics) binds to 127.0.0.1 only (``host``)
         dashboard_address=None,
-        silence_logs=logging.ERROR,
+        # the workers' own log lines: a task's failure reaches the command as the task's
+        # exception (retried first), a worker's death as the retry; at ERROR a worker also
+        # printed its lost heartbeats with tracebacks when the scheduler went first (Ctrl-C)
+        silence_logs=logging.CRITICAL,
     )
-    client = Client(cluster, set_as_default=False)
-    return Runner(client, cluster, RunnerInfo("local", n, cluster.scheduler_address), retries)
+
+
+@contextlib.contextmanager
+def _workers_ignore_ctrl_c() -> Iterator[None]:
+    """Worker processes started inside keep SIGINT ignored (Python leaves a SIGINT that its
+    parent ignored alone): Ctrl-C reaches the whole foreground process group, and the
+    command, not each worker, answers it — its runner closes the cluster, which stops the
+    workers (before, each worker printed a KeyboardInterrupt traceback)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _quiet_interrupted_cluster() -> None:
+    """Ctrl-C or SIGTERM during a run on a cluster: the command ends with its own one line
+    (cli.main), so the shutdown's expected noise is not shown: the client's pending gather
+    ends in ``AllExit`` (asyncio: "Task exception was never retrieved" and a traceback) and
+    the closing scheduler's comms raise in its threads."""
+    for name in ("asyncio", "distributed", "tornado"):
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 
 
 def progress_bar(total: int, desc: str, unit: str = "task"):

@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -168,3 +170,54 @@ def test_every_batch_command_refuses_a_bad_worker_count_in_one_line(command_name
 def test_workers_below_one_is_an_error():
     with pytest.raises(RunnerError, match="--workers"):
         open_runner(workers=0)
+
+
+def _children(pid: int) -> list[int]:
+    """Direct child processes of ``pid`` (from /proc)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(entry.name))
+    return out
+
+
+def _ignores_sigint(pid: int) -> bool:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigIgn:"):
+            return bool(int(line.split()[1], 16) & (1 << (signal.SIGINT - 1)))
+    return False
+
+
+@pytest.mark.parametrize("sig, status, name", [(signal.SIGINT, 130, "SIGINT"), (signal.SIGTERM, 143, "SIGTERM")])
+def test_ctrl_c_of_a_run_on_a_local_cluster_is_one_line(broad_dir, tmp_path, sig, status, name):
+    """Ctrl-C reaches the whole foreground process group, the LocalCluster's worker processes
+    too: each printed a KeyboardInterrupt traceback, and the closing cluster's pending gather
+    and lost heartbeats printed more (#14 re-probe). Now the command's one line only."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ahrs_service.cli", "evaluate", "--data", str(broad_dir), "--estimators", "all",
+         "--workers", "2", "--quiet", "--out", str(tmp_path / "ev")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        # the workers run, and the command answers SIGINT again (it ignores it while it starts them)
+        while time.monotonic() < deadline and proc.poll() is None:
+            workers = [c for c in _children(proc.pid) if "spawn_main" in Path(f"/proc/{c}/cmdline").read_text()]
+            if len(workers) >= 2 and not _ignores_sigint(proc.pid) and all(_ignores_sigint(w) for w in workers):
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(1.0)  # tasks under way
+        os.killpg(proc.pid, sig)  # as a terminal's Ctrl-C (or a service manager's stop) does
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == status, err
+    assert err.strip() == f"ahrs-service: interrupted ({name}) before the command finished", err
