@@ -26,6 +26,20 @@ def _wait(pred, seconds: float = 30.0) -> bool:
     return pred()
 
 
+def _stall_the_loop_once(svc, seconds: float) -> None:
+    """The service's loop sleeps ``seconds`` once, inside its MAVLink tick (a host stall)."""
+    tick = svc.mavlink.tick
+    stalled = []
+
+    def stall_once(now_ns):
+        if not stalled:
+            stalled.append(now_ns)
+            time.sleep(seconds)
+        tick(now_ns)
+
+    svc.mavlink.tick = stall_once
+
+
 def test_log_info_prints_the_loss_by_cause_of_a_real_run(tmp_path, capsys):
     conn, port = make_gcs()
     run = RunningService(service_config(tmp_path, port, source={"board": "mpu9250", "profile": "static"}))
@@ -40,16 +54,7 @@ def test_log_info_prints_the_loss_by_cause_of_a_real_run(tmp_path, capsys):
         svc.source.bus.set_present(MPU, True)
         assert _wait(lambda: lost.bus_error > 0)
         # the loop stalls once for 0.3 s, longer than the FIFO holds: fifo_overflow
-        tick = svc.mavlink.tick
-        stalled = []
-
-        def stall_once(now_ns):
-            if not stalled:
-                stalled.append(now_ns)
-                time.sleep(0.3)
-            tick(now_ns)
-
-        svc.mavlink.tick = stall_once
+        _stall_the_loop_once(svc, 0.3)
         assert _wait(lambda: lost.fifo_overflow > 0)
         seen = lost.copy()
         time.sleep(2.2)  # two housekeeping seconds: a /loop written after every injected loss
@@ -83,16 +88,7 @@ def test_the_logs_last_counters_cover_a_loss_just_before_the_stop(tmp_path):
     lost = svc.source.diagnostics.lost
     try:
         assert _wait(lambda: svc.pipeline.samples > 200)
-        tick = svc.mavlink.tick
-        stalled = []
-
-        def stall_once(now_ns):
-            if not stalled:
-                stalled.append(now_ns)
-                time.sleep(0.3)  # longer than the MPU-9250's FIFO holds at 200 Hz with its drain
-            tick(now_ns)
-
-        svc.mavlink.tick = stall_once
+        _stall_the_loop_once(svc, 0.3)  # longer than the MPU-9250's FIFO holds at 200 Hz with its drain
         assert _wait(lambda: lost.fifo_overflow > 0)
     finally:
         run.stop()  # at once: no housekeeping second after the loss
