@@ -118,6 +118,30 @@ class _WarpedClock(SimAutopilot):
             self.stats.imu_sent["HIGHRES_IMU"] = self.stats.imu_sent.get("HIGHRES_IMU", 0) + 1
 
 
+def _read_warped(rec, period_us: int, warp, n: int, enough: int | None = None):
+    """(source, samples handed out): the autopilot's IMU source on a real UDP link, read while
+    a :class:`_WarpedClock` sends ``rec``, until ``n`` samples came (the sender must then have
+    finished), or, with ``enough``, until the sender finished and at least that many came."""
+    port = free_udp_port()
+    src = MavlinkImuSource(AutopilotLink(f"udpin:127.0.0.1:{port}"), rate_hz=1e6 / period_us)
+    src.open()
+    got = []
+    sim = _WarpedClock(UdpTransport(port), rec, warp=warp).start()
+    try:
+        end = time.monotonic() + 20.0
+        while time.monotonic() < end and len(got) < n:
+            block = src.read_block()
+            got.extend(block.samples()) if len(block) else time.sleep(0.005)
+            if enough is not None and sim.join(0.0) and not len(block) and len(got) >= enough:
+                break
+        if enough is None:
+            assert sim.join(10.0)
+    finally:
+        sim.stop()
+        src.close()
+    return src, got
+
+
 def test_duplicates_overtaken_messages_and_a_clock_step_keep_times_increasing_and_count_no_loss():
     n, period_us, step_us = 400, 2000, 1800 * 10**6  # 500 Hz; the clock steps by 30 min at row 200
 
@@ -131,21 +155,7 @@ def test_duplicates_overtaken_messages_and_a_clock_step_keep_times_increasing_an
 
     parts = _still()
     rec = Recording.uniform(parts["gyr"][:n], parts["acc"][:n], parts["mag"][:n], parts["q"][:n], period_us)
-    port = free_udp_port()
-    link = AutopilotLink(f"udpin:127.0.0.1:{port}")
-    src = MavlinkImuSource(link, rate_hz=1e6 / period_us)
-    src.open()
-    got = []
-    sim = _WarpedClock(UdpTransport(port), rec, warp=warp).start()
-    try:
-        end = time.monotonic() + 20.0
-        while time.monotonic() < end and len(got) < n:
-            block = src.read_block()
-            got.extend(block.samples()) if len(block) else time.sleep(0.005)
-        assert sim.join(10.0)
-    finally:
-        sim.stop()
-        src.close()
+    src, got = _read_warped(rec, period_us, warp, n)
     assert src.timeline_resets == 1  # the step, not the duplicates
     # the duplicate and the overtaken message are skipped; so is any first sample of the new
     # timeline that TIMESYNC's fit, extrapolated over the step, maps at or before the last one
@@ -172,22 +182,7 @@ def test_imu_stamps_that_jump_1e9_s_ahead_and_back_are_never_placed_in_the_futur
     parts = _still()
     rec = Recording.uniform(*(np.resize(parts[k], (n, parts[k].shape[1])) for k in ("gyr", "acc", "mag", "q")),
                             period_us)
-    port = free_udp_port()
-    link = AutopilotLink(f"udpin:127.0.0.1:{port}")
-    src = MavlinkImuSource(link, rate_hz=1e6 / period_us)
-    src.open()
-    got = []
-    sim = _WarpedClock(UdpTransport(port), rec, warp=warp).start()
-    try:
-        end = time.monotonic() + 20.0
-        while time.monotonic() < end and len(got) < n:
-            block = src.read_block()
-            got.extend(block.samples()) if len(block) else time.sleep(0.005)
-            if sim.join(0.0) and not len(block) and len(got) >= n - 100:
-                break
-    finally:
-        sim.stop()
-        src.close()
+    src, got = _read_warped(rec, period_us, warp, n, enough=n - 100)
     done_ns = time.monotonic_ns()
     t = np.array([s.t_ns for s in got])
     assert src.timeline_resets == 2  # ahead, and back
