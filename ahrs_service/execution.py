@@ -29,6 +29,7 @@ Requires the ``fleet`` extra (``pip install 'ahrs-service[fleet]'``) for N > 1 o
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import signal
@@ -36,7 +37,7 @@ import sys
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, Sequence, TypeVar
+from typing import Any, Callable, Hashable, Iterator, Sequence, TypeVar
 
 J = TypeVar("J")
 R = TypeVar("R")
@@ -91,6 +92,11 @@ def worker_cache(key: Any, load: Callable[[], R]) -> R:
 _cache: "OrderedDict[Any, Any]" = OrderedDict()
 
 
+def _run_after(fn: Callable[[J], R], job: J, _prepared: Any) -> R:
+    """``fn(job)`` as a task that depends on its input's prepare task (placed beside it)."""
+    return fn(job)
+
+
 class Runner:
     """Runs jobs serially or as Dask tasks; results in job order. Use as a context manager."""
 
@@ -99,6 +105,7 @@ class Runner:
         self._cluster = cluster
         self.info = info or RunnerInfo("serial", 1)
         self.retries = retries
+        self._prepare_futures: dict[Hashable, Any] = {}
 
     # ---------------------------------------------------------------- running
     def map(
@@ -108,8 +115,24 @@ class Runner:
         *,
         progress: bool = False,
         desc: str = "",
+        place_by: Callable[[J], Hashable] | None = None,
+        prepare: Callable[[Any], Any] | None = None,
     ) -> list[R]:
-        """``[fn(job) for job in jobs]``, each job a task when on a cluster; same order as ``jobs``."""
+        """``[fn(job) for job in jobs]``, each job a task when on a cluster; same order as ``jobs``.
+
+        Data locality (``place_by`` and ``prepare``, both or neither): jobs with the same
+        ``place_by(job)`` key read the same input (a recording, a log). On a cluster, one
+        ``prepare(key)`` task per key runs first and loads that input into its worker's
+        :func:`worker_cache`; the key's jobs depend on it, so the scheduler places them on the
+        worker that holds the input, and each input is read about once in the whole run
+        instead of once per worker (Dask's work stealing still moves jobs to an idle worker,
+        which then loads the input itself: ``fn`` must not rely on ``prepare`` having run in
+        its process). The prepare tasks stay in the cluster for the runner's lifetime, so the
+        next ``map`` over the same inputs (a tuning study's next batch) lands where they are.
+        Serially, ``prepare`` is not called: the first job of a key loads it.
+        """
+        if (place_by is None) != (prepare is None):
+            raise ValueError("place_by and prepare go together")
         jobs = list(jobs)
         bar = progress_bar(len(jobs), desc) if progress and jobs else None
         try:
@@ -122,8 +145,14 @@ class Runner:
                 return out
             from distributed import as_completed
 
-            # pure=False: two equal jobs are still two runs (the timings differ)
-            futures = self._client.map(fn, jobs, pure=False, retries=self.retries)
+            if place_by is None:
+                # pure=False: two equal jobs are still two runs (the timings differ)
+                futures = self._client.map(fn, jobs, pure=False, retries=self.retries)
+            else:
+                ready = [self._prepared(place_by(job), prepare) for job in jobs]
+                futures = self._client.map(
+                    functools.partial(_run_after, fn), jobs, ready, pure=False, retries=self.retries
+                )
             if bar is not None:
                 for _ in as_completed(futures):
                     bar.update(1)
@@ -131,6 +160,14 @@ class Runner:
         finally:
             if bar is not None:
                 bar.close()
+
+    def _prepared(self, key: Hashable, prepare: Callable[[Any], Any]) -> Any:
+        """The future of ``prepare(key)`` on the cluster, submitted once per key and runner."""
+        future = self._prepare_futures.get(key)
+        if future is None:
+            future = self._client.submit(prepare, key, pure=False, retries=self.retries)
+            self._prepare_futures[key] = future
+        return future
 
     def scatter(self, value: Any) -> Any:
         """``value`` sent once to the workers (a future to pass inside jobs); itself when serial."""
@@ -145,6 +182,7 @@ class Runner:
 
     # ---------------------------------------------------------------- lifetime
     def close(self) -> None:
+        self._prepare_futures.clear()
         if self._client is not None:
             self._client.close()
             self._client = None
@@ -200,6 +238,13 @@ def open_runner(
 
 
 def _local_cluster(LocalCluster: Any, n: int) -> Any:
+    import dask
+
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        return _start_local_cluster(LocalCluster, n)
+
+
+def _start_local_cluster(LocalCluster: Any, n: int) -> Any:
     return LocalCluster(
         n_workers=n,
         threads_per_worker=1,

@@ -54,7 +54,7 @@ def measure(workers: int, jobs: list[report.TrialJob], warm: list[report.TrialJo
         else:
             _warm_up(warm)
         t1 = time.perf_counter()
-        out = runner.map(timed_job, jobs)
+        out = runner.map(timed_job, jobs, place_by=report.recording_of, prepare=report.prepare_recording)
         wall = time.perf_counter() - t1
     inside = sum(t.seconds for t in out)
     return {

@@ -135,6 +135,47 @@ def test_a_killed_workers_task_is_retried_and_the_result_is_complete(tmp_path):
     assert int(Path(marker).read_text()) in pids_before  # one of the workers did die
 
 
+def _prepare_input(key: tuple[str, str]) -> bool:
+    """Records each call as a file (the calls run in the worker processes)."""
+    folder, name = key
+    (Path(folder) / f"{name}.{os.getpid()}.{time.monotonic_ns()}").touch()
+    return True
+
+
+def _job_on(job: tuple[tuple[str, str], int]) -> tuple[str, int]:
+    (_, name), value = job
+    return name, value * value
+
+
+def test_placed_jobs_prepare_each_input_once_in_the_whole_cluster(tmp_path):
+    """``place_by``/``prepare``: one prepare task per input for the runner's lifetime (not one
+    per worker, nor per map), the jobs' results still in the jobs' order."""
+    this = sys.modules[__name__]
+    cloudpickle.register_pickle_by_value(this)
+    jobs = [((str(tmp_path), name), i) for name in ("a", "b", "c", "d") for i in range(6)]
+    try:
+        with open_runner(workers=2) as runner:
+            first = runner.map(_job_on, jobs, place_by=lambda job: job[0], prepare=_prepare_input)
+            again = runner.map(_job_on, jobs[::-1], place_by=lambda job: job[0], prepare=_prepare_input)
+    finally:
+        cloudpickle.unregister_pickle_by_value(this)
+    assert first == [(name, i * i) for (_, name), i in jobs]
+    assert again == first[::-1]
+    assert sorted(p.name.split(".")[0] for p in tmp_path.iterdir()) == ["a", "b", "c", "d"]
+    with pytest.raises(ValueError, match="together"):
+        Runner().map(_job_on, jobs, place_by=lambda job: job[0])
+
+
+def test_local_workers_keep_glibcs_adaptive_allocator():
+    """Dask's nannies set MALLOC_TRIM_THRESHOLD_ by default, which also freezes glibc's mmap
+    threshold: every array over 128 KiB is then a fresh mmap, and the estimators' tasks ran
+    2-4x slower in the workers (page faults: 18x, system time 15x, measured in docs/fleet.md).
+    The embedded cluster's workers start without it."""
+    with open_runner(workers=2) as runner:
+        env = runner.client.run(os.environ.get, "MALLOC_TRIM_THRESHOLD_")
+    assert len(env) == 2 and set(env.values()) == {None}
+
+
 def test_unreachable_scheduler_is_an_error_naming_it():
     address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
     with pytest.raises(RunnerError, match=address.replace(".", r"\.")):

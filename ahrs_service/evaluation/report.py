@@ -251,20 +251,34 @@ class TrialResult:
     errors: dict[str, np.ndarray] | None = None
 
 
-def _load(dataset: str, data_dir: str, name: str) -> Any:
-    return worker_cache((dataset, data_dir, name), lambda: DATASETS[dataset].load_trial(data_dir, name))
+def recording_of(job: TrialJob) -> tuple[str, str, str]:
+    """The input a job reads, (data set, folder, recording name): jobs are placed by it."""
+    return (job.dataset, job.data_dir, job.trial)
+
+
+def prepare_recording(recording: tuple[str, str, str]) -> bool:
+    """Loads a recording and its IMU delay into this process's cache (a worker's data);
+    ``Runner.map`` runs it once per recording and places the recording's jobs beside it."""
+    _load_with_delay(*recording)
+    return True
+
+
+def _load_with_delay(dataset: str, data_dir: str, name: str) -> tuple[Any, float]:
+    """(trial, its IMU delay in samples), each computed once per process."""
+    trial = worker_cache((dataset, data_dir, name), lambda: DATASETS[dataset].load_trial(data_dir, name))
+    delay = worker_cache(
+        ("delay", dataset, data_dir, name),
+        lambda: metrics.imu_delay(trial.gyr, trial.ref, trial.rate_hz, trial.movement),
+    )
+    return trial, delay
 
 
 def run_trial_job(job: TrialJob) -> TrialResult:
     """Runs and scores one column over one trial; the same code serial or as a Dask task."""
-    trial = _load(job.dataset, job.data_dir, job.trial)
+    trial, delay = _load_with_delay(*recording_of(job))
     col = job.column
     # once per process and estimator: compile outside the measured run
     worker_cache(("warm", col.kind, col.base), lambda: _warm_up(col, trial) or True)
-    delay = worker_cache(
-        ("delay", job.dataset, job.data_dir, job.trial),
-        lambda: metrics.imu_delay(trial.gyr, trial.ref, trial.rate_hz, trial.movement),
-    )
     q, seconds = _run_column(col, trial)
     score = metrics.score(
         q, trial.ref, trial.movement, rate_hz=trial.rate_hz, with_heading=col.scores_heading and has_mag(trial)
@@ -310,7 +324,9 @@ def evaluate(
     data_dir = str(Path(data_dir).resolve())
     jobs = [TrialJob(data_dir, t, c, on_trial is not None, dataset) for t in trial_names for c in columns]
     runner = runner or Runner()
-    results = runner.map(run_trial_job, jobs, progress=progress, desc="evaluate")
+    results = runner.map(
+        run_trial_job, jobs, progress=progress, desc="evaluate", place_by=recording_of, prepare=prepare_recording
+    )
     per_trial: dict[str, dict[str, dict]] = {c.name: {} for c in columns}
     imu_delays: dict[str, dict[str, float]] = {}
     for res in results:
@@ -318,7 +334,7 @@ def evaluate(
         imu_delays[res.trial] = res.imu_delay
     if on_trial is not None:
         for i, tname in enumerate(trial_names):
-            trial = _load(dataset, data_dir, tname)  # the plots draw the recording's own signals too
+            trial, _ = _load_with_delay(dataset, data_dir, tname)  # the plots draw the recording's own signals too
             on_trial(trial, {r.column: r.errors for r in results[i * len(columns):(i + 1) * len(columns)]})
 
     groups = source.list_groups(data_dir, trial_names)

@@ -224,7 +224,9 @@ def tune(
                 report.TrialJob(r.data_dir, r.name, dataclasses.replace(base, params=dict(tr.params)), False, r.dataset)
                 for tr in asked for r in recordings
             ]
-            results = runner.map(report.run_trial_job, jobs)
+            results = runner.map(
+                report.run_trial_job, jobs, place_by=report.recording_of, prepare=report.prepare_recording
+            )
             for i, tr in enumerate(asked):
                 rows = results[i * n:(i + 1) * n]
                 per = np.array([np.nan if row.row[k] is None else row.row[k] for row, k in zip(rows, keys)], float)
