@@ -160,6 +160,14 @@ def main(argv: list[str] | None = None) -> int:
         transfer = bus.transfer
 
         def timed_transfer(cs, data):  # what a real spidev ioctl would replace: measured apart
+            c = time.thread_time_ns()
+            try:
+                answer = transfer(cs, data)
+            finally:
+                simulated_ns[0] += time.thread_time_ns() - c
+            # each time is taken as the transfer returns: the simulated part makes its due
+            # samples first (catch_up, inside the call, milliseconds of Python at 8 kHz), then
+            # latches the level or pops the FIFO, then the transfer returns microseconds later
             level_read = data[0] == 0x80 | INT_STATUS and len(data) == 1 + STATUS_BYTES
             if level_read:  # the driver reads the FIFO's level: a drain starts
                 status_read[0] = time.monotonic()
@@ -167,11 +175,7 @@ def main(argv: list[str] | None = None) -> int:
                 # its first data transfer (from INT_STATUS on, as PX4's) pops the FIFO
                 drains.append((status_read[0], time.monotonic()))
                 status_read[0] = 0.0
-            c = time.thread_time_ns()
-            try:
-                return transfer(cs, data)
-            finally:
-                simulated_ns[0] += time.thread_time_ns() - c
+            return answer
 
         now_ns = bus.now_ns
 
@@ -210,15 +214,21 @@ def main(argv: list[str] | None = None) -> int:
         # what each overflow followed. A drain pops the samples its level read counted, so the
         # FIFO fills from the previous drain's *level read* to this drain's *data read*: the
         # window that must stay under the FIFO's depth. (The simulated part computes its
-        # samples in Python, a few ms of real time at 8 kHz, before the level read — when the
-        # host reads the bus clock — not inside it as until issue 15's fix; a real part's
-        # samples cost nothing and its level read takes microseconds.) The
+        # samples in Python, a few ms of real time at 8 kHz, at the start of each transfer and
+        # when the host reads the bus clock, before it latches or pops; both ends are timed as
+        # their transfer returns, after that work — timed at the transfer's start, a data
+        # read's catch-up held up by the host fell outside the window, and 2 overflows in a
+        # 10-minute run showed after windows of 9.7 and 12.0 ms. A real part's samples cost
+        # nothing and its level read takes microseconds.) The
         # driver leaves the FIFO undrained while it holds 4 FIFO depths of rows the loop has
         # not taken yet (a loop slower than the part): that shows as a long window too.
         board = boards[0]
         inner = board.read_block
         next_stall = [time.monotonic() + 1.0]
         depth_s = 2048 // 20 / real_rate  # the ICM-42688-P's FIFO: 102 packets of 20 bytes
+
+        in_run = [False]
+        marks: dict[str, dict] = {}  # the counts after the loop's first and last reads
 
         def timed_read(max_samples=128):
             injected = args.stall_ms > 0 and time.monotonic() >= next_stall[0]
@@ -236,22 +246,32 @@ def main(argv: list[str] | None = None) -> int:
                 stalls.append((gap, overflowed))
             if overflowed:
                 overflow_gaps.append(gap)
+            # the counts as this read left them: the run's figures go from the loop's first
+            # read to its last (before the first, the part's FIFO fills while the service sets
+            # up, and the driver flushes those samples as older than its consumer; after the
+            # last, the part goes on while the service shuts down)
+            if in_run[0]:
+                counts = _counts(len(block))
+                marks.setdefault("first", counts)
+                marks["last"] = counts
             return block
+
+        def _counts(rows_to_estimate: int) -> dict:
+            twin, diag = _twin(board.transport), board.diagnostics
+            return {"produced": twin.samples_latched + twin.samples_unseen - twin.fifo.level // 20,
+                    "dropped": twin.fifo.dropped + twin.fifo.discarded, "read": diag.samples,
+                    "lost": (diag.lost.fifo_overflow, diag.lost.bus_error, diag.extra["fifo_overflows"]),
+                    "estimated": svc.pipeline.samples + rows_to_estimate}
 
         board.read_block = timed_read
         # the source opens before the log and MAVLink: drain what the FIFO gathered meanwhile
         # (a start-up overflow), and count from the loop's start
         board = boards[0]
-        twin = _twin(board.transport)
         while len(board.read_block()):
             pass
         overflow_gaps.clear()
         del drains[:-1]
-        lost0 = (board.diagnostics.lost.fifo_overflow, board.diagnostics.lost.bus_error,
-                 board.diagnostics.extra["fifo_overflows"])
-        produced0 = twin.samples_latched + twin.samples_unseen
-        est0 = svc.pipeline.samples
-        read0 = board.diagnostics.samples
+        in_run[0] = True
         threads0 = thread_cpu_s()
         sim0 = simulated_ns[0]
         c0, w0 = time.process_time(), time.monotonic()
@@ -261,11 +281,12 @@ def main(argv: list[str] | None = None) -> int:
         threads = {name: 100 * (s - threads0.get(name, 0.0)) / wall for name, s in thread_cpu_s().items()}
         sim_pct = 100 * (simulated_ns[0] - sim0) / 1e9 / wall
         diag = board.diagnostics
-        twin.update(clock.now())
-        produced = twin.samples_latched + twin.samples_unseen - produced0 - twin.fifo.level // 20
-        estimated = svc.pipeline.samples - est0
-        lost = (diag.lost.fifo_overflow - lost0[0], diag.lost.bus_error - lost0[1],
-                diag.extra["fifo_overflows"] - lost0[2])
+        first, last = marks["first"], marks["last"]
+        produced = last["produced"] - first["produced"]
+        dropped = last["dropped"] - first["dropped"]
+        read = last["read"] - first["read"]
+        estimated = svc.pipeline.samples - first["estimated"]
+        lost = tuple(b - a for a, b in zip(first["lost"], last["lost"]))
         svc.close()
         stop.set()
         listener.join(1.0)
@@ -291,9 +312,10 @@ def main(argv: list[str] | None = None) -> int:
           f"{own_us:.1f} / {own_us * real_rate / 1e4:.1f} |")
     print(f"| of which: loop thread (outside the bus) / log writer thread / others, % | {loop_pct:.1f} / "
           f"{writer_pct:.1f} / {cpu - sim_pct - peer_pct - loop_pct - writer_pct:.1f} |")
-    print(f"| samples the part produced during the loop / read by the driver / estimated and logged | "
-          f"{produced} / {diag.samples - read0} / {estimated} |")
-    print(f"| lost: FIFO overflow / bus error (overflow events: {lost[2]}) | {lost[0]} / {lost[1]} |")
+    print(f"| from the loop's first read to its last: samples the part produced (less those still in its FIFO) / read by the driver / estimated and logged | "
+          f"{produced} / {read} / {estimated} |")
+    print(f"| lost: FIFO overflow / bus error (overflow events: {lost[2]}) / the part's own count of the samples it turned away or had flushed unread | "
+          f"{lost[0]} / {lost[1]} / {dropped} |")
     print(f"| part rate (true) / tracked, Hz | {real_rate:.2f} / {board.clock.rate_hz:.2f} |")
     depth_ms = depth_s * 1e3
     gaps_s = np.array([b[1] - a[0] for a, b in zip(drains, drains[1:])] or [0.0])
