@@ -150,6 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     # the driver's drains of the FIFO, seen on the bus: (host time of the level read, of the first data read)
     drains: list[tuple[float, float]] = []
     status_read = [0.0]
+    part_time = [0.0]  # simulation time (s) of the part's state: see make_source
 
     simulated_ns = [0]  # CPU of the thread that ran them, inside the simulated bus and part
 
@@ -158,6 +159,19 @@ def main(argv: list[str] | None = None) -> int:
                                      odr_hz=args.odr, fifo_read_hz=args.loop_hz)
         bus = board.transport.bus
         transfer = bus.transfer
+        # the simulation time up to which the part has made its samples (its FIFO's state is
+        # that of this instant): a transfer's latch or pop is timed by it, not by the host's
+        # clock when the call returns — a loop thread preempted between the part's catch-up
+        # and its latch (the GIL held by the log writer, say) read a level as old as the
+        # catch-up, and timed at the return the window looked that much shorter
+        part = _twin(board.transport)
+        make_samples = part.update
+
+        def timed_update(now: float) -> None:
+            part_time[0] = max(part_time[0], now)
+            make_samples(now)
+
+        part.update = timed_update
 
         def timed_transfer(cs, data):  # what a real spidev ioctl would replace: measured apart
             c = time.thread_time_ns()
@@ -165,15 +179,15 @@ def main(argv: list[str] | None = None) -> int:
                 answer = transfer(cs, data)
             finally:
                 simulated_ns[0] += time.thread_time_ns() - c
-            # each time is taken as the transfer returns: the simulated part makes its due
-            # samples first (catch_up, inside the call, milliseconds of Python at 8 kHz), then
-            # latches the level or pops the FIFO, then the transfer returns microseconds later
+            # each end is the instant of the part's state the transfer saw: the simulated part
+            # makes its due samples first (catch_up, inside the call, milliseconds of Python
+            # at 8 kHz), then latches the level or pops the FIFO
             level_read = data[0] == 0x80 | INT_STATUS and len(data) == 1 + STATUS_BYTES
             if level_read:  # the driver reads the FIFO's level: a drain starts
-                status_read[0] = time.monotonic()
+                status_read[0] = part_time[0]
             elif data[0] in (0x80 | INT_STATUS, 0x80 | FIFO_DATA) and status_read[0]:
                 # its first data transfer (from INT_STATUS on, as PX4's) pops the FIFO
-                drains.append((status_read[0], time.monotonic()))
+                drains.append((status_read[0], part_time[0]))
                 status_read[0] = 0.0
             return answer
 
@@ -215,11 +229,11 @@ def main(argv: list[str] | None = None) -> int:
         # FIFO fills from the previous drain's *level read* to this drain's *data read*: the
         # window that must stay under the FIFO's depth. (The simulated part computes its
         # samples in Python, a few ms of real time at 8 kHz, at the start of each transfer and
-        # when the host reads the bus clock, before it latches or pops; both ends are timed as
-        # their transfer returns, after that work — timed at the transfer's start, a data
-        # read's catch-up held up by the host fell outside the window, and 2 overflows in a
-        # 10-minute run showed after windows of 9.7 and 12.0 ms. A real part's samples cost
-        # nothing and its level read takes microseconds.) The
+        # when the host reads the bus clock, before it latches or pops; both ends are the
+        # instants up to which it had made them, make_source's ``part_time``. Timed by the
+        # host's clock around the transfers instead, 2 overflows of a 10-minute run showed
+        # after windows of 9.7 and 12.0 ms, and 12 of another after 9.1–12.2 ms. A real
+        # part's samples cost nothing and its level read takes microseconds.) The
         # driver leaves the FIFO undrained while it holds 4 FIFO depths of rows the loop has
         # not taken yet (a loop slower than the part): that shows as a long window too.
         board = boards[0]

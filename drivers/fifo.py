@@ -39,6 +39,9 @@ class _PendingGap:
     last_ns: int  # the time of the last sample read before the reset
     at_least: int  # 1 when the part flagged the overflow
     counted: int  # what was counted from the reset's host time
+    #: the reset's transfer bounds the first sample after it (SensorClock.anchor_reset), so
+    #: that sample's time counts the loss even when its read finds the FIFO full again
+    reset_anchored: bool = False
 
 
 class FifoTimeline:
@@ -105,28 +108,40 @@ class FifoTimeline:
         t = self.clock.stamp(latch_earliest, self.next_index, n, anchor=not full,
                              read_end_ns=latch_latest, newest_index=newest)
         if self._gap is not None and n:
-            self._correct_gap(int(t[0]), timely=not full)
+            self._correct_gap(int(t[0]), timely=not full or self._gap.reset_anchored)
         self.next_index += n
         self.started |= n > 0
         self.diagnostics.extra[self.rate_key] = round(self.clock.rate_hz, 3)
         return t
 
-    def overflowed(self, reset_host_ns: int, flagged: bool = True) -> int:
+    def overflowed(self, reset_host_ns: int, flagged: bool = True, reset_started_ns: int | None = None) -> int:
         """The FIFO was reset at ``reset_host_ns`` after an overflow: the samples produced
         between the last one read and the first one after the reset are lost (at least one
         when the part flagged the overflow). Counted now from the reset's host time, and
         corrected at the next read from the first new sample's time against the last old
         one's (:meth:`_correct_gap`): a host preempted around the reset command moves the
-        first count by the preemption, never the second. Returns the first count; the
-        offset is anchored afresh by the next reads."""
+        first count by the preemption, never the second. Returns the first count.
+
+        reset_started_ns: when the reset's transfer began (``reset_host_ns`` its end): the
+        reset then bounds the first new sample's time (:meth:`SensorClock.anchor_reset`),
+        which the next read cannot when it finds the FIFO full again. Without it the offset
+        is anchored afresh by the next reads."""
         self.diagnostics.extra[self.events_key] += 1
         at_least = 1 if flagged else 0
         n = max(at_least, self.clock.index_at(reset_host_ns) + 1 - self.next_index)
         last = self.clock.last_time_ns
+        anchored = reset_started_ns is not None
         if last is not None and self.clock.anchored:
-            self._gap = _PendingGap(last, at_least, n)
+            # the middle of what the reads allow, as the first sample after the gap is taken
+            # (the times handed out are the latest allowed: a young segment's, a reset and
+            # one full read, are up to a period late, which counted half a sample short a gap)
+            last_mid = int(round(last - 0.5 * self.clock.offset_range_ns()))
+            self._gap = _PendingGap(last_mid, at_least, n, reset_anchored=anchored)
         self._lose(n, "fifo_overflow")
-        self.clock.forget_offset()
+        if anchored:
+            self.clock.anchor_reset(self.next_index, reset_started_ns, reset_host_ns)
+        else:
+            self.clock.forget_offset()
         return n
 
     def _correct_gap(self, first_new_ns: int, timely: bool) -> None:

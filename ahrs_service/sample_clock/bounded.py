@@ -172,6 +172,18 @@ class SensorClock:
         period keeps what every segment so far says."""
         self._current = None
 
+    def anchor_reset(self, first_index: int, start_ns: int, done_ns: int) -> None:
+        """A FIFO reset (flush) sent by a transfer from ``start_ns`` to ``done_ns``: a new
+        segment, bounded as a level read of the emptied FIFO is — the part's first sample
+        after the reset, ``first_index``, came after the reset began, and the one before it
+        had been produced by the reset's end. Without this bound, a segment whose first read
+        finds the FIFO full again (a host still stalled) has only the "it existed by the
+        read" bound, the latest offset it allows puts that full FIFO's newest sample at the
+        read, and the next reset counted from that line misses every sample the part turned
+        away in between."""
+        self.forget_offset()
+        self._add(first_index - 1, int(start_ns), max(int(done_ns), int(start_ns)), two_sided=True)
+
     def index_at(self, host_ns: int) -> int:
         """The index of the newest sample the part has produced by ``host_ns``."""
         if not self.anchored:

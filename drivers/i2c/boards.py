@@ -471,6 +471,7 @@ class _PairedFifoBoard(I2CFifoBoard):
             # stopped longer than that inside the drain read samples it cannot place
             stopped = not status.overflow and (t_done - t_start) * 1e-9 * rate >= depth - n
             if stopped:
+                t_reset_started = self.bus.now_ns()
                 part.fifo_reset()  # type: ignore[attr-defined]
                 t_reset = self.bus.now_ns()
         except I2CDeviceError as exc:
@@ -482,7 +483,7 @@ class _PairedFifoBoard(I2CFifoBoard):
                 return np.empty((0, 3), np.int64), np.empty(0, np.int64), []
             return counts, timeline.stamp(t_read, n), truths
         if stopped:
-            timeline.overflowed(t_reset, flagged=False)
+            timeline.overflowed(t_reset, flagged=False, reset_started_ns=t_reset_started)
             return np.empty((0, 3), np.int64), np.empty(0, np.int64), []
         if status.overflow:
             # stream mode: the newest samples, the oldest overwritten: the gap comes first
@@ -676,6 +677,7 @@ class MPU9250Board(I2CFifoBoard):
             filled = (t_done - t_start) * 1e-9 * mpu.rate_hz >= depth - n
             overflow = status.overflow or n >= depth or filled
             if overflow:
+                t_reset_started = self.bus.now_ns()
                 mpu.fifo_reset()
                 t_reset = self.bus.now_ns()
         except I2CDeviceError as exc:
@@ -691,7 +693,7 @@ class MPU9250Board(I2CFifoBoard):
         t_ns = timeline.stamp(t_read, n, full=overflow, read_end_ns=t_level_done) if n else np.empty(0, np.int64)
         lost = timeline.take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow:  # counted when found; the next block carries it before its first row
-            timeline.overflowed(t_reset, flagged=status.overflow)
+            timeline.overflowed(t_reset, flagged=status.overflow, reset_started_ns=t_reset_started)
         return self._fifo_block(t_ns, acc_c, gyr_c, temp, truth, lost)
 
     def _fifo_block(self, t_ns: np.ndarray, acc_c: np.ndarray, gyr_c: np.ndarray, temp: int,

@@ -299,9 +299,11 @@ class ICM42688PBoard(FifoBoard):
                                 level=count // icm42688p.PACKET)[ok]
         lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and drained:
+            reset_started = self.transport.now_ns()
             part.flush()
             self._overflow_pending = False
-            self.timeline.overflowed(self.transport.now_ns())  # stop-on-full: the rest after
+            # stop-on-full: the rest after; the flush bounds the first sample after it
+            self.timeline.overflowed(self.transport.now_ns(), reset_started_ns=reset_started)
         n = int(ok.sum())
         self.diagnostics.samples += n
         gyr_c, acc_c = pk["gyr"][ok].astype(np.int64), pk["acc"][ok].astype(np.int64)
@@ -397,8 +399,9 @@ class BMI088Board(FifoBoard):
             self._acc_t = np.concatenate([self._acc_t[-1:], t])
             self._acc_c = np.concatenate([self._acc_c[-1:], counts])
         if full:
+            reset_started = self.acc_transport.now_ns()
             self.acc.flush()
-            self.acc_timeline.overflowed(self.acc_transport.now_ns())
+            self.acc_timeline.overflowed(self.acc_transport.now_ns(), reset_started_ns=reset_started)
 
     def _burst(self, max_samples: int) -> SampleBlock:
         gyro = self.gyro
@@ -420,9 +423,10 @@ class BMI088Board(FifoBoard):
         t = self.timeline.stamp(host, take, full=overflow, read_end_ns=host_done, level=frames)
         lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and take == frames:
+            reset_started = self.transport.now_ns()
             gyro.flush()
             self._overflow_pending = False
-            self.timeline.overflowed(self.transport.now_ns())
+            self.timeline.overflowed(self.transport.now_ns(), reset_started_ns=reset_started)
         idx = hold_pairing(t, self._acc_t)  # the rule of drivers/fifo.py
         ok = idx >= 0
         truth = None
@@ -498,9 +502,10 @@ class ICM20948Board(FifoBoard):
                                 level=count // icm.PACKET)
         lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and drained:
+            reset_started = self.transport.now_ns()
             part.flush()
             self._overflow_pending = False
-            self.timeline.overflowed(self.transport.now_ns())
+            self.timeline.overflowed(self.transport.now_ns(), reset_started_ns=reset_started)
         acc_c, gyr_c = p[:, 0:3], p[:, 3:6]
         st1, mag_c, st2 = p[:, 6], p[:, 7:10], p[:, 11]
         new = (st1 & 0x01) != 0
