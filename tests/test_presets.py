@@ -23,14 +23,17 @@ PAPER_FILTERS = [
 
 #: The papers' values, written out from the papers (docs/estimators-paper*.md); where a paper
 #: gives none (ω0, the EKF's Q and R) the value used before tuning, where it has no such
-#: mechanism (acc_gate, acc_lowpass, mag_gate, Valenti's bias_alpha) the value that turns it
+#: mechanism (acc_gate, acc_lowpass, mag_gate, Valenti's bias_alpha, the bias_rate of the QKF and
+#: the roll/pitch filters) the value that turns it
 #: off; Mahony's and the QKF's paper field term (mag_heading_only 0); the roll/pitch KF's
 #: first-order step as eq. 31–32 print it (exact_step 0).
 PAPER_VALUES = {
-    "complementary_reduced": {"omega0": 0.2, "acc_gate": 1e9, "acc_lowpass": 0.0, "acc_soft": 0.0},
+    "complementary_reduced": {"omega0": 0.2, "acc_gate": 1e9, "acc_lowpass": 0.0, "acc_soft": 0.0,
+                              "bias_rate": 0.0},
     "complementary_full": {"omega0": 0.2, "declination": 0.0, "acc_gate": 1e9, "acc_lowpass": 0.0, "acc_soft": 0.0,
                            "mag_gate": 1e9},
-    "kalman_roll_pitch": {"sigma_zeta": 5.0, "sigma_xi": 3.0, "acc_gate": 1e9, "acc_lowpass": 0.0, "exact_step": 0.0},
+    "kalman_roll_pitch": {"sigma_zeta": 5.0, "sigma_xi": 3.0, "acc_gate": 1e9, "acc_lowpass": 0.0, "exact_step": 0.0,
+                          "bias_rate": 0.0},
     "quaternion_kf": {"sigma_zeta": 0.1, "sigma_xi": 0.1, "p0": 1.0, "w_acc": 2.0, "w_mag": 2.0, "acc_gate": 1e9,
                       "mag_heading_only": 0.0, "mag_gate": 1e9, "bias_rate": 0.0},
     "mahony_direct": {"kp": 25.0, "ki": 10.0, "w_acc": 1.0, "w_mag": 1.0, "mag_heading_only": 0.0,
