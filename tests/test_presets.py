@@ -29,11 +29,11 @@ PAPER_FILTERS = [
 #: first-order step as eq. 31–32 print it (exact_step 0).
 PAPER_VALUES = {
     "complementary_reduced": {"omega0": 0.2, "acc_gate": 1e9, "acc_lowpass": 0.0, "acc_soft": 0.0,
-                              "bias_rate": 0.0},
+                              "bias_rate": 0.0, "rest_time": 0.0},
     "complementary_full": {"omega0": 0.2, "declination": 0.0, "acc_gate": 1e9, "acc_lowpass": 0.0, "acc_soft": 0.0,
                            "mag_gate": 1e9},
     "kalman_roll_pitch": {"sigma_zeta": 5.0, "sigma_xi": 3.0, "acc_gate": 1e9, "acc_lowpass": 0.0, "exact_step": 0.0,
-                          "bias_rate": 0.0},
+                          "bias_rate": 0.0, "rest_time": 0.0},
     "quaternion_kf": {"sigma_zeta": 0.1, "sigma_xi": 0.1, "p0": 1.0, "w_acc": 2.0, "w_mag": 2.0, "acc_gate": 1e9,
                       "mag_heading_only": 0.0, "mag_gate": 1e9, "bias_rate": 0.0},
     "mahony_direct": {"kp": 25.0, "ki": 10.0, "w_acc": 1.0, "w_mag": 1.0, "mag_heading_only": 0.0,
