@@ -43,7 +43,9 @@ Adaptations to the project's conventions and to real data:
 * Gyro bias (not in the paper, reduced form): with ``bias_rate`` > 0 the Euler rates come from
   the gyro less a bias estimate that follows the gyro while the sensor rests — the
   steady-state estimate of Valenti's own implementation (ROS ``imu_tools``),
-  ``K.rest_bias_update``, as the QKF's. 0 (``preset="paper"``, and the full form): none.
+  ``K.rest_bias_update``, as the QKF's, learning only while most recent samples passed its
+  steady-state test (``rest_time``, ``K.rest_share_bias_update``). 0 (``preset="paper"``, and
+  the full form): none.
 * Field-disturbance gate (not in the paper, full form): a field sample whose magnitude or dip
   departs from a reference learned from accepted samples gives no heading (``mag_gate``, the
   EKF's gate, shared as ``K.mag_gate_accepts``); the gyro carries yaw through it. 1e9

@@ -24,8 +24,9 @@ Adaptations, all documented in docs/estimators-paper2.md:
 * a gyro-bias estimate (``bias_rate``, the project's; the paper's process has none, so a shut
   gate lets the bias drift into roll and pitch): the process input is the gyro less a bias that
   follows the gyro while the sensor rests — the steady-state estimate of Valenti's own
-  implementation (ROS ``imu_tools``), ``K.rest_bias_update``, as the QKF's; 0 under
-  ``preset="paper"``;
+  implementation (ROS ``imu_tools``), ``K.rest_bias_update``, as the QKF's, learning only
+  while most recent samples passed its steady-state test (``rest_time``,
+  ``K.rest_share_bias_update``); 0 under ``preset="paper"``;
 * the process noise enters as h ζ with h the actual time step of each sample (eq. 31–32), so the
   filter is right for any sample timing.
 """
