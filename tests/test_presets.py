@@ -23,14 +23,17 @@ PAPER_FILTERS = [
 
 #: The papers' values, written out from the papers (docs/estimators-paper*.md); where a paper
 #: gives none (ω0, the EKF's Q and R) the value used before tuning, where it has no such
-#: mechanism (acc_gate, acc_lowpass, mag_gate, Valenti's bias_alpha) the value that turns it
+#: mechanism (acc_gate, acc_lowpass, mag_gate, Valenti's bias_alpha, the bias_rate of the QKF and
+#: the roll/pitch filters) the value that turns it
 #: off; Mahony's and the QKF's paper field term (mag_heading_only 0); the roll/pitch KF's
 #: first-order step as eq. 31–32 print it (exact_step 0).
 PAPER_VALUES = {
-    "complementary_reduced": {"omega0": 0.2, "acc_gate": 1e9, "acc_lowpass": 0.0, "acc_soft": 0.0},
+    "complementary_reduced": {"omega0": 0.2, "acc_gate": 1e9, "acc_lowpass": 0.0, "acc_soft": 0.0,
+                              "bias_rate": 0.0, "rest_time": 0.0},
     "complementary_full": {"omega0": 0.2, "declination": 0.0, "acc_gate": 1e9, "acc_lowpass": 0.0, "acc_soft": 0.0,
                            "mag_gate": 1e9},
-    "kalman_roll_pitch": {"sigma_zeta": 5.0, "sigma_xi": 3.0, "acc_gate": 1e9, "acc_lowpass": 0.0, "exact_step": 0.0},
+    "kalman_roll_pitch": {"sigma_zeta": 5.0, "sigma_xi": 3.0, "acc_gate": 1e9, "acc_lowpass": 0.0, "exact_step": 0.0,
+                          "bias_rate": 0.0, "rest_time": 0.0},
     "quaternion_kf": {"sigma_zeta": 0.1, "sigma_xi": 0.1, "p0": 1.0, "w_acc": 2.0, "w_mag": 2.0, "acc_gate": 1e9,
                       "mag_heading_only": 0.0, "mag_gate": 1e9, "bias_rate": 0.0},
     "mahony_direct": {"kp": 25.0, "ki": 10.0, "w_acc": 1.0, "w_mag": 1.0, "mag_heading_only": 0.0,
@@ -237,3 +240,27 @@ def test_mag_gate_still_follows_earths_field(name):
     q = estimators.run(name, gyr, acc, field, rate_hz=rate)
     assert abs(_heading_deg(q[0])) > 30.0  # started from the first sample
     assert abs(_heading_deg(q[-1])) < 0.25 * abs(_heading_deg(q[0]))
+
+
+@pytest.mark.parametrize("name", ["kalman_roll_pitch", "complementary_reduced"])
+def test_rest_bias_estimate_keeps_the_tilt_while_the_accelerometer_is_out(name):
+    """``bias_rate`` (the roll/pitch filters' steady-state bias, K.rest_bias_update): 40 s at
+    rest with a biased gyro, then 30 s without accelerometer (the gyro alone, as through a shut
+    gate): the default has learned the bias and keeps the tilt; without it (0, the paper) the
+    bias integrates into roll and pitch."""
+    rate = 100.0
+    rng = np.random.default_rng(3)
+    bias = np.array([0.01, -0.008, 0.005])  # rad/s
+    n_rest, n_blind = int(40 * rate), int(30 * rate)
+    gyr = bias + 1e-4 * rng.standard_normal((n_rest + n_blind, 3))
+    acc = np.tile([0.0, 0.0, -9.81], (n_rest + n_blind, 1)) + 1e-3 * rng.standard_normal((n_rest + n_blind, 3))
+    acc[n_rest:] = np.nan
+
+    def tilt_deg(est):
+        w, x, y, z = est.run(gyr, acc, None, dt=1.0 / rate)[-1]
+        return np.degrees(np.arccos(np.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0)))
+
+    learned = estimators.create(name)
+    assert tilt_deg(learned) < 1.0  # measured 0.49° (KF), 0.28° (complementary)
+    np.testing.assert_allclose(learned.gyro_bias, bias, atol=2e-4)
+    assert tilt_deg(estimators.create(name, bias_rate=0.0)) > 15.0  # measured 29.5°, 24.9°

@@ -204,18 +204,53 @@ STEADY_GYRO = 0.2
 
 
 @_jit
-def rest_bias_update(s, prev, x, gain):
-    """b ← b + gain (ω − b) when the sample is a steady state; keeps ω for the next test.
+def steady_state(s, prev, x):
+    """imu_tools' steady-state test of one sample; keeps ω for the next test.
 
-    ``prev`` is the index of REST_BIAS_SLOTS in ``s``; ``gain`` the fraction per sample.
+    ``prev`` is the index of REST_BIAS_SLOTS in ``s``.
     """
     na = math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
     steady = math.isfinite(na) and abs(na - GRAVITY) <= STEADY_ACC
     for i in range(3):
         if abs(x[i] - s[prev + i]) > STEADY_GYRO_DELTA or abs(x[i] - s[BIAS + i]) > STEADY_GYRO:
             steady = False
+    for i in range(3):
+        s[prev + i] = x[i]
+    return steady
+
+
+@_jit
+def rest_bias_update(s, prev, x, gain):
+    """b ← b + gain (ω − b) when the sample is a steady state; keeps ω for the next test.
+
+    ``prev`` is the index of REST_BIAS_SLOTS in ``s``; ``gain`` the fraction per sample.
+    """
+    if steady_state(s, prev, x):
+        for i in range(3):
+            s[BIAS + i] += gain * (x[i] - s[BIAS + i])
+
+
+#: the share of steady samples of rest_share_bias_update, for an estimator's own Layout
+REST_SHARE_SLOTS = (Slot("rest_share", 1, "low-passed share of steady-state samples (0–1)"),)
+#: the share of recent samples that must be steady states for the sensor to count as resting
+REST_SHARE_MIN = 0.5
+
+
+@_jit
+def rest_share_bias_update(s, prev, share, x, gain, tau, dt):
+    """rest_bias_update, but a steady sample updates the bias only while most recent samples
+    were steady states: the share of steady samples low-passed with time constant ``tau`` (s)
+    is at least REST_SHARE_MIN. Per sample the test also passes during motion, in short runs
+    (on BROAD at most 0.1 s), and each such sample moves the bias towards a rate of the motion;
+    at rest about 80 % of BROAD's samples pass it. ``tau`` 0: rest_bias_update itself.
+
+    ``share`` is the index of REST_SHARE_SLOTS in ``s``.
+    """
+    steady = steady_state(s, prev, x)
+    if tau > 0.0:
+        s[share] += (1.0 - math.exp(-dt / tau)) * ((1.0 if steady else 0.0) - s[share])
+        if s[share] < REST_SHARE_MIN:
+            steady = False
     if steady:
         for i in range(3):
             s[BIAS + i] += gain * (x[i] - s[BIAS + i])
-    for i in range(3):
-        s[prev + i] = x[i]

@@ -40,6 +40,12 @@ Adaptations to the project's conventions and to real data:
   gate, a sustained acceleration still does. 0 (``preset="paper"``): each sample's own.
   With ``acc_soft`` 1 (the reduced form's default) the gate is a weight instead:
   Θ_LF = Θ_p + w (Θ_acc − Θ_p), w = 1/(1 + (dev/acc_gate)²).
+* Gyro bias (not in the paper, reduced form): with ``bias_rate`` > 0 the Euler rates come from
+  the gyro less a bias estimate that follows the gyro while the sensor rests — the
+  steady-state estimate of Valenti's own implementation (ROS ``imu_tools``),
+  ``K.rest_bias_update``, as the QKF's, learning only while most recent samples passed its
+  steady-state test (``rest_time``, ``K.rest_share_bias_update``). 0 (``preset="paper"``, and
+  the full form): none.
 * Field-disturbance gate (not in the paper, full form): a field sample whose magnitude or dip
   departs from a reference learned from accepted samples gives no heading (``mag_gate``, the
   EKF's gate, shared as ``K.mag_gate_accepts``); the gyro carries yaw through it. 1e9
@@ -72,10 +78,12 @@ STATE = Layout(
         Slot("psi", 1, "yaw ψ̂, rad"),
         Slot("acc_lp", 3, "low-passed specific force of the gate, m/s², body frame"),
         *K.MAG_REFERENCE_SLOTS,  # the field gate's reference (K.mag_gate_accepts), full form only
+        *K.REST_BIAS_SLOTS,  # the steady-state test of the bias estimate (K.rest_bias_update), reduced form
+        *K.REST_SHARE_SLOTS,  # its share of steady samples (K.rest_share_bias_update), reduced form
     ],
     start=K.HEADER,
 )
-PHI, THETA, PSI, ACC_LP, MAG_NORM_REF, _ = STATE.index
+PHI, THETA, PSI, ACC_LP, MAG_NORM_REF, _, GYR_PREV, REST_SHARE = STATE.index
 STATE_SIZE = STATE.end
 
 #: standard gravity, m/s²
@@ -115,21 +123,36 @@ class ComplementaryReducedParams:
         1/(1 + (dev/acc_gate)²), dev the (low-passed) |‖f‖/g − 1|: Θ_LF moves from the
         gyro-propagated angles that fraction of the way to the gravity angles. 0: the hard
         gate (``preset="paper"``, where the gate is open).
+    bias_rate: not in the paper (whose gyro has no bias): the rate, 1/s, at which a gyro-bias
+        estimate follows the gyro while the sensor rests (per sample 1 − exp(−bias_rate·Δt),
+        the steady-state test of Valenti's implementation, ``K.rest_bias_update``, as the
+        QKF's); Θ̇_HF is taken from the gyro less it. 0 (``preset="paper"``): no bias.
+    rest_time: not in the paper: time constant (s) of the low-passed share of steady samples;
+        the bias learns from a steady sample only while that share is at least a half, so the
+        short runs of samples that pass the test in motion do not move it
+        (``K.rest_share_bias_update``). 0 (``preset="paper"``, moot there): each steady sample.
     Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
     are ``preset="paper"``.
     """
 
     # paper: no ω0 given (0.2, the value used before tuning), no gate (1e9)
-    omega0: float = tunable(1.0115370151414211, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
-    acc_gate: float = tunable(0.009246050103147824, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
-    acc_lowpass: float = tunable(0.021895028580370384, paper=0.0, search=SearchRange(0.0, 0.2))  # s
+    omega0: float = tunable(0.3432932275711204, paper=0.2, search=SearchRange(0.01, 5.0, log=True))  # rad/s
+    acc_gate: float = tunable(0.005861034520329941, paper=1e9, search=SearchRange(0.005, 1.0, log=True))
+    acc_lowpass: float = tunable(0.01279544145790455, paper=0.0, search=SearchRange(0.0, 0.2))  # s
     acc_soft: float = tunable(1.0, paper=0.0)  # 1: weight 1/(1 + (dev/acc_gate)²); 0: hard gate
+    # not in the paper (Valenti's implementation's steady-state bias, as the QKF's); 0: no bias
+    bias_rate: float = tunable(0.19602080887244508, paper=0.0, search=SearchRange(1e-3, 10.0, log=True))  # 1/s
+    rest_time: float = tunable(0.012180653480196722, paper=0.0, search=SearchRange(0.0, 2.0))  # s; 0: every steady sample
 
     def __post_init__(self) -> None:
         _check_omega0(self.omega0)
         _check_acc_gate(self.acc_gate)
         _check_acc_lowpass(self.acc_lowpass)
         _check_acc_soft(self.acc_soft)
+        if not self.bias_rate >= 0:
+            raise ValueError(f"bias_rate must be >= 0, got {self.bias_rate}")
+        if not self.rest_time >= 0:
+            raise ValueError(f"rest_time must be >= 0, got {self.rest_time}")
 
 
 @dataclass
@@ -200,7 +223,7 @@ def _store_euler(s, phi, theta, psi):
 
 
 @_inline
-def _complementary_update(s, x, omega0, declination, acc_gate, acc_lowpass, acc_soft, mag_gate, use_mag):
+def _complementary_update(s, x, omega0, declination, acc_gate, acc_lowpass, acc_soft, mag_gate, use_mag, bias_rate, rest_time):
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, use_mag)
     phase = K.initialise_from_sample(s, x, acc_ok, mag_ok)
     if phase == K.STARTED:
@@ -211,7 +234,11 @@ def _complementary_update(s, x, omega0, declination, acc_gate, acc_lowpass, acc_
     if phase or not gyro_ok:
         return
     phi, theta, psi = s[PHI], s[THETA], s[PSI]
-    wx, wy, wz, dt = x[0], x[1], x[2], x[K.DT]
+    dt = x[K.DT]
+    if bias_rate > 0.0:  # not in the paper: the steady-state bias estimate (imu_tools)
+        K.rest_share_bias_update(s, GYR_PREV, REST_SHARE, x, 1.0 - math.exp(-bias_rate * dt), rest_time, dt)
+    # the gyro less the bias estimate (0 in the paper)
+    wx, wy, wz = x[0] - s[K.BIAS], x[1] - s[K.BIAS + 1], x[2] - s[K.BIAS + 2]
 
     # eq. 4–5 over one sample: the Euler-angle change of the gyro-propagated attitude
     # (the stored quaternion is always the one of the stored Euler angles)
@@ -260,7 +287,7 @@ _PR = param_index(ComplementaryReducedParams)  # indices of the packed parameter
 
 @njit(cache=True)
 def complementary_reduced_step(s, p, x):
-    _complementary_update(s, x, p[_PR.omega0], 0.0, p[_PR.acc_gate], p[_PR.acc_lowpass], p[_PR.acc_soft] != 0.0, 1e9, False)
+    _complementary_update(s, x, p[_PR.omega0], 0.0, p[_PR.acc_gate], p[_PR.acc_lowpass], p[_PR.acc_soft] != 0.0, 1e9, False, p[_PR.bias_rate], p[_PR.rest_time])
 
 
 _PF = param_index(ComplementaryFullParams)  # indices of the packed parameter vector, by field name
@@ -268,7 +295,7 @@ _PF = param_index(ComplementaryFullParams)  # indices of the packed parameter ve
 
 @njit(cache=True)
 def complementary_full_step(s, p, x):
-    _complementary_update(s, x, p[_PF.omega0], p[_PF.declination], p[_PF.acc_gate], p[_PF.acc_lowpass], p[_PF.acc_soft] != 0.0, p[_PF.mag_gate], True)
+    _complementary_update(s, x, p[_PF.omega0], p[_PF.declination], p[_PF.acc_gate], p[_PF.acc_lowpass], p[_PF.acc_soft] != 0.0, p[_PF.mag_gate], True, 0.0, 0.0)
 
 
 @njit(cache=True)
