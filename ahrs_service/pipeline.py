@@ -331,10 +331,12 @@ class EstimationPipeline:
         :meth:`body_rates`. A row whose gyro was invalid (NaN in the row: non-finite, saturated
         or implausible at the source) keeps the previous one, so no NaN or absurd rate is
         published (without a gyroscope for long the attitude stops being fresh: health)."""
-        g = rows[:, _R.gyr]
-        if np.isfinite(g[-1]).all():
-            self._rate_gyr = g[-1].tolist()
+        # the usual block (its last gyro reading valid) on plain floats: one NumPy call, not four
+        gx, gy, gz = last = rows[-1, _R.gyr].tolist()
+        if math.isfinite(gx) and math.isfinite(gy) and math.isfinite(gz):
+            self._rate_gyr = last
             return
+        g = rows[:, _R.gyr]
         ok = np.flatnonzero(np.isfinite(g).all(axis=1))
         if ok.size:
             self._rate_gyr = g[ok[-1]].tolist()

@@ -240,6 +240,8 @@ def burst_flags(gyr_counts: np.ndarray, acc_counts: np.ndarray, gyro_full_scale:
     the reading saturated instead of valid (counted in ``diagnostics.saturated``)."""
     gsat = (np.abs(gyr_counts) >= gyro_full_scale).any(axis=1)
     asat = (np.abs(acc_counts) >= acc_full_scale).any(axis=1)
+    if not (gsat.any() or asat.any()):  # the usual burst: nothing to count, every row valid
+        return np.full(len(gsat), GYR_VALID | ACC_VALID, np.int64)
     diagnostics.saturated += int(gsat.sum() + asat.sum())
     return (np.where(gsat, GYR_SATURATED, GYR_VALID) | np.where(asat, ACC_SATURATED, ACC_VALID)).astype(np.int64)
 

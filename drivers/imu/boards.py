@@ -294,9 +294,13 @@ class ICM42688PBoard(FifoBoard):
         ok = ((header & 0xFC) == icm42688p.HIRES_HEADER) & \
             (pk["acc20"] != icm42688p.INVALID_20BIT).all(axis=1) & \
             (pk["gyr20"] != icm42688p.INVALID_20BIT).all(axis=1)
+        # every packet valid (the usual burst): the arrays as decoded, not copied through the mask
+        every = bool(ok.all())
         # a full FIFO's newest sample is older than the read: timed from the clock's fit
         t = self.timeline.stamp(host, len(header), full=full, read_end_ns=host_done,
-                                level=count // icm42688p.PACKET)[ok]
+                                level=count // icm42688p.PACKET)
+        if not every:
+            t = t[ok]
         lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and drained:
             reset_started = self.transport.now_ns()
@@ -304,20 +308,23 @@ class ICM42688PBoard(FifoBoard):
             self._overflow_pending = False
             # stop-on-full: the rest after; the flush bounds the first sample after it
             self.timeline.overflowed(self.transport.now_ns(), reset_started_ns=reset_started)
-        n = int(ok.sum())
+        n = len(header) if every else int(ok.sum())
         self.diagnostics.samples += n
-        gyr_c, acc_c = pk["gyr"][ok].astype(np.int64), pk["acc"][ok].astype(np.int64)
+        gyr_c, acc_c, temp_c = pk["gyr"], pk["acc"], pk["temp"]
+        if not every:
+            gyr_c, acc_c, temp_c = gyr_c[ok], acc_c[ok], temp_c[ok]
+        gyr_c, acc_c = gyr_c.astype(np.int64), acc_c.astype(np.int64)
         truth = None
         if self.transport.simulated:  # the twin hands over the truth of the packets just read
             popped = _twin(self.transport).take_popped_truth()
-            rows = [q for q, good in zip(popped, ok) if good]
+            rows = popped[:len(ok)] if every else [q for q, good in zip(popped, ok.tolist()) if good]
             if rows and all(q is not None for q in rows):
                 truth = np.array(rows, dtype=float)
         return SampleBlock(
             t_ns=t, gyr=gyr_c * part.gyro_scale, acc=acc_c * part.acc_scale,
             mag=np.full((n, 3), np.nan),
-            flags=self._flags(gyr_c, acc_c, part.gyro_full_scale, part.acc_full_scale).astype(np.int64),
-            temperature_c=part.temperature_c(pk["temp"][ok]).astype(float),
+            flags=self._flags(gyr_c, acc_c, part.gyro_full_scale, part.acc_full_scale),
+            temperature_c=part.temperature_c(temp_c).astype(float),
             raw={"gyr": gyr_c, "acc": acc_c}, truth_q=truth, lost=lost)
 
 

@@ -115,19 +115,25 @@ ACC_REG_LSB = (2048.0, 4096.0, 8192.0, 16384.0)
 STATUS_BYTES = 3
 
 
+#: one hi-res FIFO packet (§6.1) as NumPy reads it: the 20-bit values' upper 16 bits are
+#: big-endian int16 (so already sign-extended), their lowest 4 bits in the three extension bytes
+_HIRES_PACKET = np.dtype([("header", "u1"), ("acc_hi", ">i2", 3), ("gyr_hi", ">i2", 3), ("temp", ">i2"),
+                          ("tmst", ">u2"), ("ext", "u1", 3)])
+
+
 def decode_hires(data: bytes) -> dict[str, np.ndarray]:
     """Decodes whole 20-byte hi-res packets: {"header", "acc" (n,3) 18-bit counts, "gyr"
-    (n,3) 19-bit counts, "temp", "tmst"} (int32/int64 arrays)."""
-    a = np.frombuffer(data, dtype=np.uint8).reshape(-1, PACKET).astype(np.int32)
-    ext = a[:, 17:20]
-    acc = (a[:, 1:7:2] << 12) | (a[:, 2:7:2] << 4) | (ext >> 4)
-    gyr = (a[:, 7:13:2] << 12) | (a[:, 8:13:2] << 4) | (ext & 0x0F)
-    acc = np.where(acc >= 1 << 19, acc - (1 << 20), acc)  # 20-bit two's complement
-    gyr = np.where(gyr >= 1 << 19, gyr - (1 << 20), gyr)
-    temp = (a[:, 13] << 8) | a[:, 14]
-    temp = np.where(temp >= 1 << 15, temp - (1 << 16), temp)
-    return {"header": a[:, 0], "acc20": acc, "gyr20": gyr, "acc": acc >> 2, "gyr": gyr >> 1,
-            "temp": temp, "tmst": (a[:, 15] << 8) | a[:, 16]}
+    (n,3) 19-bit counts, "temp", "tmst"} (int32 arrays).
+
+    A 20-bit two's complement value is its upper 16 bits read as a signed int16, times 16,
+    plus its lowest 4 bits: read so from the packet's bytes it needs no sign fix-up (a
+    third of the NumPy calls of assembling it byte by byte, on every burst at 8 kHz)."""
+    p = np.frombuffer(data, dtype=_HIRES_PACKET)
+    ext = p["ext"].astype(np.int32)
+    acc = (p["acc_hi"].astype(np.int32) << 4) | (ext >> 4)
+    gyr = (p["gyr_hi"].astype(np.int32) << 4) | (ext & 0x0F)
+    return {"header": p["header"].astype(np.int32), "acc20": acc, "gyr20": gyr, "acc": acc >> 2, "gyr": gyr >> 1,
+            "temp": p["temp"].astype(np.int32), "tmst": p["tmst"].astype(np.int32)}
 
 
 class ICM42688P(TransportDevice):
