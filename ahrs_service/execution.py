@@ -240,24 +240,22 @@ def open_runner(
 def _local_cluster(LocalCluster: Any, n: int) -> Any:
     import dask
 
+    # Dask's nannies set MALLOC_TRIM_THRESHOLD_, which freezes glibc's mmap threshold: every
+    # array of a recording's size became a fresh mmap and the jobs ran 2x slower (docs/fleet.md)
     with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
-        return _start_local_cluster(LocalCluster, n)
-
-
-def _start_local_cluster(LocalCluster: Any, n: int) -> Any:
-    return LocalCluster(
-        n_workers=n,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        # no dashboard; what still listens (scheduler, workers, their small HTTP servers for
-        # /health and /metrics) binds to 127.0.0.1 only (``host``)
-        dashboard_address=None,
-        # the workers' own log lines: a task's failure reaches the command as the task's
-        # exception (retried first), a worker's death as the retry; at ERROR a worker also
-        # printed its lost heartbeats with tracebacks when the scheduler went first (Ctrl-C)
-        silence_logs=logging.CRITICAL,
-    )
+        return LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            # no dashboard; what still listens (scheduler, workers, their small HTTP servers for
+            # /health and /metrics) binds to 127.0.0.1 only (``host``)
+            dashboard_address=None,
+            # the workers' own log lines: a task's failure reaches the command as the task's
+            # exception (retried first), a worker's death as the retry; at ERROR a worker also
+            # printed its lost heartbeats with tracebacks when the scheduler went first (Ctrl-C)
+            silence_logs=logging.CRITICAL,
+        )
 
 
 @contextlib.contextmanager

@@ -39,9 +39,6 @@ class _PendingGap:
     last_ns: int  # the time of the last sample read before the reset
     at_least: int  # 1 when the part flagged the overflow
     counted: int  # what was counted from the reset's host time
-    #: the reset's transfer bounds the first sample after it (SensorClock.anchor_reset), so
-    #: that sample's time counts the loss even when its read finds the FIFO full again
-    reset_anchored: bool = False
 
 
 class FifoTimeline:
@@ -108,13 +105,13 @@ class FifoTimeline:
         t = self.clock.stamp(latch_earliest, self.next_index, n, anchor=not full,
                              read_end_ns=latch_latest, newest_index=newest)
         if self._gap is not None and n:
-            self._correct_gap(int(t[0]), timely=not full or self._gap.reset_anchored)
+            self._correct_gap(int(t[0]))
         self.next_index += n
         self.started |= n > 0
         self.diagnostics.extra[self.rate_key] = round(self.clock.rate_hz, 3)
         return t
 
-    def overflowed(self, reset_host_ns: int, flagged: bool = True, reset_started_ns: int | None = None) -> int:
+    def overflowed(self, reset_started_ns: int, reset_host_ns: int, flagged: bool = True) -> int:
         """The FIFO was reset at ``reset_host_ns`` after an overflow: the samples produced
         between the last one read and the first one after the reset are lost (at least one
         when the part flagged the overflow). Counted now from the reset's host time, and
@@ -123,35 +120,28 @@ class FifoTimeline:
         first count by the preemption, never the second. Returns the first count.
 
         reset_started_ns: when the reset's transfer began (``reset_host_ns`` its end): the
-        reset then bounds the first new sample's time (:meth:`SensorClock.anchor_reset`),
-        which the next read cannot when it finds the FIFO full again. Without it the offset
-        is anchored afresh by the next reads."""
+        reset bounds the first new sample's time (:meth:`SensorClock.anchor_reset`), so that
+        sample's time counts the loss even when its read finds the FIFO full again."""
         self.diagnostics.extra[self.events_key] += 1
         at_least = 1 if flagged else 0
         n = max(at_least, self.clock.index_at(reset_host_ns) + 1 - self.next_index)
         last = self.clock.last_time_ns
-        anchored = reset_started_ns is not None
         if last is not None and self.clock.anchored:
             # the middle of what the reads allow, as the first sample after the gap is taken
             # (the times handed out are the latest allowed: a young segment's, a reset and
             # one full read, are up to a period late, which counted half a sample short a gap)
             last_mid = int(round(last - 0.5 * self.clock.offset_range_ns()))
-            self._gap = _PendingGap(last_mid, at_least, n, reset_anchored=anchored)
+            self._gap = _PendingGap(last_mid, at_least, n)
         self._lose(n, "fifo_overflow")
-        if anchored:
-            self.clock.anchor_reset(self.next_index, reset_started_ns, reset_host_ns)
-        else:
-            self.clock.forget_offset()
+        self.clock.anchor_reset(self.next_index, reset_started_ns, reset_host_ns)
         return n
 
-    def _correct_gap(self, first_new_ns: int, timely: bool) -> None:
+    def _correct_gap(self, first_new_ns: int) -> None:
         """The pending overflow gap, once the first sample after the reset has a time: the
-        periods between it (placed in the middle of what its read allows) and the last
-        sample before, less one. A first read from a full FIFO says too little: the
-        reset's count stays. A correction is never more than the loss not yet handed out."""
+        periods between it (placed in the middle of what the reset and its read allow) and
+        the last sample before, less one. A correction is never more than the loss not yet
+        handed out."""
         gap, self._gap = self._gap, None
-        if not timely:
-            return
         p = self.clock.period_ns
         first = first_new_ns - 0.5 * self.clock.offset_range_ns()
         # the middle of a range one period wide is off by [−½, ½) of a period: floor(x + ½)

@@ -483,7 +483,7 @@ class _PairedFifoBoard(I2CFifoBoard):
                 return np.empty((0, 3), np.int64), np.empty(0, np.int64), []
             return counts, timeline.stamp(t_read, n), truths
         if stopped:
-            timeline.overflowed(t_reset, flagged=False, reset_started_ns=t_reset_started)
+            timeline.overflowed(t_reset_started, t_reset, flagged=False)
             return np.empty((0, 3), np.int64), np.empty(0, np.int64), []
         if status.overflow:
             # stream mode: the newest samples, the oldest overwritten: the gap comes first
@@ -693,7 +693,7 @@ class MPU9250Board(I2CFifoBoard):
         t_ns = timeline.stamp(t_read, n, full=overflow, read_end_ns=t_level_done) if n else np.empty(0, np.int64)
         lost = timeline.take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow:  # counted when found; the next block carries it before its first row
-            timeline.overflowed(t_reset, flagged=status.overflow, reset_started_ns=t_reset_started)
+            timeline.overflowed(t_reset_started, t_reset, flagged=status.overflow)
         return self._fifo_block(t_ns, acc_c, gyr_c, temp, truth, lost)
 
     def _fifo_block(self, t_ns: np.ndarray, acc_c: np.ndarray, gyr_c: np.ndarray, temp: int,

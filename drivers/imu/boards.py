@@ -307,7 +307,7 @@ class ICM42688PBoard(FifoBoard):
             part.flush()
             self._overflow_pending = False
             # stop-on-full: the rest after; the flush bounds the first sample after it
-            self.timeline.overflowed(self.transport.now_ns(), reset_started_ns=reset_started)
+            self.timeline.overflowed(reset_started, self.transport.now_ns())
         n = len(header) if every else int(ok.sum())
         self.diagnostics.samples += n
         gyr_c, acc_c, temp_c = pk["gyr"], pk["acc"], pk["temp"]
@@ -408,7 +408,7 @@ class BMI088Board(FifoBoard):
         if full:
             reset_started = self.acc_transport.now_ns()
             self.acc.flush()
-            self.acc_timeline.overflowed(self.acc_transport.now_ns(), reset_started_ns=reset_started)
+            self.acc_timeline.overflowed(reset_started, self.acc_transport.now_ns())
 
     def _burst(self, max_samples: int) -> SampleBlock:
         gyro = self.gyro
@@ -433,7 +433,7 @@ class BMI088Board(FifoBoard):
             reset_started = self.transport.now_ns()
             gyro.flush()
             self._overflow_pending = False
-            self.timeline.overflowed(self.transport.now_ns(), reset_started_ns=reset_started)
+            self.timeline.overflowed(reset_started, self.transport.now_ns())
         idx = hold_pairing(t, self._acc_t)  # the rule of drivers/fifo.py
         ok = idx >= 0
         truth = None
@@ -512,7 +512,7 @@ class ICM20948Board(FifoBoard):
             reset_started = self.transport.now_ns()
             part.flush()
             self._overflow_pending = False
-            self.timeline.overflowed(self.transport.now_ns(), reset_started_ns=reset_started)
+            self.timeline.overflowed(reset_started, self.transport.now_ns())
         acc_c, gyr_c = p[:, 0:3], p[:, 3:6]
         st1, mag_c, st2 = p[:, 6], p[:, 7:10], p[:, 11]
         new = (st1 & 0x01) != 0
