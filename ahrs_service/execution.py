@@ -92,6 +92,11 @@ def worker_cache(key: Any, load: Callable[[], R]) -> R:
 _cache: "OrderedDict[Any, Any]" = OrderedDict()
 
 
+def clear_worker_cache() -> None:
+    """Empties this process's :func:`worker_cache` (a benchmark's repeated serial run)."""
+    _cache.clear()
+
+
 def _run_after(fn: Callable[[J], R], job: J, _prepared: Any) -> R:
     """``fn(job)`` as a task that depends on its input's prepare task (placed beside it)."""
     return fn(job)
@@ -237,12 +242,32 @@ def open_runner(
     return Runner(client, cluster, RunnerInfo("local", n, cluster.scheduler_address), retries)
 
 
+#: Dask settings of the embedded LocalCluster (docs/fleet.md, "The embedded cluster's
+#: settings"), each measured on the 2-core machine with two 3 s CPU-bound tasks
+#: (``benchmarks/fleet.py --floor``): Dask's defaults cost 0.15 s of the scheduler's process
+#: and 0.14 s of each worker's beside the tasks (wall 3.33 s), these 0.04 and 0.01–0.02 s
+#: (wall 3.06 s) — on 2 cores, CPU the cluster spends on itself is taken from the jobs.
+LOCAL_CLUSTER_CONFIG: dict[str, Any] = {
+    # Dask's nannies set MALLOC_TRIM_THRESHOLD_, which freezes glibc's mmap threshold: every
+    # array of a recording's size became a fresh mmap and the jobs ran 2x slower
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    # the statistical profiler samples every worker's stacks every 10 ms for the dashboard's
+    # profile page; this cluster has no dashboard (half the workers' own CPU)
+    "distributed.worker.profile.enabled": False,
+    # each process's event-loop health tick (20 ms): a blocked loop is still reported, once
+    # a second instead of fifty times (half the scheduler process's own CPU)
+    "distributed.admin.tick.interval": "1s",
+    # memory and system monitors (100 ms / 500 ms): a worker over its memory limit is still
+    # paused, spilled or restarted, within a second
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+}
+
+
 def _local_cluster(LocalCluster: Any, n: int) -> Any:
     import dask
 
-    # Dask's nannies set MALLOC_TRIM_THRESHOLD_, which freezes glibc's mmap threshold: every
-    # array of a recording's size became a fresh mmap and the jobs ran 2x slower (docs/fleet.md)
-    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+    with dask.config.set(LOCAL_CLUSTER_CONFIG):
         return LocalCluster(
             n_workers=n,
             threads_per_worker=1,

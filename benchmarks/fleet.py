@@ -1,6 +1,7 @@
 """Benchmark of the execution layer: ``evaluate`` on BROAD with 1 worker against N, same run.
 
     python benchmarks/fleet.py [--data DIR] [--workers 2] [--estimators all] [--trials PATTERN]
+                               [--repeat K] [--floor]
 
 Prints one row per runner: cluster start-up, task phase wall time, tasks per second, the sum
 of the time spent inside the tasks, and the cluster's overhead per task:
@@ -12,11 +13,18 @@ i.e. the worker-seconds the cluster spent on anything but running jobs (scheduli
 serialising, gathering, idle tails), per task. The ratio row is the N-worker throughput over
 the 1-worker throughput measured in the same run. A warm-up pass (one task per estimator on
 every worker) runs before the timed phase so that numba's cache loading is not counted.
+``--repeat K`` runs the pair K times and prints each ratio and the median.
+
+``--floor`` adds Dask's own floor on this machine: the same number of tasks, each burning the
+CPU time its job took in the serial run (a busy loop on the thread's CPU clock, no data, no
+project code), placed the same way (one prepare task per recording, burning that recording's
+load time), on the same cluster. No job code can beat the ratio and overhead of that run.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 from dataclasses import dataclass
@@ -25,7 +33,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ahrs_service.evaluation import broad, report  # noqa: E402
-from ahrs_service.execution import open_runner, worker_cache  # noqa: E402
+from ahrs_service.execution import clear_worker_cache, open_runner, worker_cache  # noqa: E402
 
 
 @dataclass
@@ -55,6 +63,62 @@ def _prepare_seconds(recordings: list[tuple[str, str, str]]) -> float:
     return sum(worker_cache(("benchmark prepare s", r), lambda: 0.0) for r in recordings)
 
 
+def burn(seconds: float) -> float:
+    """A synthetic job: ``seconds`` of this thread's CPU time, nothing else."""
+    end = time.thread_time() + seconds
+    while time.thread_time() < end:
+        pass
+    return seconds
+
+
+def timed_burn(seconds: float) -> Timed:
+    t0 = time.perf_counter()
+    burn(seconds)
+    return Timed(None, time.perf_counter() - t0)  # type: ignore[arg-type]
+
+
+def floor(workers: int, one: dict, jobs: list[report.TrialJob]) -> dict:
+    """The serial run's jobs replaced by CPU burns of their own durations (see the module doc).
+
+    The serial run loaded each recording inside its first job: that job's excess over the
+    recording's median job is burnt by the recording's prepare task instead, as the real run
+    loads it there."""
+    by_recording: dict[tuple, list[float]] = {}
+    for job, seconds in zip(jobs, one["job_seconds"]):
+        by_recording.setdefault(report.recording_of(job), []).append(seconds)
+    median = {r: sorted(v)[len(v) // 2] for r, v in by_recording.items()}
+    load = {r: max(0.0, v[0] - median[r]) for r, v in by_recording.items()}
+    burns, first = [], set()
+    for job, seconds in zip(jobs, one["job_seconds"]):
+        r = report.recording_of(job)
+        burns.append((r, median[r] if r not in first else seconds))
+        first.add(r)
+    with open_runner(workers=workers) as runner:
+        runner.client.run(burn, 0.01)
+        t1 = time.perf_counter()
+        out = runner.map(_timed_keyed_burn, burns, place_by=_recording_of_burn,
+                         prepare=functools.partial(_burn_load, load))
+        wall = time.perf_counter() - t1
+    inside = sum(t.seconds for t in out) + sum(load.values())
+    return {"workers": workers, "wall_s": wall, "tasks_per_s": len(jobs) / wall, "inside_s": inside,
+            "serial_s": sum(s for _, s in burns) + sum(load.values()),
+            "overhead_ms": (workers * wall - inside) / len(jobs) * 1e3,
+            "overhead_pct": (workers * wall - inside) / inside * 100.0}
+
+
+def _recording_of_burn(burn_job: tuple) -> tuple:
+    return burn_job[0]
+
+
+def _burn_load(load: dict, recording: tuple) -> bool:
+    burn(load[recording])
+    return True
+
+
+def _timed_keyed_burn(keyed: tuple) -> Timed:
+    return timed_burn(keyed[1])
+
+
 def _warm_up(warm: list[report.TrialJob]) -> None:
     """Loads the first recording and every estimator's kernels in this process."""
     for job in warm:
@@ -62,6 +126,7 @@ def _warm_up(warm: list[report.TrialJob]) -> None:
 
 
 def measure(workers: int, jobs: list[report.TrialJob], warm: list[report.TrialJob]) -> dict:
+    clear_worker_cache()  # a repeated serial run loads its recordings again, as the first did
     t0 = time.perf_counter()
     with open_runner(workers=workers) as runner:
         start_s = time.perf_counter() - t0
@@ -81,7 +146,7 @@ def measure(workers: int, jobs: list[report.TrialJob], warm: list[report.TrialJo
         "workers": workers, "start_s": start_s, "wall_s": wall, "tasks_per_s": len(jobs) / wall,
         "inside_s": inside, "overhead_ms": (workers * wall - inside) / len(jobs) * 1e3,
         "overhead_pct": (workers * wall - inside) / inside * 100.0,
-        "rows": [t.result.row for t in out],
+        "rows": [t.result.row for t in out], "job_seconds": [t.seconds for t in out],
     }
 
 
@@ -91,6 +156,8 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--estimators", default="all")
     ap.add_argument("--trials", default=None)
+    ap.add_argument("--repeat", type=int, default=1, help="pairs of runs (default 1); prints the median ratio")
+    ap.add_argument("--floor", action="store_true", help="also run the synthetic CPU-burn tasks (Dask's floor)")
     args = ap.parse_args()
     data_dir = str(broad.check_dir(args.data or broad.default_dir()).resolve())
     trials = broad.list_trials(data_dir, args.trials)
@@ -98,18 +165,35 @@ def main() -> int:
     cols = report.make_columns(names, [], {})
     jobs = [report.TrialJob(data_dir, t, c, False) for t in trials for c in cols]
     warm = [report.TrialJob(data_dir, trials[0], c, False) for c in cols]
-    one = measure(1, jobs, warm)
-    many = measure(args.workers, jobs, warm)
     strip = lambda rows: [{k: v for k, v in r.items() if k != "us_per_sample"} for r in rows]  # noqa: E731
-    same = repr(strip(one["rows"])) == repr(strip(many["rows"]))
-    print(f"evaluate: {len(trials)} trials x {len(cols)} estimators = {len(jobs)} tasks; results identical: {same}")
-    print("| workers | start s | task phase s | tasks/s | in-task s | overhead ms/task | overhead % |")
-    print("|---|---|---|---|---|---|---|")
-    for r in (one, many):
-        print(f"| {r['workers']} | {r['start_s']:.1f} | {r['wall_s']:.1f} | {r['tasks_per_s']:.2f} | "
-              f"{r['inside_s']:.1f} | {r['overhead_ms']:.1f} | {r['overhead_pct']:.1f} |")
-    print(f"throughput ratio {args.workers} workers / 1: {many['tasks_per_s'] / one['tasks_per_s']:.2f}")
-    return 0 if same else 1
+    print(f"evaluate: {len(trials)} trials x {len(cols)} estimators = {len(jobs)} tasks")
+    print("| run | workers | start s | task phase s | tasks/s | in-task s | overhead ms/task | overhead % | ratio |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    ratios, overheads, floor_ratios, floor_overheads, all_same = [], [], [], [], True
+    for k in range(1, args.repeat + 1):
+        one = measure(1, jobs, warm)
+        many = measure(args.workers, jobs, warm)
+        all_same &= repr(strip(one["rows"])) == repr(strip(many["rows"]))
+        ratio = many["tasks_per_s"] / one["tasks_per_s"]
+        ratios.append(ratio)
+        overheads.append(many["overhead_pct"])
+        for r, shown in ((one, ""), (many, f"{ratio:.2f}")):
+            print(f"| {k} | {r['workers']} | {r['start_s']:.1f} | {r['wall_s']:.1f} | {r['tasks_per_s']:.2f} | "
+                  f"{r['inside_s']:.1f} | {r['overhead_ms']:.1f} | {r['overhead_pct']:.1f} | {shown} |", flush=True)
+        if args.floor:
+            f = floor(args.workers, one, jobs)
+            floor_ratios.append(f["serial_s"] / f["wall_s"])
+            floor_overheads.append(f["overhead_pct"])
+            print(f"| {k} floor | {f['workers']} | | {f['wall_s']:.1f} | {f['tasks_per_s']:.2f} | {f['inside_s']:.1f} | "
+                  f"{f['overhead_ms']:.1f} | {f['overhead_pct']:.1f} | {floor_ratios[-1]:.2f} |", flush=True)
+    med = lambda v: sorted(v)[len(v) // 2]  # noqa: E731
+    print(f"results identical to the serial run: {all_same}")
+    print(f"throughput ratio {args.workers} workers / 1 (target >= 1.7): median {med(ratios):.2f} of "
+          f"{', '.join(f'{r:.2f}' for r in ratios)}; overhead (target <= 5 %): median {med(overheads):.1f} %")
+    if args.floor:
+        print(f"Dask's floor (CPU burns of the same durations, same placement): ratio median "
+              f"{med(floor_ratios):.2f}, overhead median {med(floor_overheads):.1f} %")
+    return 0 if all_same else 1
 
 
 if __name__ == "__main__":

@@ -176,6 +176,26 @@ def test_local_workers_keep_glibcs_adaptive_allocator():
     assert len(env) == 2 and set(env.values()) == {None}
 
 
+def _worker_settings(dask_worker) -> dict:
+    import dask
+
+    worker = dask_worker  # client.run passes the worker to a parameter of this name
+    return {"profile": dask.config.get("distributed.worker.profile.enabled"),
+            "tick": dask.config.get("distributed.admin.tick.interval"),
+            "profile_callback": "profile" in worker.periodic_callbacks}
+
+
+def test_local_workers_do_not_run_dasks_dashboard_profiler():
+    """The embedded cluster has no dashboard, so its workers run without the statistical
+    profiler that sampled their stacks every 10 ms for it, and tick their event loops once a
+    second (docs/fleet.md: half of each worker's own CPU beside the tasks)."""
+    with open_runner(workers=2) as runner:
+        settings = runner.client.run(_worker_settings)
+    assert len(settings) == 2
+    for s in settings.values():
+        assert s == {"profile": False, "tick": "1s", "profile_callback": False}
+
+
 def test_unreachable_scheduler_is_an_error_naming_it():
     address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
     with pytest.raises(RunnerError, match=address.replace(".", r"\.")):
