@@ -5,7 +5,8 @@ bus, so their drivers (``drivers/imu/``) talk to a :class:`RegisterTransport` an
 bus directly:
 
 * :class:`I2CTransport` — one address on an :class:`~ahrs_service.drivers.i2c.bus.I2CBus`
-  (``/dev/i2c-N`` or the simulated I2C bus); bursts are split into the SMBus's 32-byte blocks.
+  (``/dev/i2c-N`` or the simulated I2C bus); a burst is one read on an adapter that speaks
+  plain I2C, else split into the SMBus's 32-byte blocks (``I2CBus.max_read_bytes``).
 * :class:`SPITransport` — one chip select on an :class:`~ahrs_service.drivers.spi.bus.SPIBus`
   (``/dev/spidevB.C`` or the simulated SPI bus); the first byte is the register address
   with the read bit (0x80 for every part here) set for reads, and ``dummy_bytes`` bytes the
@@ -109,11 +110,15 @@ class I2CTransport(RegisterTransport):
         self.bus, self.address, self.clock_hz = bus, int(address), float(clock_hz)
         self.where = f"{bus.name} address 0x{self.address:02X}"
         self.simulated = bus.simulated
+        # an adapter that speaks plain I2C reads a whole FIFO burst in one transaction
+        self.max_read = bus.max_read_bytes
 
     def read(self, reg: int, n: int) -> bytes:
         if n == 1:
             return bytes((self.bus.read_byte_data(self.address, reg),))
-        return bytes(self.bus.read_i2c_block_data(self.address, reg, n))
+        if n <= I2C_BLOCK_MAX:
+            return bytes(self.bus.read_i2c_block_data(self.address, reg, n))
+        return bytes(self.bus.read_burst(self.address, reg, n))
 
     def write(self, reg: int, value: int) -> None:
         self.bus.write_byte_data(self.address, reg, value)

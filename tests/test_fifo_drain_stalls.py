@@ -32,7 +32,7 @@ class StallingBus:
         self.stall_s = 0.0
         self.armed = False
         self.fired = False
-        for name in ("read_byte_data", "read_i2c_block_data"):
+        for name in ("read_byte_data", "read_i2c_block_data", "read_burst"):
             inner = getattr(bus, name)
 
             def wrapped(addr, r, *args, _inner=inner):

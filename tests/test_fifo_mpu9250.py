@@ -26,17 +26,19 @@ def fifo_board(**options):
 
 
 class CountingBus:
-    """Counts the block transfers a board makes (wraps the simulated bus's method)."""
+    """Counts the multi-byte read transfers a board makes, SMBus blocks and plain I2C reads
+    alike (wraps the simulated bus's methods)."""
 
     def __init__(self, bus):
         self.blocks: list[tuple[int, int]] = []
-        inner = bus.read_i2c_block_data
+        for name in ("read_i2c_block_data", "read_burst"):
+            inner = getattr(bus, name)
 
-        def read_block(addr, reg, n):
-            self.blocks.append((reg, n))
-            return inner(addr, reg, n)
+            def read(addr, reg, n, inner=inner):
+                self.blocks.append((reg, n))
+                return inner(addr, reg, n)
 
-        bus.read_i2c_block_data = read_block
+            setattr(bus, name, read)
 
 
 def test_configuration_registers():
@@ -63,8 +65,8 @@ def test_burst_layout_scale_and_transfers():
     block = board.read_block()
     assert isinstance(block, SampleBlock) and len(block) == 10
     fifo_reads = [n for reg, n in bus.blocks if reg == m.FIFO_R_W]
-    assert fifo_reads == [32, 32, 32, 24]  # 120 bytes in ⌈120 / 32⌉ transfers
-    assert m.FIFO_LAYOUT.transfers(10) == 4
+    assert fifo_reads == [120]  # a plain-I2C adapter: the whole burst in one read
+    assert m.FIFO_LAYOUT.transfers(10, board.bus.max_read_bytes) == 1
     np.testing.assert_allclose(block.gyr, np.tile(src.gyr, (10, 1)), atol=board.mpu.gyro_scale[0])
     np.testing.assert_allclose(block.acc, np.tile(src.acc, (10, 1)), atol=board.mpu.acc_scale[0])
     assert (block.flags & (GYR_VALID | ACC_VALID) == GYR_VALID | ACC_VALID).all()
@@ -72,6 +74,19 @@ def test_burst_layout_scale_and_transfers():
     assert np.all(np.diff(block.t_ns) == 1_000_000)  # one output period apart
     assert block.t_ns[-1] == board.bus.now_ns()  # the newest is timed at the level read
     assert block.lost.total == 0 and len(twin.fifo) == 0
+
+
+def test_an_smbus_only_adapter_reads_the_fifo_in_32_byte_blocks():
+    src, board, twin = fifo_board()
+    board.bus.max_read_bytes = 32  # an adapter without I2C_FUNC_I2C (SMBus commands only)
+    src.advance(0.0105)
+    bus = CountingBus(board.bus)
+    block = board.read_block()
+    assert len(block) == 10 and block.lost.total == 0
+    assert [n for reg, n in bus.blocks if reg == m.FIFO_R_W] == [32, 32, 32, 24]  # ⌈120 / 32⌉
+    assert m.FIFO_LAYOUT.transfers(10) == 4
+    with pytest.raises(ValueError, match="1..32 bytes"):
+        board.bus.read_burst(0x68, m.FIFO_R_W, 33)
 
 
 def test_drain_schedule_is_the_wakeup_rate():

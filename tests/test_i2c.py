@@ -817,6 +817,45 @@ def test_smbus_backend_passes_transfers_through(monkeypatch):
     assert bus._smbus.closed
 
 
+class FakeI2CAdapter(FakeSMBus):
+    """smbus2.SMBus on an adapter that speaks plain I2C (``funcs`` has I2C_FUNC_I2C): a
+    combined write-then-read (``i2c_rdwr``) answers bytes 0, 1, 2, … like a FIFO stream."""
+
+    def __init__(self, bus):
+        import smbus2
+
+        super().__init__(bus)
+        self.funcs = smbus2.I2cFunc.I2C | smbus2.I2cFunc.SMBUS_READ_I2C_BLOCK
+
+    def i2c_rdwr(self, *msgs):
+        write, read = msgs
+        self.calls.append(("rdwr", write.addr, list(write), read.addr, read.len))
+        for i in range(read.len):
+            read.buf[i] = bytes([i % 256])
+
+
+def test_a_plain_i2c_adapter_reads_a_long_burst_in_one_combined_transaction(monkeypatch):
+    import os
+
+    import smbus2
+
+    monkeypatch.setattr(os.path, "exists", lambda p: p == "/dev/i2c-1")
+    monkeypatch.setattr(smbus2, "SMBus", FakeI2CAdapter)
+    bus = SMBusI2C(1)
+    assert bus.max_read_bytes == 8192
+    assert bus.read_burst(0x68, 0x74, 120) == list(range(120))
+    assert bus._smbus.calls[-1] == ("rdwr", 0x68, [0x74], 0x68, 120)  # register, then 120 bytes
+    assert bus.read_burst(0x68, 0x74, 12) == list(range(12))  # short: an SMBus block
+    assert bus._smbus.calls[-1] == ("rblk", 0x68, 0x74, 12)
+    with pytest.raises(ValueError, match="1..8192 bytes"):
+        bus.read_burst(0x68, 0x74, 8193)
+    monkeypatch.setattr(smbus2, "SMBus", FakeSMBus)  # no funcs: SMBus blocks only
+    smbus_only = SMBusI2C(1)
+    assert smbus_only.max_read_bytes == 32
+    with pytest.raises(ValueError, match="SMBus blocks are 1..32 bytes"):
+        smbus_only.read_burst(0x68, 0x74, 120)
+
+
 def test_smbus_permission_problem_is_explained(monkeypatch):
     import os
 

@@ -204,15 +204,21 @@ def test_bus_errors_are_retried_and_a_vanished_part_comes_back_with_the_loss_cou
     assert 95 <= b.diagnostics.lost.bus_error <= 160
 
 
-def test_i2c_transport_reads_the_fifo_in_smbus_blocks():
+@pytest.mark.parametrize("adapter, transfers", [
+    ("plain I2C", 1 + 1),  # status+count, then status, count and the 200 bytes in one read
+    ("SMBus only", 1 + 7),  # status+count, then 203 bytes in 32-byte SMBus blocks
+])
+def test_i2c_transport_reads_the_fifo_in_as_few_transfers_as_the_adapter_allows(adapter, transfers):
     b, imu, twin = board("i2c", odr_hz=1000, watermark=10)
+    if adapter == "SMBus only":  # an adapter without I2C_FUNC_I2C
+        b.transport.bus.max_read_bytes = b.transport.max_read = 32
     b.open()
     imu.clock.advance(0.0105)
     bus = b.transport.bus
     before = bus.transfers
     blk = b.read_block()
-    assert len(blk) == 10
-    assert bus.transfers - before == 1 + 7  # status+count, then 200 bytes in 32-byte SMBus blocks
+    assert len(blk) == 10 and blk.lost.total == 0
+    assert bus.transfers - before == transfers
     assert np.abs(blk.gyr - imu.gyr).max() <= D2R / 131 / 2 + 1e-12
 
 

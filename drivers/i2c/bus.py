@@ -8,6 +8,12 @@ so the simulated devices sit behind exactly the code that runs on hardware:
   simulation clock, with fault injection for tests (transient errors, a device that
   disappears and comes back).
 
+Reads longer than an SMBus block: an adapter that speaks plain I2C (``I2C_FUNC_I2C``: the
+Raspberry Pi's, i.MX, Tegra and most SoC controllers) takes a register write followed by a
+read of any length in one combined transaction (``I2C_RDWR``, smbus2's ``i2c_rdwr``), so a
+FIFO is emptied in one transfer; :attr:`I2CBus.max_read_bytes` says how long a read may be
+(32 on an SMBus-only adapter, where :meth:`I2CBus.read_burst` is refused above that).
+
 Errors follow Linux: a failed transfer raises :class:`OSError`; an address nobody answers
 raises ``OSError(ENXIO)`` (what most adapters return for an address NACK; some return
 ``EREMOTEIO``). Bus timestamps are nanoseconds on the host monotonic clock
@@ -29,6 +35,12 @@ if TYPE_CHECKING:  # pragma: no cover
     from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice
 
 
+#: SMBus block transfers carry at most 32 data bytes
+SMBUS_BLOCK_MAX = 32
+#: Linux i2c-dev's longest message in one I2C_RDWR transaction (bytes)
+I2C_RDWR_MAX = 8192
+
+
 class I2CBus(abc.ABC):
     """Register-level access to devices on one I2C bus (the SMBus subset the drivers use).
 
@@ -40,6 +52,9 @@ class I2CBus(abc.ABC):
     name: str = "i2c"
     #: True when the devices on this bus are simulated (samples then carry truth)
     simulated: bool = False
+    #: the longest read one transaction may carry: an SMBus block (32) unless the adapter
+    #: speaks plain I2C (then :data:`I2C_RDWR_MAX`, Linux i2c-dev's limit for one message)
+    max_read_bytes: int = SMBUS_BLOCK_MAX
 
     @abc.abstractmethod
     def read_byte_data(self, addr: int, reg: int) -> int:
@@ -57,6 +72,12 @@ class I2CBus(abc.ABC):
     def write_i2c_block_data(self, addr: int, reg: int, data: Sequence[int]) -> None:
         """Burst write of ``data`` (≤ 32 bytes) starting at ``reg``."""
 
+    def read_burst(self, addr: int, reg: int, n: int) -> list[int]:
+        """``n`` bytes (1 … :attr:`max_read_bytes`) from ``reg`` in one transaction: the
+        register written, then read with a repeated start. Here: SMBus blocks only."""
+        _check_transfer(addr, reg, n, self.max_read_bytes)
+        return self.read_i2c_block_data(addr, reg, n)
+
     def now_ns(self) -> int:
         """Timestamp (ns) for a reading taken now: host monotonic clock on hardware."""
         return time.monotonic_ns()
@@ -72,15 +93,16 @@ class I2CBus(abc.ABC):
         return f"{type(self).__name__}({self.name!r})"
 
 
-def _check_transfer(addr: int, reg: int, n: int | None = None) -> None:
+def _check_transfer(addr: int, reg: int, n: int | None = None, longest: int = SMBUS_BLOCK_MAX) -> None:
     # Bad arguments are programming errors, not bus faults: ValueError, never retried.
     if not 0x03 <= addr <= 0x77:
         raise ValueError(f"I2C address 0x{addr:02X} is outside the 7-bit range 0x03..0x77")
     if not 0 <= reg <= 0xFF:
         raise ValueError(f"register 0x{reg:X} is not an 8-bit sub-address (device 0x{addr:02X})")
-    if n is not None and not 1 <= n <= 32:
+    if n is not None and not 1 <= n <= longest:
+        kind = "SMBus blocks are" if longest == SMBUS_BLOCK_MAX else "one read on this bus is"
         raise ValueError(f"block transfer of {n} bytes at device 0x{addr:02X} register "
-                         f"0x{reg:02X}: SMBus blocks are 1..32 bytes")
+                         f"0x{reg:02X}: {kind} 1..{longest} bytes")
 
 
 class SMBusI2C(I2CBus):
@@ -117,6 +139,12 @@ class SMBusI2C(I2CBus):
                 f"a udev rule giving it access",
                 self.name,
             ) from exc
+        self._i2c_msg = smbus2.i2c_msg
+        try:
+            plain_i2c = bool(self._smbus.funcs & smbus2.I2cFunc.I2C)
+        except (AttributeError, TypeError):  # an smbus2 without funcs: SMBus blocks only
+            plain_i2c = False
+        self.max_read_bytes = I2C_RDWR_MAX if plain_i2c else SMBUS_BLOCK_MAX
 
     def read_byte_data(self, addr: int, reg: int) -> int:
         return self._smbus.read_byte_data(addr, reg)
@@ -129,6 +157,14 @@ class SMBusI2C(I2CBus):
 
     def write_i2c_block_data(self, addr: int, reg: int, data: Sequence[int]) -> None:
         self._smbus.write_i2c_block_data(addr, reg, list(data))
+
+    def read_burst(self, addr: int, reg: int, n: int) -> list[int]:
+        _check_transfer(addr, reg, n, self.max_read_bytes)
+        if n <= SMBUS_BLOCK_MAX:
+            return self._smbus.read_i2c_block_data(addr, reg, n)
+        write, read = self._i2c_msg.write(addr, [reg]), self._i2c_msg.read(addr, n)
+        self._smbus.i2c_rdwr(write, read)  # one combined transaction: repeated start, no stop
+        return list(read)
 
     def close(self) -> None:
         self._smbus.close()
@@ -144,15 +180,23 @@ class SimulatedI2CBus(SimulatedBusBase, I2CBus):
     Fault injection (tests): :meth:`inject_errors` makes the next transfers to an address
     fail like a glitch on the wires; :meth:`set_present` removes a device (it NACKs) and puts
     it back, power-cycled by default. ``transfers`` counts bus transactions.
+
+    max_read_bytes: the adapter's longest read (default: a plain-I2C adapter's; 32 models an
+    SMBus-only one).
     """
 
     simulated = True
 
-    def __init__(self, clock: Any, name: str = "sim-i2c", nack_errno: int = errno.ENXIO) -> None:
+    def __init__(self, clock: Any, name: str = "sim-i2c", nack_errno: int = errno.ENXIO,
+                 max_read_bytes: int = I2C_RDWR_MAX) -> None:
         self._init_clock(clock, "SimulatedI2CBus")
         self.name = name
         self.nack_errno = nack_errno
         self.transfers = 0
+        if not SMBUS_BLOCK_MAX <= max_read_bytes <= I2C_RDWR_MAX:
+            raise ValueError(f"{name}: max_read_bytes must be {SMBUS_BLOCK_MAX}..{I2C_RDWR_MAX}, "
+                             f"got {max_read_bytes}")
+        self.max_read_bytes = int(max_read_bytes)
 
     # ----------------------------------------------------------------- devices
     def attach(self, device: "SimulatedRegisterDevice",
@@ -219,3 +263,7 @@ class SimulatedI2CBus(SimulatedBusBase, I2CBus):
     def write_i2c_block_data(self, addr: int, reg: int, data: Sequence[int]) -> None:
         _check_transfer(addr, reg, len(data))
         self._target(addr).bus_write(reg, list(data), self.clock.now())
+
+    def read_burst(self, addr: int, reg: int, n: int) -> list[int]:
+        _check_transfer(addr, reg, n, self.max_read_bytes)
+        return self._target(addr).bus_read(reg, n, self.clock.now())

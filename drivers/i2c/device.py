@@ -20,10 +20,7 @@ from typing import Any
 import numpy as np
 
 from ahrs_service.drivers.base import SourceDiagnostics
-from ahrs_service.drivers.i2c.bus import I2CBus
-
-#: the largest SMBus/I2C block transfer of the Linux i2c-dev interface, bytes
-SMBUS_BLOCK_MAX = 32
+from ahrs_service.drivers.i2c.bus import SMBUS_BLOCK_MAX, I2CBus
 
 #: standard gravity: accelerometer counts are in g
 STANDARD_GRAVITY = 9.80665
@@ -143,16 +140,20 @@ class I2CDevice:
         self._transfer(self.bus.write_byte_data, reg, "writing", value)
 
     def read_block(self, reg: int, n: int) -> list[int]:
-        """``n`` bytes from ``reg`` in one burst (retried); ``reg`` includes any auto-increment bit."""
-        return self._transfer(self.bus.read_i2c_block_data, reg, "reading", n)
+        """``n`` bytes from ``reg`` in one burst (retried); ``reg`` includes any auto-increment
+        bit. Up to 32 bytes an SMBus block, longer a plain I2C read (``bus.max_read_bytes``)."""
+        if n <= SMBUS_BLOCK_MAX:
+            return self._transfer(self.bus.read_i2c_block_data, reg, "reading", n)
+        return self._transfer(self.bus.read_burst, reg, "reading", n)
 
     def read_fifo_frames(self, fifo: "FifoLayout", frames: int) -> bytes:
         """``frames`` whole FIFO frames popped from ``fifo.data_register``, oldest first, in as
-        few transfers as the part allows (see :class:`FifoLayout`); each transfer retried."""
+        few transfers as the part and the bus allow (see :class:`FifoLayout`); each transfer
+        retried."""
         per = fifo.frames_per_transfer
         total = frames * fifo.frame_bytes
-        if per == 0:  # a byte stream: any split, full SMBus blocks
-            step = SMBUS_BLOCK_MAX
+        if per == 0:  # a byte stream: any split, the bus's longest reads
+            step = self.bus.max_read_bytes
         else:
             step = per * fifo.frame_bytes
         out = bytearray()
@@ -219,7 +220,8 @@ class FifoLayout:
     data_register: sub-address a burst reads from (with any auto-increment flag).
     frames_per_transfer: whole frames one transfer may carry (the ADXL345 pops one entry per
         multi-byte read of DATAX0…DATAZ1: 1), or 0 for a plain byte stream that may be split
-        anywhere (the MPU-9250's FIFO_R_W: full 32-byte SMBus blocks).
+        anywhere (the MPU-9250's FIFO_R_W: one read of everything on a plain-I2C adapter,
+        32-byte SMBus blocks on an SMBus-only one).
     """
 
     depth_frames: int
@@ -227,12 +229,13 @@ class FifoLayout:
     data_register: int
     frames_per_transfer: int = 0
 
-    def transfers(self, frames: int) -> int:
-        """How many bus transfers reading ``frames`` frames takes."""
+    def transfers(self, frames: int, max_read_bytes: int = SMBUS_BLOCK_MAX) -> int:
+        """How many bus transfers reading ``frames`` frames takes on a bus whose longest read
+        is ``max_read_bytes`` (``I2CBus.max_read_bytes``)."""
         if frames <= 0:
             return 0
         if self.frames_per_transfer == 0:
-            return -(-frames * self.frame_bytes // SMBUS_BLOCK_MAX)
+            return -(-frames * self.frame_bytes // max_read_bytes)
         return -(-frames // self.frames_per_transfer)
 
 
