@@ -243,9 +243,9 @@ def open_runner(
 
 
 #: Dask settings of the embedded LocalCluster (docs/fleet.md, "The embedded cluster's
-#: settings"), each measured on the 2-core machine with two 3 s CPU-bound tasks
-#: (``benchmarks/fleet.py --floor``): Dask's defaults cost 0.15 s of the scheduler's process
-#: and 0.14 s of each worker's beside the tasks (wall 3.33 s), these 0.04 and 0.01–0.02 s
+#: settings"), measured on the 2-core machine with two 3 s CPU-bound tasks (benchmarks/README.md,
+#: "Dask's own cost on 2 cores"): Dask's defaults cost 0.15 s of the scheduler's process and
+#: 0.14 s of each worker's beside the tasks (wall 3.33 s), these 0.02–0.04 and 0.01–0.02 s
 #: (wall 3.06 s) — on 2 cores, CPU the cluster spends on itself is taken from the jobs.
 LOCAL_CLUSTER_CONFIG: dict[str, Any] = {
     # Dask's nannies set MALLOC_TRIM_THRESHOLD_, which freezes glibc's mmap threshold: every
