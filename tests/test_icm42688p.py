@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from ahrs_service.drivers.boards import make_transport_board
-from ahrs_service.drivers.imu.icm42688p import decode_hires
+from ahrs_service.drivers.imu.icm42688p import decode_hires, invalid_packets
 from ahrs_service.drivers.sim.clock import ManualClock
 from ahrs_service.drivers.transport import PartIdentityError
 
@@ -86,6 +86,28 @@ def test_hires_packet_layout_decoded_from_the_datasheet_order():
     assert d["gyr20"][0, 2] == -3 and d["gyr"][0, 2] == -2  # 19 bits: arithmetic shift
     assert d["temp"][0] == 0x0102 and d["tmst"][0] == 0xBEEF and d["header"][0] == 0x78
 
+
+
+def test_invalid_packets_are_those_with_another_header_or_an_invalid_reading():
+    def packet(header=0x78, acc_x_invalid=False, gyr_z_invalid=False):
+        pkt = bytearray(20)
+        pkt[0] = header
+        pkt[2] = 0x10  # small nonzero readings elsewhere
+        if acc_x_invalid:  # -524288: bits 19:12 = 0x80, 11:4 = 0x00, 3:0 = 0
+            pkt[1], pkt[2] = 0x80, 0x00
+        if gyr_z_invalid:
+            pkt[11], pkt[12] = 0x80, 0x00
+        return bytes(pkt)
+
+    assert invalid_packets(decode_hires(packet() * 8)) is None  # the usual burst
+    assert invalid_packets(decode_hires(b"")) is None
+    d = decode_hires(packet() + packet(header=0x68) + packet(acc_x_invalid=True) + packet(gyr_z_invalid=True)
+                     + packet(header=0x7B))  # header bits 1:0 are not checked
+    assert invalid_packets(d).tolist() == [False, True, True, True, False]
+    # a value one above the marker is a reading (the test is on the smallest value)
+    one_above = bytearray(packet(acc_x_invalid=True))
+    one_above[17] = 0x10
+    assert invalid_packets(decode_hires(bytes(one_above))) is None
 
 def test_burst_scale_within_one_lsb_and_timestamps_on_the_part_clock():
     b, imu, twin = board(odr_hz=8000, watermark=8)

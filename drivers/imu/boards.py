@@ -291,11 +291,10 @@ class ICM42688PBoard(FifoBoard):
         if overflow and self._stale_start(part):
             return SampleBlock.empty()
         header = pk["header"]
-        ok = ((header & 0xFC) == icm42688p.HIRES_HEADER) & \
-            (pk["acc20"] != icm42688p.INVALID_20BIT).all(axis=1) & \
-            (pk["gyr20"] != icm42688p.INVALID_20BIT).all(axis=1)
+        invalid = icm42688p.invalid_packets(pk)
         # every packet valid (the usual burst): the arrays as decoded, not copied through the mask
-        every = bool(ok.all())
+        every = invalid is None
+        ok = None if every else ~invalid
         # a full FIFO's newest sample is older than the read: timed from the clock's fit
         t = self.timeline.stamp(host, len(header), full=full, read_end_ns=host_done,
                                 level=count // icm42688p.PACKET)
@@ -313,18 +312,17 @@ class ICM42688PBoard(FifoBoard):
         gyr_c, acc_c, temp_c = pk["gyr"], pk["acc"], pk["temp"]
         if not every:
             gyr_c, acc_c, temp_c = gyr_c[ok], acc_c[ok], temp_c[ok]
-        gyr_c, acc_c = gyr_c.astype(np.int64), acc_c.astype(np.int64)
         truth = None
         if self.transport.simulated:  # the twin hands over the truth of the packets just read
             popped = _twin(self.transport).take_popped_truth()
-            rows = popped[:len(ok)] if every else [q for q, good in zip(popped, ok.tolist()) if good]
+            rows = popped[:len(header)] if every else [q for q, good in zip(popped, ok.tolist()) if good]
             if rows and all(q is not None for q in rows):
                 truth = np.array(rows, dtype=float)
         return SampleBlock(
             t_ns=t, gyr=gyr_c * part.gyro_scale, acc=acc_c * part.acc_scale,
             mag=np.full((n, 3), np.nan),
             flags=self._flags(gyr_c, acc_c, part.gyro_full_scale, part.acc_full_scale),
-            temperature_c=part.temperature_c(temp_c).astype(float),
+            temperature_c=np.asarray(part.temperature_c(temp_c), dtype=float),  # float64 already: no copy
             raw={"gyr": gyr_c, "acc": acc_c}, truth_q=truth, lost=lost)
 
 
