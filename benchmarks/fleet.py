@@ -18,7 +18,7 @@ every worker) runs before the timed phase so that numba's cache loading is not c
 ``--floor`` adds Dask's own floor on this machine: the same number of tasks, each burning the
 CPU time its job took in the serial run (a busy loop on the thread's CPU clock, no data, no
 project code), placed the same way (one prepare task per recording, burning that recording's
-load time), on the same cluster. No job code can beat the ratio and overhead of that run.
+load time), on the same cluster: what the cluster costs tasks of these durations by itself.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from ahrs_service.execution import clear_worker_cache, open_runner, worker_cache
 
 @dataclass
 class Timed:
-    result: report.TrialResult
+    result: report.TrialResult | None  # None: a floor task (no job)
     seconds: float  # wall time inside the task, on the worker
 
 
@@ -71,12 +71,6 @@ def burn(seconds: float) -> float:
     return seconds
 
 
-def timed_burn(seconds: float) -> Timed:
-    t0 = time.perf_counter()
-    burn(seconds)
-    return Timed(None, time.perf_counter() - t0)  # type: ignore[arg-type]
-
-
 def floor(workers: int, one: dict, jobs: list[report.TrialJob]) -> dict:
     """The serial run's jobs replaced by CPU burns of their own durations (see the module doc).
 
@@ -96,7 +90,7 @@ def floor(workers: int, one: dict, jobs: list[report.TrialJob]) -> dict:
     with open_runner(workers=workers) as runner:
         runner.client.run(burn, 0.01)
         t1 = time.perf_counter()
-        out = runner.map(_timed_keyed_burn, burns, place_by=_recording_of_burn,
+        out = runner.map(_timed_burn, burns, place_by=_recording_of_burn,
                          prepare=functools.partial(_burn_load, load))
         wall = time.perf_counter() - t1
     inside = sum(t.seconds for t in out) + sum(load.values())
@@ -115,8 +109,11 @@ def _burn_load(load: dict, recording: tuple) -> bool:
     return True
 
 
-def _timed_keyed_burn(keyed: tuple) -> Timed:
-    return timed_burn(keyed[1])
+def _timed_burn(burn_job: tuple[tuple, float]) -> Timed:
+    """A floor task: (recording, seconds) burnt, timed as :func:`timed_job` times a job."""
+    t0 = time.perf_counter()
+    burn(burn_job[1])
+    return Timed(None, time.perf_counter() - t0)
 
 
 def _warm_up(warm: list[report.TrialJob]) -> None:

@@ -177,12 +177,12 @@ def test_local_workers_keep_glibcs_adaptive_allocator():
 
 
 def _worker_settings(dask_worker) -> dict:
+    """What a worker runs with (``client.run`` passes the worker to a parameter of this name)."""
     import dask
 
-    worker = dask_worker  # client.run passes the worker to a parameter of this name
     return {"profile": dask.config.get("distributed.worker.profile.enabled"),
             "tick": dask.config.get("distributed.admin.tick.interval"),
-            "profile_callback": "profile" in worker.periodic_callbacks}
+            "profile_callback": "profile" in dask_worker.periodic_callbacks}
 
 
 def test_local_workers_do_not_run_dasks_dashboard_profiler():

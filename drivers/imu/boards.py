@@ -19,7 +19,7 @@ and configured again at most every ``reinit_period_s``.
 from __future__ import annotations
 
 from collections import deque
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -198,6 +198,16 @@ class FifoBoard(ImuSource):
     def _burst(self, max_samples: int) -> SampleBlock:
         raise NotImplementedError
 
+    @staticmethod
+    def _flush_counting_loss(flush: Callable[[], None], timeline: FifoTimeline,
+                             transport: RegisterTransport) -> None:
+        """Empties an overflowed FIFO (``flush``) and counts the samples it turned away: the
+        flush's transfer, from its start to its end on ``transport``'s clock, bounds the first
+        sample after it (:meth:`FifoTimeline.overflowed`)."""
+        started = transport.now_ns()
+        flush()
+        timeline.overflowed(started, transport.now_ns())
+
     def _stale_start(self, part: Any) -> bool:
         """An overflow found before the first read was timed (the FIFO filled between
         ``open`` and the consumer's first read: the service sets up its log and links in
@@ -301,12 +311,9 @@ class ICM42688PBoard(FifoBoard):
         if not every:
             t = t[ok]
         lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
-        if overflow and drained:
-            reset_started = self.transport.now_ns()
-            part.flush()
+        if overflow and drained:  # stop-on-full: the rest after
+            self._flush_counting_loss(part.flush, self.timeline, self.transport)
             self._overflow_pending = False
-            # stop-on-full: the rest after; the flush bounds the first sample after it
-            self.timeline.overflowed(reset_started, self.transport.now_ns())
         n = len(header) if every else int(ok.sum())
         self.diagnostics.samples += n
         gyr_c, acc_c, temp_c = pk["gyr"], pk["acc"], pk["temp"]
@@ -404,9 +411,7 @@ class BMI088Board(FifoBoard):
             self._acc_t = np.concatenate([self._acc_t[-1:], t])
             self._acc_c = np.concatenate([self._acc_c[-1:], counts])
         if full:
-            reset_started = self.acc_transport.now_ns()
-            self.acc.flush()
-            self.acc_timeline.overflowed(reset_started, self.acc_transport.now_ns())
+            self._flush_counting_loss(self.acc.flush, self.acc_timeline, self.acc_transport)
 
     def _burst(self, max_samples: int) -> SampleBlock:
         gyro = self.gyro
@@ -428,10 +433,8 @@ class BMI088Board(FifoBoard):
         t = self.timeline.stamp(host, take, full=overflow, read_end_ns=host_done, level=frames)
         lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and take == frames:
-            reset_started = self.transport.now_ns()
-            gyro.flush()
+            self._flush_counting_loss(gyro.flush, self.timeline, self.transport)
             self._overflow_pending = False
-            self.timeline.overflowed(reset_started, self.transport.now_ns())
         idx = hold_pairing(t, self._acc_t)  # the rule of drivers/fifo.py
         ok = idx >= 0
         truth = None
@@ -507,10 +510,8 @@ class ICM20948Board(FifoBoard):
                                 level=count // icm.PACKET)
         lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and drained:
-            reset_started = self.transport.now_ns()
-            part.flush()
+            self._flush_counting_loss(part.flush, self.timeline, self.transport)
             self._overflow_pending = False
-            self.timeline.overflowed(reset_started, self.transport.now_ns())
         acc_c, gyr_c = p[:, 0:3], p[:, 3:6]
         st1, mag_c, st2 = p[:, 6], p[:, 7:10], p[:, 11]
         new = (st1 & 0x01) != 0

@@ -126,8 +126,8 @@ _COUNT_SHIFT = np.array([2, 2, 2, 1, 1, 1])
 def decode_hires(data: bytes) -> dict[str, np.ndarray]:
     """Decodes whole 20-byte hi-res packets: {"header", "temp", "tmst"} (n,) int32; the
     counts "acc" (n,3) 18-bit and "gyr" (n,3) 19-bit, and the 20-bit values as read, "acc20"
-    and "gyr20" (n,3), all int64 views of two (n,6) arrays, accelerometer first: "all20" and
-    "counts".
+    and "gyr20" (n,3), all int64 views of two (n,6) arrays, accelerometer first (the 20-bit
+    one is "all20": :func:`invalid_packets` looks at all six values at once).
 
     A 20-bit two's complement value is its upper 16 bits read as a signed int16, times 16,
     plus its lowest 4 bits: read so from the packet's bytes it needs no sign fix-up, and the
@@ -140,7 +140,7 @@ def decode_hires(data: bytes) -> dict[str, np.ndarray]:
     all20 |= np.concatenate((ext >> 4, ext & 0x0F), axis=1)  # the lowest bits, in the order of "hi"
     counts = all20 >> _COUNT_SHIFT
     return {"header": p["header"].astype(np.int32), "all20": all20, "acc20": all20[:, :3], "gyr20": all20[:, 3:],
-            "counts": counts, "acc": counts[:, :3], "gyr": counts[:, 3:],
+            "acc": counts[:, :3], "gyr": counts[:, 3:],
             "temp": p["temp"].astype(np.int32), "tmst": p["tmst"].astype(np.int32)}
 
 
@@ -150,11 +150,11 @@ def invalid_packets(packets: dict[str, np.ndarray]) -> np.ndarray | None:
     the sensor off or not ready): an (n,) bool mask, or None when every packet is usable
     (the usual burst, told apart in three NumPy calls)."""
     header, all20 = packets["header"], packets["all20"]
+    other_header = (header & 0xFC) != HIRES_HEADER
     # no value is below the invalid marker: none is the marker when the least is above it
-    if len(header) == 0 or (int(all20.min()) > INVALID_20BIT and
-                            not ((header & 0xFC) != HIRES_HEADER).any()):
+    if len(header) == 0 or (int(all20.min()) > INVALID_20BIT and not other_header.any()):
         return None
-    return ((header & 0xFC) != HIRES_HEADER) | (all20 == INVALID_20BIT).any(axis=1)
+    return other_header | (all20 == INVALID_20BIT).any(axis=1)
 
 
 class ICM42688P(TransportDevice):
