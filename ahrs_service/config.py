@@ -440,6 +440,9 @@ SCHEMA: dict[str, dict[str, tuple[Any, Checker]]] = {
         # samples faster than this are logged one message per FIFO burst (/imu/raw_block,
         # /attitude_block) instead of one per sample, Hz; 0: always (docs/logs.md)
         "block_messages_above_hz": (1500.0, _number(0.0, 1_000_000.0)),
+        # the simulator's ground truth (/attitude/truth) when the source has one: false logs
+        # what a real sensor's log holds (raw + estimate)
+        "truth": (True, _boolean),
     },
     # the autopilot's attitude against ours when an autopilot link is up (docs/autopilot.md)
     "monitor": {

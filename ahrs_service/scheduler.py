@@ -67,7 +67,10 @@ class FixedRateScheduler:
     thread's timer slack is set to 1 µs (Linux) so that sleeps end close to when asked.
     """
 
-    def __init__(self, rate_hz: float, *, spin_ns: int = 20_000) -> None:
+    #: the default ``spin_ns``
+    SPIN_NS = 20_000
+
+    def __init__(self, rate_hz: float, *, spin_ns: int = SPIN_NS) -> None:
         self.spin_ns = spin_ns
         _tighten_timer_slack()
         self.set_rate(rate_hz)

@@ -179,7 +179,10 @@ class Service:
             # the FIFO watermark wakes the loop; the timer stays the fallback (DataReadyScheduler)
             self.scheduler = DataReadyScheduler(line, self.source.wakeup_rate_hz)
         else:
-            self.scheduler = FixedRateScheduler(self.loop_rate_hz(cfg))
+            # a source whose samples carry their own times (a FIFO) is not timed by the
+            # wake-up: polling the clock for the last microseconds before it buys nothing
+            spin_ns = 0 if self.source.times_on_sensor_clock else FixedRateScheduler.SPIN_NS
+            self.scheduler = FixedRateScheduler(self.loop_rate_hz(cfg), spin_ns=spin_ns)
         self._ticks_missed_counted = 0  # the scheduler's missed ticks already counted as lost
         self._use_source_calibration()
         self._open_log(cfg)
@@ -546,7 +549,8 @@ class Service:
                 done.t_ns, done.rows, done.flags, q=done.q, estimator=pipeline.estimator.name,
                 t_source_ns=done.t_source_ns if pipeline.clock is not None else None,
                 bias=done.state[_H.bias], state=done.state, raw=done.raw, temperature=done.temperature_c,
-                truth_q=done.truth_q, diagnostics=self._diagnostics_for_log() if self._diag_due else None,
+                truth_q=done.truth_q if self.cfg.log["truth"] else None,
+                diagnostics=self._diagnostics_for_log() if self._diag_due else None,
             )
             self._diag_due = False
         return done
@@ -633,7 +637,11 @@ class Service:
         so that the log's last counters cover its last samples."""
         if self.live is None and self.log_writer is None:
             return
-        loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced)
+        loop = dict(st.as_dict(), estimator=self.estimator.diagnostics, source=diag, reduced=self.pipeline.reduced,
+                    process_cpu_s=time.process_time())
+        simulation_cpu_s = self.source.simulation_cpu_s
+        if simulation_cpu_s is not None:  # the simulated hardware's share of process_cpu_s
+            loop["simulation_cpu_s"] = simulation_cpu_s
         if self.log_writer is not None:
             loop["log"] = self.log_writer.stats()  # docs/logs.md: /loop `log`, what was not logged
         if self._autopilot_link is not None:  # the link, TIMESYNC's offset and drift (docs/autopilot.md)

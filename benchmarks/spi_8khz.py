@@ -1,6 +1,6 @@
 """8 kHz ICM-42688-P over the simulated SPI bus: what the service's own work costs.
 
-    python benchmarks/spi_8khz.py [--seconds 20] [--odr 8000] [--loop-hz 1000] [--estimator madgwick]
+    python benchmarks/spi_8khz.py [--seconds 20] [--odr 8000] [--loop-hz 500] [--estimator madgwick]
                                   [--publish 200] [--drdy] [--stall-ms 0] [--log-messages per-sample]
 
 What runs, in this process: the service (scheduler, driver reading the FIFO in bursts over the
@@ -109,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--odr", type=float, default=8000.0)
-    ap.add_argument("--loop-hz", type=float, default=1000.0, help="timer rate of the loop (FIFO bursts)")
+    ap.add_argument("--loop-hz", type=float, default=None,
+                    help="timer rate of the loop (FIFO bursts; default the board's fifo_read_hz, 500 Hz)")
     ap.add_argument("--estimator", default="madgwick")
     ap.add_argument("--publish", type=float, default=200.0)
     ap.add_argument("--drdy", action="store_true", help="wake on the simulated watermark line")
@@ -118,6 +119,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="config: the default log.block_messages_above_hz (one message per burst at 8 kHz); "
                          "per-sample: one /imu/raw + /attitude per sample, for comparison")
     args = ap.parse_args(argv)
+    if args.loop_hz is None:
+        from ahrs_service.drivers.imu.boards import ICM42688PBoard
+
+        args.loop_hz = ICM42688PBoard.FIFO_READ_HZ
 
     from ahrs_service import config, service as service_mod, sources
     from ahrs_service.drivers.boards import make_transport_board

@@ -287,6 +287,10 @@ class SourceDiagnostics:
         d.update(self.extra)
         return d
 
+def bus_simulation_cpu_s(bus: Any) -> float | None:
+    """``simulation_cpu_s`` of a source on ``bus``: the simulated bus's count, None on a real one."""
+    return bus.simulation_cpu_ns / 1e9 if getattr(bus, "simulated", False) else None
+
 
 class ImuSource(abc.ABC):
     """Base of every sensor input. Subclasses implement ``open``, ``read`` and ``close``."""
@@ -311,6 +315,14 @@ class ImuSource(abc.ABC):
 
     def __init__(self) -> None:
         self.diagnostics = SourceDiagnostics()
+
+    @property
+    def simulation_cpu_s(self) -> float | None:
+        """CPU time (s) this process has spent being the simulated hardware behind this source
+        (a simulated bus's transfers and its parts' making of samples), which real hardware
+        does for nothing; None when the hardware is real or not simulated behind a bus. The
+        service logs it on /loop (``simulation_cpu_s``) so benchmarks can state its own work."""
+        return None
 
     @abc.abstractmethod
     def open(self) -> None:

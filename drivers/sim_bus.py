@@ -7,6 +7,8 @@ errors and a device that vanishes and comes back power-cycled.
 from __future__ import annotations
 
 import errno
+import functools
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -35,12 +37,41 @@ class SimulatedSlot:
         return OSError(self.error_errno, f"{where}: injected transfer error")
 
 
+def simulating(method: Callable[..., Any]) -> Callable[..., Any]:
+    """Marks a simulated bus's method whose work is the simulated hardware's (a transfer, the
+    catch-up of the parts' due samples): its thread CPU time is added to the bus's
+    ``simulation_cpu_ns`` — what a real bus's parts would have done for nothing. Counted at
+    the outermost such call only (one may call another)."""
+
+    @functools.wraps(method)
+    def counted(self: "SimulatedBusBase", *args: Any, **kwargs: Any) -> Any:
+        if self._inside_simulation:
+            return method(self, *args, **kwargs)
+        self._inside_simulation = True
+        start = time.thread_time_ns()
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            self.simulation_cpu_ns += time.thread_time_ns() - start
+            self._inside_simulation = False
+
+    return counted
+
+
 class SimulatedBusBase:
-    """The slots, clock and fault injection of a simulated bus (``clock.now()`` in s)."""
+    """The slots, clock and fault injection of a simulated bus (``clock.now()`` in s).
+
+    ``simulation_cpu_ns``: thread CPU time (ns) spent inside the bus's transfers and in its
+    parts' making of samples (:func:`simulating`): the simulated hardware's share of the
+    process's CPU, which benchmarks take off to state the service's own work (/loop
+    ``simulation_cpu_s``).
+    """
 
     clock: Any
     name: str
     _slots: dict[int, SimulatedSlot]
+    simulation_cpu_ns: int = 0
+    _inside_simulation: bool = False
 
     def _init_clock(self, clock: Any, bus_kind: str) -> None:
         if not callable(getattr(clock, "now", None)):

@@ -220,6 +220,9 @@ LOOP = {
         "estimator": {"type": "object", "description": "the estimator's diagnostics counters"},
         "source": {"type": "object", "description": "the sensor source's fault counters"},
         "log": {"type": "object", "description": "the log writer's own counters (FlightLogWriter.stats)"},
+        "process_cpu_s": {"type": "number", "description": "the service process's CPU time since its start, s"},
+        "simulation_cpu_s": {"type": "number", "description": "of process_cpu_s, the simulated hardware's "
+                             "(a simulated bus's transfers and its parts' samples), s"},
     },
     "required": ["t_ns"],
 }

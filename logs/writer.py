@@ -229,6 +229,39 @@ _CARRIES: dict[type, Callable[[Any], tuple[int, int]]] = {
 }
 
 
+#: rows at most in one joined /imu/raw_block (FlightLogWriter._joined_with_queued)
+JOINED_BLOCK_MAX_ROWS = 256
+
+
+def _continues(block: _Block, nxt: _Block) -> bool:
+    """Whether ``nxt`` can be written in the same block messages as ``block``: the next rows,
+    the same estimator and fields, and ``block`` without diagnostics of its own (those go
+    with a message's last row)."""
+    return (nxt.one_message and nxt.first_index == block.first_index + len(block.t_ns)
+            and nxt.estimator == block.estimator and block.diagnostics is None
+            and (nxt.t_source_ns is None) == (block.t_source_ns is None)
+            and (nxt.temperature is None) == (block.temperature is None)
+            and (nxt.truth_q is None) == (block.truth_q is None)
+            and (nxt.raw is None) == (block.raw is None)
+            and (nxt.raw is None or (nxt.raw.keys() == block.raw.keys()
+                                     and all(nxt.raw[k].shape[1:] == block.raw[k].shape[1:] for k in nxt.raw))))
+
+
+def _join(parts: list[_Block]) -> _Block:
+    """Consecutive blocks (``_continues``) as one; the last one's bias and diagnostics."""
+
+    def cat(field: str) -> np.ndarray | None:
+        arrays = [getattr(p, field) for p in parts]
+        return None if arrays[0] is None else np.concatenate(arrays)
+
+    last = parts[-1]
+    raw = None if last.raw is None else {k: np.concatenate([p.raw[k] for p in parts]) for k in last.raw}
+    return _Block(t_ns=cat("t_ns"), t_source_ns=cat("t_source_ns"), rows=cat("rows"), flags=cat("flags"), raw=raw,
+                  temperature=cat("temperature"), first_index=parts[0].first_index, q=cat("q"),
+                  estimator=last.estimator, bias=last.bias, truth_q=cat("truth_q"), diagnostics=last.diagnostics,
+                  one_message=True)
+
+
 def _carried(item: Any) -> tuple[int, int]:
     """(messages, samples) of one queue record."""
     count = _CARRIES.get(type(item))
@@ -989,6 +1022,8 @@ class FlightLogWriter:
 
     def _on_block(self, item: _Block) -> None:
         self._rotate_if_due()  # at the block's start: a rotation's snapshot is a block's end state
+        if item.one_message:
+            item = self._joined_with_queued(item)
         if not self._ensure_item(item):
             return
         if item.one_message:
@@ -1016,6 +1051,29 @@ class FlightLogWriter:
                 self._write_attitude(t_ns, qs[i], item.estimator, None, None, with_bias=False)
             if truth is not None:
                 self._write("/attitude/truth", t_ns, truth_message(t_ns, truth[i]))
+
+    def _joined_with_queued(self, item: _Block) -> _Block:
+        """``item`` and the one-message blocks queued right behind it that continue it, as one
+        block: one /imu/raw_block and /attitude_block for all of them, up to the block whose
+        last row makes the next /attitude preview due (``tf_rate_hz``: each message then ends
+        with one, at that rate) and at most :data:`JOINED_BLOCK_MAX_ROWS` rows. A fast part's
+        bursts of a few samples each cost a message per channel each, and the ``mcap``
+        library's ``add_message`` is pure Python: joined, the writer pays it once per /tf
+        period. Nothing else is queued between them (a rotation's snapshot, a config, the
+        close stop the join where they stand)."""
+        if self._last_tf_ns is None:
+            return item
+        q, parts = self._q, [item]
+        rows = len(item.t_ns)
+        preview_due_ns = self._last_tf_ns + self.tf_period_ns
+        while q and int(parts[-1].t_ns[-1]) < preview_due_ns:
+            nxt = q[0]
+            if (type(nxt) is not _Block or not _continues(parts[-1], nxt)
+                    or rows + len(nxt.t_ns) > JOINED_BLOCK_MAX_ROWS):
+                break
+            parts.append(q.popleft())
+            rows += len(nxt.t_ns)
+        return item if len(parts) == 1 else _join(parts)
 
     def _write_block_messages(self, item: _Block) -> None:
         """One /imu/raw_block, /attitude_block (and /attitude/truth_block) for the whole block;

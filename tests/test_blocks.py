@@ -248,6 +248,42 @@ def test_blocks_faster_than_the_threshold_read_back_as_their_rows(tmp_path):
     assert checked == sum(b.counts.values())
 
 
+def test_queued_bursts_of_a_fast_part_are_joined_into_messages_of_one_tf_period(tmp_path):
+    """8 kHz bursts of 8 rows queued behind one another are written as one /imu/raw_block +
+    /attitude_block per /tf period (20 ms), each ending with the /attitude preview: the same
+    rows as per-sample messages; a block with diagnostics ends its message (they go with a
+    message's last row)."""
+    from mcap.reader import make_reader
+
+    t_ns, rows, q_true = make_fixtures.analytic_trajectory(8000.0, 0.5)
+    q = estimators.create("madgwick").run_rows(rows)
+    flags = np.full(len(t_ns), GYR_VALID | ACC_VALID | MAG_VALID | MAG_NEW, dtype=np.int64)
+    per_sample = FlightLogWriter(tmp_path / "a", fsync=False)
+    for i in range(len(t_ns)):
+        per_sample.write_sample(int(t_ns[i]), rows[i], int(flags[i]), q=q[i], estimator="madgwick", truth_q=q_true[i])
+    per_sample.close()
+    writer = FlightLogWriter(tmp_path / "b", fsync=False, block_messages_above_hz=1500.0)  # the service's default
+    n_blocks, diagnosed = len(t_ns) // 8, 101
+    for b in range(n_blocks):
+        s = slice(8 * b, 8 * b + 8)
+        writer.write_block(t_ns[s], rows[s], flags[s], q=q[s], estimator="madgwick", truth_q=q_true[s],
+                           diagnostics={"rejections": b} if b == diagnosed else None)
+    writer.close()
+    a, b = read_log(per_sample.files[0]), read_log(writer.files[0])
+    for key in ("t_ns", "rows", "flags", "index", "attitudes", "truth"):
+        assert np.array_equal(getattr(a, key), getattr(b, key), equal_nan=True), key
+    with open(writer.files[0], "rb") as f:
+        blocks = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/attitude_block"])]
+    assert sum(len(m["t_ns"]) for m in blocks) == len(t_ns)
+    assert len(blocks) < n_blocks  # joined: fewer messages than bursts
+    # at most a /tf period and the burst that makes the next /attitude preview due
+    assert all(m["t_ns"][-1] - m["t_ns"][0] < 20_000_000 + 8 * 125_000 and len(m["t_ns"]) <= 256 for m in blocks)
+    assert abs(b.counts["/attitude"] - 0.5 * 50) <= 2  # the previews stay at 50 Hz
+    with_diagnostics = [m for m in blocks if "diagnostics" in m]
+    assert [m["diagnostics"] for m in with_diagnostics] == [{"rejections": diagnosed}]
+    assert with_diagnostics[0]["t_ns"][-1] == t_ns[8 * diagnosed + 7]  # the message ends with that burst
+
+
 def test_a_block_log_replays_and_plots_like_a_per_sample_log(tmp_path):
     """``replay`` of a block log writes blocks again (new /attitude_block, the recorded one
     kept as /attitude/original_block); ``log plot``'s series hold every row."""
@@ -350,14 +386,16 @@ def test_the_service_on_its_own_log_reproduces_it_bit_for_bit(tmp_path):
 
 def test_the_service_logs_a_fast_source_one_message_per_burst_and_replays_it(tmp_path):
     """A 4 kHz recording played through the service (blocks of up to 64 rows from the recorded
-    source) is logged as /imu/raw_block + /attitude_block: the same rows, times, numbers and
+    source) is logged as /imu/raw_block + /attitude_block (bursts queued behind one another
+    joined up to the /attitude preview): the same rows, times, numbers and
     estimates as the service's per-sample log of the same run, the recorded estimate replayed
     bit for bit; played through the service again, the block log gives the same again."""
     path, *_ = make_fixtures.record_analytic(tmp_path / "rec", rate_hz=4000.0, seconds=1.0, change=None)
     recorded = read_log(path)
     first = read_log(_service_on(path, tmp_path / "first"))
     per_sample = read_log(_service_on(path, tmp_path / "per-sample", block_messages_above_hz=1e6))
-    assert "/imu/raw" not in first.counts and first.counts["/imu/raw_block"] >= len(recorded) // 64
+    # one message a burst of up to 64 rows, or several bursts joined (at most 256 rows)
+    assert "/imu/raw" not in first.counts and first.counts["/imu/raw_block"] >= len(recorded) // 256
     assert per_sample.counts["/imu/raw"] == len(recorded) and "/imu/raw_block" not in per_sample.counts
     for key in ("t_ns", "t_source_ns", "rows", "flags", "index", "attitudes"):
         assert np.array_equal(getattr(first, key), getattr(per_sample, key), equal_nan=True), key

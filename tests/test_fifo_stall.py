@@ -63,6 +63,7 @@ def _run_with_stall(tmp_path, port, stall_s, source=MPU9250):
     # nominal period plus the largest deviation any second of /loop recorded
     source["longest_loop_gap_ms"] = max(1e3 / m["rate_hz"] + m["period_jitter_max_us"] / 1e3
                                         for m in loops if m["ticks"] > 1)
+    source["cpu_s"] = [(m["process_cpu_s"], m.get("simulation_cpu_s")) for m in loops]  # process, simulated part
     return log, source
 
 
@@ -80,6 +81,10 @@ def test_a_stop_shorter_than_the_fifo_loses_no_sample(tmp_path):
     # can differ from the count by at most one at each end
     assert abs(_periods(log) - len(log)) <= 1
     assert np.max(np.diff(log.t_ns)) < 2 * PERIOD_NS  # no gap anywhere
+    # /loop's CPU figures: the process's time and the simulated part's share of it, both growing
+    process, simulated = np.array(source["cpu_s"]).T
+    assert np.all(np.diff(process) >= 0) and np.all(np.diff(simulated) >= 0)
+    assert np.all((simulated > 0) & (simulated < process)) and simulated[-1] > simulated[0]
 
 
 def test_a_stop_longer_than_the_fifo_counts_every_lost_sample(tmp_path):

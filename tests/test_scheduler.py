@@ -69,3 +69,48 @@ def test_stats_describe_the_last_second(clock):
 def test_rate_must_be_positive():
     with pytest.raises(ValueError, match="rate_hz"):
         FixedRateScheduler(0.0)
+
+
+@pytest.mark.parametrize("fifo, spin_ns", [(True, 0), (False, FixedRateScheduler.SPIN_NS)])
+def test_the_loop_spins_before_its_wake_up_only_for_a_source_timed_by_it(tmp_path, fifo, spin_ns):
+    """A polled part's sample is stamped at the wake-up (spinning the last 20 µs makes that
+    instant exact); a FIFO's rows carry their own times, so its loop sleeps to the deadline."""
+    from ahrs_service import config
+    from ahrs_service.service import Service
+
+    cfg = config.validate({
+        "source": {"type": "simulated_i2c", "board": "mpu9250", "board_options": {"fifo": fifo}},
+        "mavlink": {"endpoints": ["udpout:127.0.0.1:9"]},
+        "log": {"directory": str(tmp_path)},
+    })
+    service = Service(cfg, duration_s=0.2)
+    service.start()
+    try:
+        assert service.source.times_on_sensor_clock is fifo
+        assert service.scheduler.spin_ns == spin_ns
+        service.run()
+    finally:
+        service.close()
+
+
+@pytest.mark.parametrize("truth", [True, False])
+def test_the_simulators_truth_is_logged_unless_switched_off(tmp_path, truth):
+    """``log.truth = false``: the log holds what a real sensor's holds, raw + estimate."""
+    from ahrs_service import config
+    from ahrs_service.logs.reader import read_log
+    from ahrs_service.service import Service
+
+    cfg = config.validate({
+        "source": {"type": "simulated_i2c", "board": "mpu9250"},
+        "mavlink": {"endpoints": ["udpout:127.0.0.1:9"]},
+        "log": {"directory": str(tmp_path), "truth": truth},
+    })
+    service = Service(cfg, duration_s=0.5)
+    service.start()
+    try:
+        service.run()
+    finally:
+        service.close()
+    log = read_log(service.log_writer.files[0])
+    assert log.counts["/imu/raw"] == log.counts["/attitude"] > 0
+    assert log.counts.get("/attitude/truth", 0) == (log.counts["/imu/raw"] if truth else 0)

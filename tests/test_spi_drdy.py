@@ -123,6 +123,37 @@ class DummyBytePart(SimulatedRegisterDevice):
     POWER_ON = {0x00: 0x1E, 0x01: 0x5A}
 
 
+def test_the_simulated_bus_counts_its_parts_cpu_apart_and_a_real_bus_has_none(fake_spidev, monkeypatch):
+    """/loop's simulation_cpu_s: what a simulated part costs the process (making its samples,
+    answering transfers), which benchmarks take off the service's own work."""
+    import time
+
+    imu = ConstantImu()
+    b = make_transport_board("icm42688p", "spi", simulated_imu=imu, odr_hz=8000, fifo_read_hz=1000)
+    b.open()
+    counted = []
+    for _ in range(5):
+        imu.clock.advance(0.01)  # 80 samples for the part to make at the next transfer
+        before_s, start_ns = b.simulation_cpu_s, time.thread_time_ns()
+        assert 80 <= len(b.read_block()) <= 81  # the twin runs 0.42 % fast
+        whole_ns = time.thread_time_ns() - start_ns
+        counted.append(((b.simulation_cpu_s - before_s) * 1e9, whole_ns))
+    # never more than the read's own CPU, and the most of it: making and packing 80 samples
+    # costs the part more than decoding and timing them costs the driver
+    assert all(0 < part <= whole for part, whole in counted), counted
+    assert sum(p for p, _ in counted) > 0.4 * sum(w for _, w in counted), counted
+    b.close()
+    # a real bus (spidev, faked here) has no simulated hardware to count
+    fake_spidev.parts[(0, 0)], fake_spidev.clock = SimulatedICM42688P(imu), imu.clock
+    monkeypatch.setattr(SpidevSPI, "now_ns", lambda self: imu.clock.to_ns(imu.clock.now()))
+    monkeypatch.setattr(SpidevSPI, "sleep", lambda self, s: None)
+    fake_spidev.parts[(0, 0)].power_on_reset(imu.clock.now())
+    real = make_transport_board("icm42688p", "spi", odr_hz=8000, watermark=8, spi_speed_hz=10_000_000)
+    real.open()
+    assert real.simulation_cpu_s is None
+    real.close()
+
+
 def test_dummy_byte_reads_are_framed_by_the_transport():
     clock = ManualClock()
     bus = SimulatedSPIBus(clock)

@@ -22,11 +22,15 @@ class _LowerHull:
     chain, one point at a time): the only points that can be the minimum of ``y − x·p`` for
     any slope ``p``. Exact integer arithmetic, so hours of nanoseconds lose nothing."""
 
-    __slots__ = ("x", "y")
+    __slots__ = ("x", "y", "_slope", "_lowest")
 
     def __init__(self) -> None:
         self.x: list[int] = []
         self.y: list[int] = []
+        # lowest(slope)'s last answer, kept up to date as points come (the loop asks it at
+        # every read with the same slope, between refits): one point's term, not the hull's
+        self._slope: float | None = None
+        self._lowest = math.inf
 
     def add(self, x: int, y: int) -> None:
         xs, ys = self.x, self.y
@@ -40,6 +44,17 @@ class _LowerHull:
             ys.pop()
         xs.append(x)
         ys.append(y)
+        if self._slope is not None:
+            self._lowest = min(self._lowest, y - x * self._slope)
+
+    def lowest(self, slope: float) -> float:
+        """min(y − x·slope) over the points (math.inf with none): the lowest line of that slope
+        through them. Over the hull's vertices, which is over every point added (a point the
+        hull dropped lies above it at every slope), so a new point updates it alone."""
+        if slope != self._slope:
+            self._slope = slope
+            self._lowest = min((y - x * slope for x, y in zip(self.x, self.y)), default=math.inf)
+        return self._lowest
 
 
 class _Segment:
@@ -131,6 +146,9 @@ class SensorClock:
         self._last_refit_ns: int | None = None
         self._reads = 0  # reads so far, all segments
         self._last_t: int | None = None
+        # the continued segment's latest-offset bound, as last computed for (the current
+        # segment, its first index, the period): its reads are over, it changes with those only
+        self._continued: tuple[_Segment, int, float, float] | None = None
 
     @property
     def rate_hz(self) -> float:
@@ -258,19 +276,21 @@ class SensorClock:
     def _earliest_offset_rel(self) -> float | None:
         """The earliest offset the current segment's reads allow (each newest sample's
         successor not yet produced when its read began), None before a two-sided read."""
-        p, after = self.period_ns, self._current.after
-        return max((-y - x * p for x, y in zip(after.x, after.y)), default=None)
+        after = self._current.after  # of (i + 1, −start): the highest line is −(its lowest at −p)
+        return -after.lowest(-self.period_ns) if after.x else None
 
     def _latest_offset_rel(self) -> float:
         """The latest offset the current segment's reads allow (and those of the segment it
         continues: each newest sample produced by the end of its read)."""
         p, seg = self.period_ns, self._current
-        hull = seg.before
-        best = min(y - x * p for x, y in zip(hull.x, hull.y))
+        best = seg.before.lowest(p)
         old = seg.continues
-        if old is not None:  # its bounds in this segment's coordinates
-            dx, dy = old.i0 - seg.i0, old.h0 - seg.h0
-            best = min(best, min(y + dy - (x + dx) * p for x, y in zip(old.before.x, old.before.y)))
+        if old is not None:  # its bounds in this segment's coordinates (its reads are over)
+            if self._continued is None or self._continued[:3] != (seg, seg.i0, p):
+                dx, dy = old.i0 - seg.i0, old.h0 - seg.h0
+                self._continued = (seg, seg.i0, p,
+                                   min(y + dy - (x + dx) * p for x, y in zip(old.before.x, old.before.y)))
+            best = min(best, self._continued[3])
         return best
 
     def _refit(self, now_ns: int) -> None:

@@ -43,6 +43,7 @@ from ahrs_service.drivers.base import (
     ImuSource,
     LossCounts,
     SampleBlock,
+    bus_simulation_cpu_s,
 )
 from ahrs_service.drivers.i2c.adxl345 import RATES_HZ as ADXL345_RATES_HZ, ADXL345, SimulatedADXL345
 from ahrs_service.drivers.i2c.ak8963 import AK8963, SimulatedAK8963
@@ -91,6 +92,10 @@ class I2CBoard(ImuSource):
         self.lost: set[str] = set()
         self._last_attempt_ns = 0
         self._opened = False
+
+    @property
+    def simulation_cpu_s(self) -> float | None:
+        return bus_simulation_cpu_s(self.bus)
 
     def _kw(self) -> dict[str, Any]:
         return {"diagnostics": self.diagnostics, "retries": self.retries}

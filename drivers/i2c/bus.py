@@ -29,7 +29,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
-from ahrs_service.drivers.sim_bus import SimulatedBusBase, SimulatedSlot
+from ahrs_service.drivers.sim_bus import SimulatedBusBase, SimulatedSlot, simulating
 
 if TYPE_CHECKING:  # pragma: no cover
     from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice
@@ -246,24 +246,29 @@ class SimulatedI2CBus(SimulatedBusBase, I2CBus):
             raise err
         return slot.device
 
+    @simulating
     def read_byte_data(self, addr: int, reg: int) -> int:
         _check_transfer(addr, reg)
         return self._target(addr).bus_read(reg, 1, self.clock.now())[0]
 
+    @simulating
     def write_byte_data(self, addr: int, reg: int, value: int) -> None:
         _check_transfer(addr, reg)
         if not 0 <= value <= 0xFF:
             raise ValueError(f"{self.name}: byte 0x{value:X} for 0x{addr:02X} reg 0x{reg:02X}")
         self._target(addr).bus_write(reg, [value], self.clock.now())
 
+    @simulating
     def read_i2c_block_data(self, addr: int, reg: int, n: int) -> list[int]:
         _check_transfer(addr, reg, n)
         return self._target(addr).bus_read(reg, n, self.clock.now())
 
+    @simulating
     def write_i2c_block_data(self, addr: int, reg: int, data: Sequence[int]) -> None:
         _check_transfer(addr, reg, len(data))
         self._target(addr).bus_write(reg, list(data), self.clock.now())
 
+    @simulating
     def read_burst(self, addr: int, reg: int, n: int) -> list[int]:
         _check_transfer(addr, reg, n, self.max_read_bytes)
         return self._target(addr).bus_read(reg, n, self.clock.now())

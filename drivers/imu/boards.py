@@ -28,6 +28,7 @@ from ahrs_service.drivers.base import (
     ImuSource,
     LossCounts,
     SampleBlock,
+    bus_simulation_cpu_s,
 )
 from ahrs_service.drivers.fifo import FifoTimeline, burst_flags, hold_pairing, latch_bounds
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, watermark_frames
@@ -70,6 +71,10 @@ class FifoBoard(ImuSource):
         self._overflow_pending = False
         self.diagnostics.extra["fifo_overflows"] = 0
         self._drain_started_ns: int | None = None  # the last drain's start (_note_drain_window)
+
+    @property
+    def simulation_cpu_s(self) -> float | None:
+        return bus_simulation_cpu_s(self.bus)
 
     @property
     def clock(self) -> SensorClock | None:
@@ -241,15 +246,21 @@ class ICM42688PBoard(FifoBoard):
     """ICM-42688-P on SPI (``/dev/spidevB.C``) or I2C (0x68/0x69).
 
     odr_hz: 100 … 8000; watermark: samples per burst (default ``odr_hz / fifo_read_hz``);
-    fifo_read_hz: the burst (wake-up) rate the watermark is set for, default 1000 Hz.
+    fifo_read_hz: the burst (wake-up) rate the watermark is set for, default 500 Hz: 16
+    samples a burst at 8 kHz, 2 ms of the FIFO's 12.7 ms. Each wake-up costs this Python loop
+    about as much as a burst's samples do (benchmarks/README.md, "8 kHz ICM-42688-P"): at
+    1 000 wake-ups a second the service's own work at 8 kHz measured 43–44 % of a core, at 500
+    27 %; PX4's C driver reads every 1.25 ms.
     """
 
     NAME = "icm42688p"
     PART = icm42688p.ICM42688P
     FIFO_FRAMES = icm42688p.FIFO_BYTES // icm42688p.PACKET
+    #: the default ``fifo_read_hz``
+    FIFO_READ_HZ = 500.0
 
     def __init__(self, transport: RegisterTransport, *, odr_hz: float = 1000,
-                 fifo_read_hz: float = 1000, watermark: int | None = None, **kw: Any) -> None:
+                 fifo_read_hz: float = FIFO_READ_HZ, watermark: int | None = None, **kw: Any) -> None:
         super().__init__(transport, **kw)
         if not 1 <= fifo_read_hz <= 8000:
             raise ValueError(f"icm42688p fifo_read_hz must be 1…8000 Hz, got {fifo_read_hz}")

@@ -24,7 +24,7 @@ import os
 import time
 from typing import TYPE_CHECKING, Any
 
-from ahrs_service.drivers.sim_bus import SimulatedBusBase, SimulatedSlot
+from ahrs_service.drivers.sim_bus import SimulatedBusBase, SimulatedSlot, simulating
 
 if TYPE_CHECKING:  # pragma: no cover
     from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice
@@ -163,6 +163,7 @@ class SimulatedSPIBus(SimulatedBusBase, SPIBus):
     # faults: inject_errors(cs, …) and set_present(cs, …) (SimulatedBusBase; a vanished
     # device leaves MISO floating: reads 0xFF)
 
+    @simulating
     def now_ns(self) -> int:
         # the host times a transfer next: its parts make their due samples first (catch_up)
         for slot in self._slots.values():
@@ -170,6 +171,7 @@ class SimulatedSPIBus(SimulatedBusBase, SPIBus):
                 self.catch_up(slot.device)
         return super().now_ns()
 
+    @simulating
     def transfer(self, cs: int, data: bytes) -> bytes:
         self.transfers += 1
         self.bytes_moved += len(data)
