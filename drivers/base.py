@@ -287,6 +287,7 @@ class SourceDiagnostics:
         d.update(self.extra)
         return d
 
+
 def bus_simulation_cpu_s(bus: Any) -> float | None:
     """``simulation_cpu_s`` of a source on ``bus``: the simulated bus's count, None on a real one."""
     return bus.simulation_cpu_ns / 1e9 if getattr(bus, "simulated", False) else None
