@@ -214,6 +214,17 @@ def _one_message_blocks(directory: Path, t_ns, rows, flags, q, q_true, n: int = 
     return writer
 
 
+def _per_sample_log(directory: Path, t_ns, rows, q_true) -> tuple[np.ndarray, np.ndarray, FlightLogWriter]:
+    """Madgwick's estimate of ``rows``, their flags, and the closed writer of their per-sample log."""
+    q = estimators.create("madgwick").run_rows(rows)
+    flags = np.full(len(t_ns), GYR_VALID | ACC_VALID | MAG_VALID | MAG_NEW, dtype=np.int64)
+    per_sample = FlightLogWriter(directory, fsync=False)
+    for i in range(len(t_ns)):
+        per_sample.write_sample(int(t_ns[i]), rows[i], int(flags[i]), q=q[i], estimator="madgwick", truth_q=q_true[i])
+    per_sample.close()
+    return q, flags, per_sample
+
+
 def test_blocks_faster_than_the_threshold_read_back_as_their_rows(tmp_path):
     """Above ``block_messages_above_hz`` a block is one message per channel; the log reads back
     into exactly the rows, indexes, attitudes and truth that per-sample messages give, and
@@ -224,12 +235,7 @@ def test_blocks_faster_than_the_threshold_read_back_as_their_rows(tmp_path):
 
     t_ns, rows, q_true = make_fixtures.analytic_trajectory(200.0, 1.0)
     rows[::7, 6:9] = np.nan  # samples without a magnetometer reading
-    q = estimators.create("madgwick").run_rows(rows)
-    flags = np.full(len(t_ns), GYR_VALID | ACC_VALID | MAG_VALID | MAG_NEW, dtype=np.int64)
-    per_sample = FlightLogWriter(tmp_path / "a", fsync=False)
-    for i in range(len(t_ns)):
-        per_sample.write_sample(int(t_ns[i]), rows[i], int(flags[i]), q=q[i], estimator="madgwick", truth_q=q_true[i])
-    per_sample.close()
+    q, flags, per_sample = _per_sample_log(tmp_path / "a", t_ns, rows, q_true)
     blocks = _one_message_blocks(tmp_path / "b", t_ns, rows, flags, q, q_true)
     a, b = read_log(per_sample.files[0]), read_log(blocks.files[0])
     for key in ("t_ns", "rows", "flags", "index", "attitudes", "truth", "t_source_ns"):
@@ -256,12 +262,7 @@ def test_queued_bursts_of_a_fast_part_are_joined_into_messages_of_one_tf_period(
     from mcap.reader import make_reader
 
     t_ns, rows, q_true = make_fixtures.analytic_trajectory(8000.0, 0.5)
-    q = estimators.create("madgwick").run_rows(rows)
-    flags = np.full(len(t_ns), GYR_VALID | ACC_VALID | MAG_VALID | MAG_NEW, dtype=np.int64)
-    per_sample = FlightLogWriter(tmp_path / "a", fsync=False)
-    for i in range(len(t_ns)):
-        per_sample.write_sample(int(t_ns[i]), rows[i], int(flags[i]), q=q[i], estimator="madgwick", truth_q=q_true[i])
-    per_sample.close()
+    q, flags, per_sample = _per_sample_log(tmp_path / "a", t_ns, rows, q_true)
     writer = FlightLogWriter(tmp_path / "b", fsync=False, block_messages_above_hz=1500.0)  # the service's default
     n_blocks, diagnosed = len(t_ns) // 8, 101
     for b in range(n_blocks):
