@@ -31,15 +31,12 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from ahrs_service.drivers.base import SourceDiagnostics
+from ahrs_service.drivers.i2c.bus import SMBUS_BLOCK_MAX
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, _hex, run_retried
 
 if TYPE_CHECKING:  # pragma: no cover
     from ahrs_service.drivers.i2c.bus import I2CBus
     from ahrs_service.drivers.spi.bus import SPIBus
-
-#: SMBus block transfers carry at most 32 data bytes (smbus2's read_i2c_block_data)
-I2C_BLOCK_MAX = 32
-
 
 class TransportError(OSError):
     """A register transfer failed after the retries: names bus, address or chip select, register."""
@@ -76,7 +73,7 @@ class RegisterTransport(abc.ABC):
     simulated: bool = False
     clock_hz: float = 0.0
     #: the largest single read transfer, data bytes
-    max_read: int = I2C_BLOCK_MAX
+    max_read: int = SMBUS_BLOCK_MAX
 
     @abc.abstractmethod
     def read(self, reg: int, n: int) -> bytes:
@@ -116,7 +113,7 @@ class I2CTransport(RegisterTransport):
     def read(self, reg: int, n: int) -> bytes:
         if n == 1:
             return bytes((self.bus.read_byte_data(self.address, reg),))
-        if n <= I2C_BLOCK_MAX:
+        if n <= SMBUS_BLOCK_MAX:
             return bytes(self.bus.read_i2c_block_data(self.address, reg, n))
         return bytes(self.bus.read_burst(self.address, reg, n))
 

@@ -405,3 +405,25 @@ def test_the_service_logs_a_fast_source_one_message_per_burst_and_replays_it(tmp
     again = read_log(_service_on(first.path, tmp_path / "again"))
     assert np.array_equal(again.rows, first.rows, equal_nan=True) and np.array_equal(again.attitudes, first.attitudes)
 
+
+@pytest.mark.parametrize("truth", [True, False])
+def test_the_simulators_truth_is_logged_unless_switched_off(tmp_path, truth):
+    """``log.truth = false``: the log holds what a real sensor's holds, raw + estimate."""
+    from ahrs_service import config
+    from ahrs_service.logs.reader import read_log
+    from ahrs_service.service import Service
+
+    cfg = config.validate({
+        "source": {"type": "simulated_i2c", "board": "mpu9250"},
+        "mavlink": {"endpoints": ["udpout:127.0.0.1:9"]},
+        "log": {"directory": str(tmp_path), "truth": truth},
+    })
+    service = Service(cfg, duration_s=0.5)
+    service.start()
+    try:
+        service.run()
+    finally:
+        service.close()
+    log = read_log(service.log_writer.files[0])
+    assert log.counts["/imu/raw"] == log.counts["/attitude"] > 0
+    assert log.counts.get("/attitude/truth", 0) == (log.counts["/imu/raw"] if truth else 0)

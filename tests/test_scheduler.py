@@ -91,26 +91,3 @@ def test_the_loop_spins_before_its_wake_up_only_for_a_source_timed_by_it(tmp_pat
         service.run()
     finally:
         service.close()
-
-
-@pytest.mark.parametrize("truth", [True, False])
-def test_the_simulators_truth_is_logged_unless_switched_off(tmp_path, truth):
-    """``log.truth = false``: the log holds what a real sensor's holds, raw + estimate."""
-    from ahrs_service import config
-    from ahrs_service.logs.reader import read_log
-    from ahrs_service.service import Service
-
-    cfg = config.validate({
-        "source": {"type": "simulated_i2c", "board": "mpu9250"},
-        "mavlink": {"endpoints": ["udpout:127.0.0.1:9"]},
-        "log": {"directory": str(tmp_path), "truth": truth},
-    })
-    service = Service(cfg, duration_s=0.5)
-    service.start()
-    try:
-        service.run()
-    finally:
-        service.close()
-    log = read_log(service.log_writer.files[0])
-    assert log.counts["/imu/raw"] == log.counts["/attitude"] > 0
-    assert log.counts.get("/attitude/truth", 0) == (log.counts["/imu/raw"] if truth else 0)
