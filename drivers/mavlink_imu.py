@@ -258,6 +258,10 @@ class MavlinkImuSource(ImuSource):
                 # the autopilot rebooted (its time went back) or its clock jumped: a new timeline
                 # (TIMESYNC notices the same jump in its replies and starts again by itself)
                 self.timeline_resets += 1
+                if self._clock is None and self._warmup:
+                    # the old timeline ended while its first samples waited for TIMESYNC: they
+                    # are stamped now, on the old timeline's arrivals, not dropped uncounted
+                    self._start_clock()
                 self.link.timeline.reset()
                 self._clock, self._warmup = None, []
         self.link.timeline.arrival(r.remote_us, rx_ns)
@@ -266,17 +270,21 @@ class MavlinkImuSource(ImuSource):
             # the stream's real rate, from its first spacings: an autopilot may not give the
             # rate asked for, and the sample clock's periods must be the stream's own
             self._warmup.append(r)
-            if len(self._warmup) < WARMUP_MESSAGES or not self._may_start():
-                return
-            spacing = float(np.median(np.diff([w.remote_us for w in self._warmup]))) * 1000
-            self._clock = SampleClock(1e9 / spacing if spacing > 0 else self.rate_hz)
-            self._index = 0
-            pending, self._warmup = self._warmup, []
-            self._stamp(pending[0], first=True)
-            for w in pending[1:]:
-                self._stamp(w)
+            if len(self._warmup) >= WARMUP_MESSAGES and self._may_start():
+                self._start_clock()
             return
         self._stamp(r)
+
+    def _start_clock(self) -> None:
+        """Starts the sample clock at the stream's rate measured over the warm-up messages (the
+        rate asked for when they are too few to measure) and stamps them."""
+        pending, self._warmup = self._warmup, []
+        spacing = float(np.median(np.diff([w.remote_us for w in pending]))) * 1000 if len(pending) > 1 else 0.0
+        self._clock = SampleClock(1e9 / spacing if spacing > 0 else self.rate_hz)
+        self._index = 0
+        self._stamp(pending[0], first=True)
+        for w in pending[1:]:
+            self._stamp(w)
 
     def _on_ack(self, msg: Any, rx_ns: int) -> None:
         """The autopilot's answer to our stream request (reader thread): a refusal is counted

@@ -187,14 +187,15 @@ class SimAutopilot:
     samples the service must count). attitude_offset_deg: a heading offset added to the
     autopilot's own attitude (the monitor's test). pause: (sample index, seconds) — the
     autopilot stops sending for that long before that sample (a silent link); with a
-    :class:`PtyTransport` the device is unplugged during the pause.
+    :class:`PtyTransport` the device is unplugged during the pause. answer_timesync: False
+    leaves TIMESYNC requests unanswered (an autopilot or router that does not pass them).
     """
 
     def __init__(self, transport, recording: Recording, *, kind: str = "px4", system_id: int = 1,
                  component_id: int = 1, drop: frozenset[int] = frozenset(), attitude_hz: float = 50.0,
                  attitude_offset_deg: float = 0.0, pause: tuple[int, float] | None = None,
                  refuse_streams: bool = False, send_jitter_us: int = 0, seed: int = 0,
-                 time_limit_s: float = 30.0) -> None:
+                 time_limit_s: float = 30.0, answer_timesync: bool = True) -> None:
         self.t = transport
         self.rec = recording
         self.kind = kind
@@ -211,6 +212,7 @@ class SimAutopilot:
         self.send_jitter_us = int(send_jitter_us)
         self._rng = np.random.default_rng(seed)
         self.time_limit_s = time_limit_s
+        self.answer_timesync = answer_timesync  # False: TIMESYNC requests go unanswered
         self.stats = SimStats()
         self.intervals: dict[int, float] = {}  # msg id -> µs (0 = off)
         self.boot_ns = time.monotonic_ns()
@@ -287,7 +289,7 @@ class SimAutopilot:
                                                                   msg.get_srcSystem(), msg.get_srcComponent()))
                 elif name == "ODOMETRY":
                     self.stats.odometry_times_us.append(int(msg.time_usec))
-                elif name == "TIMESYNC" and msg.tc1 == 0:
+                elif name == "TIMESYNC" and msg.tc1 == 0 and self.answer_timesync:
                     self.send(mavlink.MAVLink_timesync_message(self.now_us() * 1000, msg.ts1))
                     self.stats.timesync_replies += 1
 
