@@ -87,18 +87,38 @@ def missing_extra(exc: ModuleNotFoundError) -> str | None:
 def main(argv: list[str] | None = None) -> int:
     """Runs one subcommand (:func:`_main`). Ctrl-C (SIGINT) or SIGTERM ends any command with
     one line, exit status 130 or 143 (``run`` handles both itself once its loop is set up: it
-    stops and prints its summary)."""
-    terminate = threading.current_thread() is threading.main_thread()  # handlers: main thread only
-    previous = signal.signal(signal.SIGTERM, _interrupt) if terminate else None
+    stops and prints its summary).
+
+    The signal unwinds the command as a KeyboardInterrupt; code that swallows it (a library's
+    ``except BaseException``, a C call that clears the error it was raised in) would let the
+    command finish as if nothing happened, exit status 0. The signal is therefore also noted
+    when it arrives, and a command that returns after one still ends with the same line and
+    status (a CI run once saw ``compile`` exit 0 after a Ctrl-C)."""
+    global _received
+    _received = None
+    handlers = threading.current_thread() is threading.main_thread()  # main thread only
+    previous_term = signal.signal(signal.SIGTERM, _interrupt) if handlers else None
+    # SIGINT is left alone where it is ignored (a shell's background job) or handled by the caller
+    own_int = handlers and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    if own_int:
+        signal.signal(signal.SIGINT, _interrupt)
     try:
-        return _main(argv)
+        rc = _main(argv)
     except KeyboardInterrupt as exc:
-        name = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
-        print(f"ahrs-service: interrupted ({name}) before the command finished", file=sys.stderr)
-        return 143 if isinstance(exc, Terminated) else 130
+        return _interrupted("SIGTERM" if isinstance(exc, Terminated) else "SIGINT")
     finally:
-        if terminate:
-            signal.signal(signal.SIGTERM, previous)
+        if handlers:
+            signal.signal(signal.SIGTERM, previous_term)
+        if own_int:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+    if _received is not None:  # the interrupt was swallowed on its way up
+        return _interrupted(_received)
+    return rc
+
+
+def _interrupted(name: str) -> int:
+    print(f"ahrs-service: interrupted ({name}) before the command finished", file=sys.stderr)
+    return 143 if name == "SIGTERM" else 130
 
 
 def _main(argv: list[str] | None) -> int:
@@ -148,8 +168,17 @@ class Terminated(KeyboardInterrupt):
     written are closed or removed (``log recover``) and the command ends with one line."""
 
 
+#: the signal that interrupted the running command, noted by its handler (None: none yet)
+_received: str | None = None
+
+
 def _interrupt(signum: int, frame: object) -> None:
-    raise Terminated()
+    global _received
+    if signum == signal.SIGTERM:
+        _received = "SIGTERM"
+        raise Terminated()
+    _received = "SIGINT"
+    raise KeyboardInterrupt
 
 
 def numba_cache_error(exc: RuntimeError) -> str:
