@@ -34,7 +34,7 @@ from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, 
 from ahrs_service.drivers.calibration import SensorCalibration
 from ahrs_service.calibration.live import LiveCalibrationResult, LiveCalibrator
 from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
-from ahrs_service.mavlink_bridge import LatestEstimate, LinkHealth, ServiceLink
+from ahrs_service.mavlink_bridge import LatestAttitude, LatestEstimate, LinkHealth, ServiceLink
 from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline
 from ahrs_service.protocols.mavlink.endpoints import check_can_open
 from ahrs_service.scheduler import DataReadyScheduler, FixedRateScheduler, LoopStats
@@ -367,6 +367,7 @@ class Service:
             # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
             odometry_send=None if link is None else link.send,
             odometry_clock=None if link is None else link.clock,
+            latest_attitude=self.latest_attitude,
         )
 
     def latest_estimate(self) -> LatestEstimate | None:
@@ -391,6 +392,14 @@ class Service:
             estimator_id=id(self.estimator),
             declination_deg=pipeline.declination_deg,
         )
+
+    def latest_attitude(self) -> LatestAttitude | None:
+        """The newest estimate's attitude alone (what ATTITUDE / ATTITUDE_QUATERNION carry);
+        None before the first sample."""
+        pipeline = self.pipeline
+        if pipeline.last_sample is None:
+            return None
+        return LatestAttitude(pipeline.samples, pipeline.published_quaternion(), pipeline.body_rates())
 
     def link_health(self) -> LinkHealth:
         """Health bits and fault counters for SYS_STATUS."""

@@ -545,6 +545,37 @@ def test_request_message(comp, gcs):
     assert ack_of(got, cmd).result == mavlink2.MAV_RESULT_DENIED
 
 
+def test_an_attitude_only_telemetry_serves_the_attitude_streams_alone(gcs):
+    """The bridge builds the full snapshot (health, readings, vibration) only when a stream
+    other than ATTITUDE / ATTITUDE_QUATERNION is due: the component says when, publishes an
+    attitude-only one on those two streams, refuses it when another is due (sending nothing),
+    and answers a request from a full snapshot of now (``current_telemetry``)."""
+    conn, port = gcs
+    now_counters = {"lost_samples": 41}
+
+    def current() -> Telemetry:
+        return telemetry(777, **now_counters)
+
+    rates = {"HEARTBEAT": 1, "ATTITUDE": 100, "ATTITUDE_QUATERNION": 100, "SYS_STATUS": 1, "VIBRATION": 0}
+    with MavlinkComponent([f"udpout:127.0.0.1:{port}"], rates=rates, current_telemetry=current) as c:
+        light = Telemetry.from_quaternion(5, (1.0, 0.0, 0.0, 0.0), (0.1, 0.2, 0.3), attitude_only=True)
+        assert not c.only_attitude_due(0)  # the first call starts every stream: HEARTBEAT, SYS_STATUS due
+        with pytest.raises(ValueError, match="attitude-only"):
+            c.publish(0, light)
+        assert c.stats.sent == {}  # refused before anything went out
+        assert c.publish(0, telemetry(0, lost_samples=3)) == 4
+        assert c.only_attitude_due(10_000_000)  # 10 ms on: ATTITUDE and ATTITUDE_QUATERNION alone
+        assert c.publish(10_000_000, light) == 2
+        assert not c.only_attitude_due(1_000_000_000)  # 1 s on: HEARTBEAT and SYS_STATUS again
+        got = drain(conn) + settle(c, conn, 0.1)
+        assert [m.rollspeed for m in of(got, "ATTITUDE") if m.time_boot_ms == 5] == [pytest.approx(0.1)]
+        assert [m.errors_count3 for m in of(got, "SYS_STATUS")] == [3]  # from the full snapshot only
+        connect(c, conn)
+        conn.mav.command_long_send(1, 1, mavlink2.MAV_CMD_REQUEST_MESSAGE, 0, 1, 0, 0, 0, 0, 0, 0)  # SYS_STATUS
+        got = exchange(c, conn, lambda m: m.get_type() == "SYS_STATUS")
+        assert [m.errors_count3 for m in of(got, "SYS_STATUS")] == [41]  # now's, not the last published
+
+
 def test_preflight_calibration_callbacks(gcs):
     conn, port = gcs
     state = {"at_rest": True, "calls": []}

@@ -43,6 +43,7 @@ class FakeService:
                               (0.0, 0.0, -9.8), (20.0, 0.0, 45.0), True, 25.0, True, True, False, 1, 0.0)
 
     def health(self) -> LinkHealth:
+        self.calls.append(("health",))
         return LinkHealth(True, True, True, True, overruns=3, load_percent=12.5, comm_errors=4, sensor_faults=0,
                           lost_samples=17)
 
@@ -106,6 +107,49 @@ def test_the_bridge_publishes_and_commands_through_the_service_link_alone():
     finally:
         bridge.close()
         gcs.close()
+
+
+def test_the_full_snapshot_is_built_only_when_a_stream_other_than_the_attitude_is_due():
+    """ATTITUDE + ATTITUDE_QUATERNION at 100 Hz, HEARTBEAT and SYS_STATUS at 1 Hz, VIBRATION
+    at 2 Hz, over 2 s of the bridge's clock: the health snapshot is asked for at those slow
+    streams' times alone (not at each of the 200 attitude publishes), and every ATTITUDE
+    carries the link's attitude."""
+    gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=255, source_component=190)
+    gcs.mav = mavlink2.MAVLink(gcs, srcSystem=255, srcComponent=190)
+    port = gcs.port.getsockname()[1]
+    cfg = config_mod.validate({
+        "mavlink": {"endpoints": [f"udpout:127.0.0.1:{port}"]},
+        "rates": {"estimation_hz": 200, "attitude_hz": 100, "attitude_quaternion_hz": 100, "heartbeat_hz": 1,
+                  "sys_status_hz": 1, "vibration_hz": 2},
+    })
+    fake = FakeService()
+    fake.samples = 10
+    bridge = MavlinkBridge(fake.link(), cfg, io_period_ns=5_000_000)
+    got = []
+    try:
+        start = time.monotonic_ns()
+        for k in range(400):  # 2 s of 5 ms ticks
+            fake.samples += 1  # a new estimate at every tick: the streams stay fresh
+            bridge.tick(start + k * 5_000_000)
+            if k % 20 == 0:
+                got += [m for m in iter(gcs.recv_msg, None) if m.get_type() != "BAD_DATA"]
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            m = gcs.recv_match(blocking=True, timeout=0.05)
+            if m is None:
+                break
+            got.append(m)
+    finally:
+        bridge.close()
+        gcs.close()
+    attitudes = [m for m in got if m.get_type() == "ATTITUDE_QUATERNION"]
+    assert len(attitudes) == 200
+    assert all([m.q1, m.q2, m.q3, m.q4] == pytest.approx(Q, abs=1e-7) for m in attitudes)
+    health = fake.calls.count(("health",))
+    # HEARTBEAT at 0 and 1 s, SYS_STATUS the same, VIBRATION at 0, 0.5, 1, 1.5 s: 4 publishes
+    # (the first three streams share them) — never the 200 attitude-only ones
+    assert 4 <= health <= 6, health
+    assert len([m for m in got if m.get_type() == "SYS_STATUS"]) == 2
 
 
 def test_the_loop_schedule_runs_each_named_job_on_its_period():

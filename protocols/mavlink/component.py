@@ -49,7 +49,7 @@ from ahrs_service.protocols.mavlink.imu import encode_highres_imu
 from ahrs_service.protocols.mavlink.params import BYTEWISE, ParameterTable
 from ahrs_service.protocols.mavlink.signing import SIGNED_ONLY, check_key
 from ahrs_service.protocols.mavlink.statustext_limit import StatusTextLimiter
-from ahrs_service.protocols.mavlink.telemetry import Telemetry
+from ahrs_service.protocols.mavlink.telemetry import ATTITUDE_STREAMS, Telemetry
 from ahrs_service.protocols.mavlink.vibration import encode_vibration
 
 _log = logging.getLogger("ahrs_service.mavlink")
@@ -142,6 +142,9 @@ class MavlinkComponent:
     gyro_calibration, mag_calibration, accel_calibration: MAV_CMD_PREFLIGHT_CALIBRATION
         callbacks ``(action: int) -> (MAV_RESULT, text)``; None answers UNSUPPORTED.
     max_rate_hz: fastest rate a ground station may request for a stream.
+    current_telemetry: builds a full :class:`Telemetry` of now (None before the first
+        estimate) for messages sent on request (MAV_CMD_REQUEST_MESSAGE, ``send_now``); without
+        it they use the last full one ``publish`` was given.
     """
 
     def __init__(self, endpoints: Iterable[str], identity: Identity | None = None, *,
@@ -150,8 +153,10 @@ class MavlinkComponent:
                  gyro_calibration: CalibrationCallback | None = None,
                  mag_calibration: CalibrationCallback | None = None,
                  accel_calibration: CalibrationCallback | None = None,
-                 max_rate_hz: float = 250.0) -> None:
+                 max_rate_hz: float = 250.0,
+                 current_telemetry: Callable[[], Telemetry | None] | None = None) -> None:
         self.identity = identity or Identity()
+        self._current_telemetry = current_telemetry
         self.params = params if params is not None else ParameterTable()
         self.max_rate_hz = float(max_rate_hz)
         self.stats = MavlinkStats()
@@ -254,6 +259,16 @@ class MavlinkComponent:
         the telemetry snapshot on the calls where no stream is due."""
         return self._next_due_ns is None or now_ns >= self._next_due_ns
 
+    def only_attitude_due(self, now_ns: int) -> bool:
+        """Whether every stream ``publish(now_ns, …)`` would send is one of
+        :data:`~ahrs_service.protocols.mavlink.telemetry.ATTITUDE_STREAMS`: an
+        ``attitude_only`` telemetry then serves them."""
+        for s in self._streams.values():
+            if s.hz > 0.0 and (s.anchor_ns is None or now_ns < s.anchor_ns or now_ns >= s.next_ns):
+                if s.name not in ATTITUDE_STREAMS:
+                    return False
+        return True
+
     def publish(self, now_ns: int, telemetry: Telemetry | None) -> int:
         """Sends every stream that is due at ``now_ns`` (monotonic clock, ns); returns how
         many messages were built.
@@ -261,10 +276,15 @@ class MavlinkComponent:
         Each stream follows an absolute schedule (anchor + k/rate), so late calls do not push
         later messages back; a stream is sent at most once per call (a loop slower than the
         stream's rate caps it). ``telemetry`` None (no estimate yet) sends only HEARTBEAT
-        (state BOOT).
+        (state BOOT). An ``attitude_only`` telemetry serves only :meth:`only_attitude_due`
+        calls (ValueError otherwise, before anything is sent).
         """
         if telemetry is not None:
-            self._last = telemetry
+            if telemetry.attitude_only:
+                if not self.only_attitude_due(now_ns):
+                    raise ValueError("an attitude-only telemetry given while other streams are due")
+            else:
+                self._last = telemetry
         due = []
         for s in self._streams.values():
             if s.hz <= 0.0:
@@ -292,11 +312,20 @@ class MavlinkComponent:
     def send_now(self, name: str, telemetry: Telemetry | None = None) -> bool:
         """Sends message ``name`` once now on every endpoint (``telemetry`` None uses the last
         published one); False if it cannot be built (unknown name or no telemetry yet)."""
-        msg = self._build_once(name, telemetry if telemetry is not None else self._last)
+        msg = self._build_once(name, telemetry if telemetry is not None else self._telemetry_now())
         if msg is None:
             return False
         self._send_all(msg)
         return True
+
+    def _telemetry_now(self) -> Telemetry | None:
+        """A full telemetry for a message sent on request: the caller's of now, else the last
+        full one published."""
+        if self._current_telemetry is not None:
+            telemetry = self._current_telemetry()
+            if telemetry is not None:
+                return telemetry
+        return self._last
 
     def _build_once(self, name: str, telemetry: Telemetry | None) -> Any:
         if name in STREAMABLE:
@@ -536,7 +565,7 @@ class MavlinkComponent:
         name = next((n for n in (*STREAMABLE, "AUTOPILOT_VERSION") if message_id(n) == mid), None)
         if name is None:
             return CommandResult(mavlink.MAV_RESULT_DENIED)
-        msg = self._build_once(name, self._last)
+        msg = self._build_once(name, self._telemetry_now())
         if msg is None:  # supported, but nothing to report before the first estimate
             return CommandResult(mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
         self._reply_after_ack = msg  # MAVLink: ACK first, then the message

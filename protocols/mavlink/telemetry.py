@@ -15,6 +15,10 @@ from ahrs_service.quaternion import euler_of
 from ahrs_service.vibration import VibrationLevels
 
 
+#: the streams an ``attitude_only`` :class:`Telemetry` can be published on
+ATTITUDE_STREAMS = frozenset({"ATTITUDE", "ATTITUDE_QUATERNION"})
+
+
 @dataclass(slots=True)
 class SensorStatus:
     """One sensor's SYS_STATUS bits: present (fitted), enabled (used), healthy (no fault)."""
@@ -57,6 +61,10 @@ class Telemetry:
     attitude_fresh: a sample was estimated recently; False (gyroscope gone, source silent)
         withholds ATTITUDE, ATTITUDE_QUATERNION, HIGHRES_IMU and VIBRATION — as PX4's streams, which send
         only on a new estimate — while HEARTBEAT (CRITICAL) and SYS_STATUS go on.
+    attitude_only: only ``time_boot_ms``, the attitude (``q``, Euler angles, ``body_rate``)
+        and ``attitude_fresh`` are set; the rest are defaults. Built when only the
+        :data:`ATTITUDE_STREAMS` are due (most publishes at their usual rates): the health,
+        readings and vibration snapshot is the costliest part of a publish.
     """
 
     time_boot_ms: int
@@ -85,6 +93,7 @@ class Telemetry:
     faults: Mapping[str, int] = field(default_factory=dict)
     vibration: VibrationLevels | None = None
     attitude_fresh: bool = True
+    attitude_only: bool = False
 
     @classmethod
     def from_quaternion(cls, time_boot_ms: int, q: Sequence[float], body_rate: Sequence[float] = (0.0, 0.0, 0.0),
