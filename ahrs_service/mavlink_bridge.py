@@ -365,9 +365,7 @@ class MavlinkBridge:
         The telemetry snapshot is built only when a stream is due (at 100 Hz ATTITUDE that is
         every other 5 ms tick), and in full only when a stream other than ATTITUDE and
         ATTITUDE_QUATERNION is due (HEARTBEAT, SYS_STATUS, VIBRATION at 1-2 Hz): the health,
-        readings and vibration snapshot is the costliest part of a publish. Measured on the
-        development VM after a 10 ms sleep (the loop's usual state): 215-270 µs for the full
-        snapshot against 95-110 µs for the attitude alone (benchmarks/README.md).
+        readings and vibration snapshot is the costliest part of a publish (docs/mavlink.md).
         """
         component, odometry = self.component, self.odometry
         streams_due = component.due(now_ns)

@@ -310,8 +310,9 @@ class MavlinkComponent:
         return len(due)
 
     def send_now(self, name: str, telemetry: Telemetry | None = None) -> bool:
-        """Sends message ``name`` once now on every endpoint (``telemetry`` None uses the last
-        published one); False if it cannot be built (unknown name or no telemetry yet)."""
+        """Sends message ``name`` once now on every endpoint (``telemetry`` None: a full one
+        of now from ``current_telemetry``, else the last full one published); False if it
+        cannot be built (unknown name or no telemetry yet)."""
         msg = self._build_once(name, telemetry if telemetry is not None else self._telemetry_now())
         if msg is None:
             return False
