@@ -56,7 +56,6 @@ from typing import Any, Callable, Mapping, Protocol
 
 import numpy as np
 
-from ahrs_service.estimators import SAMPLE_ROW
 from ahrs_service.logs.mcap_file import LogFileDeleted, McapLogFile
 from ahrs_service.logs.schemas import (
     attitude_block_message,
@@ -340,7 +339,7 @@ class FlightLogWriter:
         has to wait for the writer to give up the interpreter is late by up to the
         interpreter's switch interval and more (the loop's wake-up jitter).
     block_messages_above_hz: a block (``write_block``) of samples faster than this (by its
-        middle row's ``dt``) is written as one message per channel (/imu/raw_block,
+        rows' mean spacing after the first; a lone row never) is written as one message per channel (/imu/raw_block,
         /attitude_block, /attitude/truth_block), with /attitude (and /tf) at ``tf_rate_hz``
         for Foxglove's plots; slower ones, and every block when None, one message per sample.
         0: every block as one message.
@@ -425,7 +424,7 @@ class FlightLogWriter:
         self._rotation_lock = threading.Lock()
         self._rotation_since = 0.0
         self._loop = loop
-        #: a block whose middle row's dt (s) is below this is written as one message per channel
+        #: a block whose rows come closer than this (s, their mean spacing) is one message per channel
         self.block_messages_below_dt_s = (
             -1.0 if block_messages_above_hz is None else math.inf if block_messages_above_hz <= 0
             else 1.0 / float(block_messages_above_hz))
@@ -588,13 +587,25 @@ class FlightLogWriter:
                 None if bias is None else _tolist(bias),
                 None if truth_q is None else np.array(truth_q, dtype=np.float64),
                 None if diagnostics is None else dict(diagnostics),
-                # the middle row's dt: not the long one after a gap, which starts a block
-                float(rows[n // 2, SAMPLE_ROW.index.dt]) < self.block_messages_below_dt_s,
+                self._one_message(t_ns),
             )
         )
         self.samples += n
         if state is not None:
             self._offer_state(int(t_ns[-1]), state, estimator)
+
+    def _one_message(self, t_ns: np.ndarray) -> bool:
+        """Whether a block with these row times is written as one message per channel: its
+        rows' mean spacing after the first (whose dt is the long step after a gap that starts
+        a block) is below ``block_messages_below_dt_s``. A lone row is one message a sample
+        (but with ``block_messages_above_hz = 0``): its spacing alone is whatever a clock's
+        correction made it — a log of the simulated GY-80 (800 Hz rows) once held a one-row
+        /imu/raw_block, its dt under 0.67 ms."""
+        below = self.block_messages_below_dt_s
+        n = len(t_ns)
+        if n < 2:
+            return below == math.inf
+        return (int(t_ns[-1]) - int(t_ns[0])) * 1e-9 / (n - 1) < below
 
     def _offer_state(self, t_ns: int, state: np.ndarray, estimator: str) -> None:
         self._state_seen = True

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from ahrs_service import estimators
-from ahrs_service.estimators import STATE_HEADER
+from ahrs_service.estimators import SAMPLE_ROW, STATE_HEADER
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample, SampleBlock
 from ahrs_service.drivers.calibration import SensorCalibration, apply_calibration, apply_calibration_block
 from ahrs_service.drivers.recorded import RecordedSource
@@ -328,6 +328,40 @@ def test_blocks_slower_than_the_threshold_stay_per_sample(tmp_path):
     writer.close()
     counts = read_log(writer.files[0]).counts
     assert counts["/imu/raw"] == len(t_ns) and "/imu/raw_block" not in counts
+
+
+def test_the_layout_follows_a_block_s_spacing_not_one_row_s_dt(tmp_path):
+    """A row that came 0.3 ms after the one before (a sensor clock's correction) in a stream
+    slower than the threshold: a CI run's log of the simulated GY-80 (800 Hz rows) held such a
+    row as a one-row /imu/raw_block, the layout decided by that row's dt alone (``log
+    recover``'s per-topic counts then no longer matched the rows). A lone row is per sample; a
+    block goes by its rows' mean spacing after the first — an 8 kHz burst with an odd row stays
+    one message, a 200 Hz block with one stays per sample."""
+    t_ns, rows, _ = make_fixtures.analytic_trajectory(200.0, 0.2)
+    t_ns, rows = t_ns.copy(), rows.copy()
+    t_ns[20] = t_ns[19] + 300_000
+    rows[20, SAMPLE_ROW.index.dt] = 0.0003
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (len(t_ns), 1))
+    flags = np.full(len(t_ns), GYR_VALID | ACC_VALID, dtype=np.int64)
+    writer = FlightLogWriter(tmp_path / "slow", fsync=False, block_messages_above_hz=1500.0)
+    writer.write_block(t_ns[:20], rows[:20], flags[:20], q=q[:20], estimator="m")
+    writer.write_block(t_ns[20:21], rows[20:21], flags[20:21], q=q[20:21], estimator="m")  # the odd row alone
+    writer.write_block(t_ns[19:23], rows[19:23], flags[19:23], q=q[19:23], estimator="m")  # and in the middle
+    writer.close()
+    counts = read_log(writer.files[0]).counts
+    assert counts["/imu/raw"] == 20 + 1 + 4 and "/imu/raw_block" not in counts
+
+    fast_t, fast_rows, _ = make_fixtures.analytic_trajectory(8000.0, 0.01)
+    fast_t, fast_rows = fast_t[:8].copy(), fast_rows[:8].copy()
+    fast_t[4] = fast_t[3] + 1_000  # 1 µs after the one before
+    fast_rows[4, SAMPLE_ROW.index.dt] = 1e-6
+    fast_q = np.tile([1.0, 0.0, 0.0, 0.0], (8, 1))
+    writer = FlightLogWriter(tmp_path / "fast", fsync=False, block_messages_above_hz=1500.0)
+    writer.write_block(fast_t, fast_rows, flags[:8], q=fast_q, estimator="m")
+    writer.write_block(fast_t[:1] + 10_000_000, fast_rows[:1], flags[:1], q=fast_q[:1], estimator="m")  # lone row
+    writer.close()
+    counts = read_log(writer.files[0]).counts
+    assert counts["/imu/raw_block"] == 1 and counts["/imu/raw"] == 1
 
 
 def test_a_block_s_gyro_bias_is_written_with_its_last_row_only(tmp_path):

@@ -262,11 +262,18 @@ def test_a_signal_swallowed_inside_a_command_still_ends_it_as_interrupted(capsys
             pass
         return 0
 
-    monkeypatch.setattr(service_cli, "cmd_foxglove_layout", swallowing)
-    assert _run(capsys, ["foxglove-layout"]) == (rc, f"ahrs-service: interrupted ({name}) before the command finished")
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # given back after the command
-    monkeypatch.undo()
-    assert _run(capsys, ["foxglove-layout"]) == (0, "")  # the next command starts with no signal noted
+    # Python's own Ctrl-C handler, as a command line starts with (a service an earlier test ran
+    # in this process may have left its own)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        monkeypatch.setattr(service_cli, "cmd_foxglove_layout", swallowing)
+        assert _run(capsys, ["foxglove-layout"]) == (
+            rc, f"ahrs-service: interrupted ({name}) before the command finished")
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # given back after the command
+        monkeypatch.undo()
+        assert _run(capsys, ["foxglove-layout"]) == (0, "")  # the next command starts with no signal noted
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def test_an_interrupted_recover_leaves_no_half_written_output(tmp_path, capsys, log_path, monkeypatch):
