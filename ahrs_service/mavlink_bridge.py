@@ -368,16 +368,15 @@ class MavlinkBridge:
         readings and vibration snapshot is the costliest part of a publish (docs/mavlink.md).
         """
         component, odometry = self.component, self.odometry
-        streams_due = component.due(now_ns)
         odometry_due = odometry is not None and odometry.due(now_ns)
-        if streams_due and not odometry_due and component.only_attitude_due(now_ns):
-            component.publish(now_ns, self.attitude_telemetry(now_ns))
-        elif streams_due or odometry_due:
-            est = self.link.latest()  # once for both: the same newest estimate
-            if streams_due:
-                component.publish(now_ns, self.telemetry(now_ns, est))
-            if odometry_due:
-                odometry.tick(now_ns, self.odometry_estimate(now_ns, est))  # type: ignore[union-attr]
+        # the newest estimate in full only where ODOMETRY or a full snapshot needs it, once
+        est = self.link.latest() if odometry_due else None
+        if component.due(now_ns):
+            component.publish_built(now_ns, lambda attitude_only: (
+                self.attitude_telemetry(now_ns) if attitude_only
+                else self.telemetry(now_ns, est if est is not None else self.link.latest())))
+        if odometry_due:
+            odometry.tick(now_ns, self.odometry_estimate(now_ns, est))  # type: ignore[union-attr]
         if now_ns >= self._next_poll_ns:
             self._next_poll_ns = now_ns + POLL_PERIOD_NS
             component.poll(50)

@@ -250,7 +250,8 @@ class ICM42688PBoard(FifoBoard):
     samples a burst at 8 kHz, 2 ms of the FIFO's 12.7 ms. Each wake-up costs this Python loop
     about as much as a burst's samples do (benchmarks/README.md, "8 kHz ICM-42688-P"): at
     1 000 wake-ups a second the service's own work at 8 kHz measured 43–44 % of a core, at 500
-    27–36 %; PX4's C driver reads every 1.25 ms.
+    27–36 % in the same runs (19–34 % over all runs since, as the machine varied); PX4's C
+    driver reads every 1.25 ms.
     """
 
     NAME = "icm42688p"

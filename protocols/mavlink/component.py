@@ -259,15 +259,17 @@ class MavlinkComponent:
         the telemetry snapshot on the calls where no stream is due."""
         return self._next_due_ns is None or now_ns >= self._next_due_ns
 
+    def _due_streams(self, now_ns: int) -> list[_Stream]:
+        """The streams ``publish(now_ns, …)`` sends: on, and at or past their next slot (or
+        not anchored yet, or anchored after ``now_ns``: they start again now)."""
+        return [s for s in self._streams.values()
+                if s.hz > 0.0 and (s.anchor_ns is None or now_ns < s.anchor_ns or now_ns >= s.next_ns)]
+
     def only_attitude_due(self, now_ns: int) -> bool:
         """Whether every stream ``publish(now_ns, …)`` would send is one of
         :data:`~ahrs_service.protocols.mavlink.telemetry.ATTITUDE_STREAMS`: an
         ``attitude_only`` telemetry then serves them."""
-        for s in self._streams.values():
-            if s.hz > 0.0 and (s.anchor_ns is None or now_ns < s.anchor_ns or now_ns >= s.next_ns):
-                if s.name not in ATTITUDE_STREAMS:
-                    return False
-        return True
+        return all(s.name in ATTITUDE_STREAMS for s in self._due_streams(now_ns))
 
     def publish(self, now_ns: int, telemetry: Telemetry | None) -> int:
         """Sends every stream that is due at ``now_ns`` (monotonic clock, ns); returns how
@@ -279,20 +281,26 @@ class MavlinkComponent:
         (state BOOT). An ``attitude_only`` telemetry serves only :meth:`only_attitude_due`
         calls (ValueError otherwise, before anything is sent).
         """
+        return self.publish_built(now_ns, lambda attitude_only: telemetry)
+
+    def publish_built(self, now_ns: int, build: Callable[[bool], Telemetry | None]) -> int:
+        """:meth:`publish` of the telemetry ``build(attitude_only)`` returns, once the due
+        streams are known: ``attitude_only`` True when every one of them is one of the
+        ``ATTITUDE_STREAMS`` (an ``attitude_only`` telemetry serves them; the caller builds
+        the full snapshot only when it is False)."""
+        streams = self._due_streams(now_ns)
+        attitude_only = all(s.name in ATTITUDE_STREAMS for s in streams)
+        telemetry = build(attitude_only)
         if telemetry is not None:
             if telemetry.attitude_only:
-                if not self.only_attitude_due(now_ns):
+                if not attitude_only:
                     raise ValueError("an attitude-only telemetry given while other streams are due")
             else:
                 self._last = telemetry
         due = []
-        for s in self._streams.values():
-            if s.hz <= 0.0:
-                continue
+        for s in streams:
             if s.anchor_ns is None or now_ns < s.anchor_ns:
                 s.anchor_ns, s.k, s.next_ns = now_ns, 0, now_ns
-            if now_ns < s.next_ns:
-                continue
             msg = self._encode(s.name, telemetry)
             if msg is not None:
                 due.append(msg)
