@@ -41,6 +41,19 @@ class _PendingGap:
     counted: int  # what was counted from the reset's host time
 
 
+@dataclass(frozen=True)
+class LevelRead:
+    """A transfer that latched the FIFO's level again after the burst's level read (the
+    ICM-42688-P's data transfer starts with status and count): from ``start_ns`` to
+    ``end_ns`` on the host's monotonic clock the FIFO held ``level`` samples; ``full``: it
+    had filled by then (samples after its newest were turned away)."""
+
+    start_ns: int
+    end_ns: int
+    level: int
+    full: bool = False
+
+
 class FifoTimeline:
     """One FIFO part's samples on its own clock: indices, times and the losses between them.
 
@@ -87,7 +100,7 @@ class FifoTimeline:
         self._pending = LossCounts()
 
     def stamp(self, host_ns: int, n: int, full: bool = False, read_end_ns: int | None = None,
-              level: int | None = None) -> np.ndarray:
+              level: int | None = None, then: LevelRead | None = None) -> np.ndarray:
         """Times (int64 ns, oldest first) of the next ``n`` samples, read from a FIFO whose
         level was latched by a transfer from ``host_ns`` to ``read_end_ns``: the part
         latches its level while the transfer runs, so the newest sample counted existed by
@@ -95,21 +108,38 @@ class FifoTimeline:
 
         level: the samples the FIFO held at that latch (default ``n``; more when the read
         took fewer). full: the FIFO had filled (what came after its newest was turned away):
-        only the "it existed" bound holds."""
-        newest = self.next_index + (n if level is None else int(level)) - 1
+        only the "it existed" bound holds. then: a later transfer of the same burst that
+        latched the level again (its bound is added before the times are computed: a level
+        read held up around its latch, a busy host's first read, leaves the line to it)."""
         end = host_ns if read_end_ns is None else read_end_ns
-        # the latch lies between the read's command phase and its data phase (a transfer
-        # timed shorter than its wire time, as on a simulated bus, bounds nothing more)
-        latch_earliest = min(host_ns + self.latch_after_ns, end)
-        latch_latest = max(end - self.latch_before_end_ns, latch_earliest)
-        t = self.clock.stamp(latch_earliest, self.next_index, n, anchor=not full,
-                             read_end_ns=latch_latest, newest_index=newest)
+        self._observe(host_ns, end, n if level is None else int(level), full, self.latch_before_end_ns)
+        if then is not None:
+            # its data phase (the packets after the count) is not counted: a looser, valid bound
+            self._observe(then.start_ns, then.end_ns, then.level, then.full, 0)
+        t = self.clock.times(self.next_index, n)
         if self._gap is not None and n:
             self._correct_gap(int(t[0]))
         self.next_index += n
         self.started |= n > 0
         self.diagnostics.extra[self.rate_key] = round(self.clock.rate_hz, 3)
         return t
+
+    def wants_second_look(self, start_ns: int, end_ns: int) -> bool:
+        """Whether a level read that took from ``start_ns`` to ``end_ns`` should be followed
+        by another before the burst is stamped (passed as ``then``): it took longer than a
+        period while the run's first reads are still placing the clock (a host held up
+        around the latch of the first read otherwise puts the first rows that many periods
+        off, and the next tight read jumps them back). Never in steady state."""
+        return end_ns - start_ns > self.clock.period_ns and self.clock.placing_first_reads
+
+    def _observe(self, start_ns: int, end_ns: int, level: int, full: bool, latch_before_end_ns: int) -> None:
+        """One level read's bounds on the sensor clock: the latch lies between the read's
+        command phase and its data phase (a transfer timed shorter than its wire time, as on
+        a simulated bus, bounds nothing more)."""
+        latch_earliest = min(start_ns + self.latch_after_ns, end_ns)
+        latch_latest = max(end_ns - latch_before_end_ns, latch_earliest)
+        self.clock.observe(latch_earliest, self.next_index + level - 1, anchor=not full,
+                           read_end_ns=latch_latest)
 
     def overflowed(self, reset_started_ns: int, reset_host_ns: int, flagged: bool = True) -> int:
         """The FIFO was reset at ``reset_host_ns`` after an overflow: the samples produced

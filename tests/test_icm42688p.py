@@ -432,3 +432,58 @@ def test_consecutive_overflows_count_what_the_part_turned_away(stall_s):
     assert abs(b.diagnostics.lost.fifo_overflow - part) <= events // 2
     assert b.diagnostics.samples + b.pending + b.diagnostics.lost.fifo_overflow == pytest.approx(
         twin.samples_due - twin.fifo.level // 20, abs=events // 2)
+
+
+# issue 15: the 1 kHz service stall test's known defect (39 periods in 1 run of 21 on a host
+# at load 6-9): a busy host held up around the run's first level read — before the part
+# latched its level or after — placed the sensor clock's first rows as far off as the hold
+# (the only bound then was that wide read), and the next tight read jumped the times by as
+# much; the BMI088 also dropped, unpaired and uncounted, the gyroscope rows older than its
+# last accelerometer read
+
+
+def hold_the_first_level_read(part, imu, seconds: float, before_the_latch: bool):
+    """The part's next level read (``read_status``): the host held ``seconds`` before it
+    reaches the part, or after the part answered."""
+    read_status = part.read_status
+
+    def held():
+        part.read_status = read_status
+        if before_the_latch:
+            imu.clock.advance(seconds)
+        out = read_status()
+        if not before_the_latch:
+            imu.clock.advance(seconds)
+        return out
+    part.read_status = held
+
+
+@pytest.mark.parametrize("before_the_latch", [True, False], ids=["held-before-latch", "held-after-latch"])
+@pytest.mark.parametrize("name, options", [
+    ("icm42688p", {"odr_hz": 1000, "fifo_read_hz": 100}),
+    ("icm20948", {"odr_hz": 1125}),
+    ("bmi088", {"odr_hz": 1000, "fifo_read_hz": 100}),
+])
+def test_a_host_held_at_the_first_level_read_neither_misplaces_nor_drops_rows(name, options, before_the_latch):
+    imu = TimedImu()
+    b = make_transport_board(name, "spi", simulated_imu=imu, **options)
+    b.open()
+    imu.clock.advance(0.005)
+    hold_the_first_level_read(b.part, imu, 0.039, before_the_latch)
+    rows = []
+    for _ in range(100):  # 1 s
+        block = b.read_block()
+        if len(block):
+            rows.append(block)
+        imu.clock.advance(0.010)
+    t = np.concatenate([blk.t_ns for blk in rows]) / 1e9
+    true_t = np.concatenate([blk.gyr[:, 0] for blk in rows])  # quantised to the gyro's LSB
+    period = 1.0 / b.clock.rate_hz
+    lsb = D2R / (16.4 if name != "bmi088" else 16.384)  # ±2000 °/s: the truth's own resolution
+    # every row within a period (and the truth's LSB) of the moment the part took it: the
+    # first rows were 39 periods early when the hold came before the latch …
+    assert np.abs(t - true_t).max() < period + lsb
+    # … and no jump after them, no row missing: one period between rows, none lost (a hold
+    # that overflowed the ICM-20948's FIFO before the first rows is a stale start, not a loss)
+    assert np.diff(t).max() < 1.5 * period
+    assert b.diagnostics.lost.total == 0

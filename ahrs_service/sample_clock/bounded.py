@@ -160,6 +160,17 @@ class SensorClock:
         """True once a read has tied the part's sample indices to the host clock."""
         return self._current is not None and self._current.reads > 0
 
+    @property
+    def placing_first_reads(self) -> bool:
+        """True while the run's first segment has no read that bounds its offset to within a
+        period: its times would rest on reads whose transfers a busy host held up (a first
+        read preempted around its latch places the whole line that much off, and the next
+        tight read moves it by as much as the hold)."""
+        seg = self._current
+        if seg is None:
+            return self._reads == 0
+        return seg.first_of_run and (seg.reads == 0 or self.offset_range_ns() > self.period_ns)
+
     def stamp(self, host_ns: int, first_index: int, n: int, anchor: bool = True,
               read_end_ns: int | None = None, newest_index: int | None = None) -> np.ndarray:
         """Times (int64 ns, oldest first) of samples ``first_index … first_index + n − 1``,
@@ -170,9 +181,23 @@ class SensorClock:
         read; more when the read took fewer than the level). anchor: False when the FIFO was
         full (samples after its newest were turned away): only the "it existed" bound holds.
         """
-        done = host_ns if read_end_ns is None else max(int(read_end_ns), host_ns)
         newest = first_index + n - 1 if newest_index is None else int(newest_index)
-        self._add(newest, host_ns, done, two_sided=anchor)
+        self.observe(host_ns, newest, anchor=anchor, read_end_ns=read_end_ns)
+        return self.times(first_index, n)
+
+    def observe(self, host_ns: int, newest_index: int, anchor: bool = True,
+                read_end_ns: int | None = None) -> None:
+        """A FIFO level read that stamps nothing (:meth:`stamp` without the times): sample
+        ``newest_index`` was the newest in the FIFO at a latch between ``host_ns`` and
+        ``read_end_ns``. A driver whose data transfer reads the level again (the ICM-42688-P
+        reads status and count with its packets) gives the clock that second bound too, so
+        one read that a host preempted around its latch cannot place a young segment alone."""
+        done = host_ns if read_end_ns is None else max(int(read_end_ns), host_ns)
+        self._add(int(newest_index), host_ns, done, two_sided=anchor)
+
+    def times(self, first_index: int, n: int) -> np.ndarray:
+        """Times (int64 ns, oldest first) of samples ``first_index … first_index + n − 1`` on
+        the line the reads so far give (at least one :meth:`observe` in this segment)."""
         p = self.period_ns
         seg = self._current
         t = (seg.h0 + self._offset_rel()) + p * np.arange(first_index - seg.i0, first_index - seg.i0 + n,

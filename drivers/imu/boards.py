@@ -30,7 +30,7 @@ from ahrs_service.drivers.base import (
     SampleBlock,
     bus_simulation_cpu_s,
 )
-from ahrs_service.drivers.fifo import FifoTimeline, burst_flags, hold_pairing, latch_bounds
+from ahrs_service.drivers.fifo import FifoTimeline, LevelRead, burst_flags, hold_pairing, latch_bounds
 from ahrs_service.drivers.i2c.device import DeviceIdentityError, watermark_frames
 from ahrs_service.drivers.imu import icm42688p
 from ahrs_service.drivers.transport import RegisterTransport, check_bus_rate
@@ -301,7 +301,9 @@ class ICM42688PBoard(FifoBoard):
         # a FIFO that filled after the level read is known with the packets it follows —
         # the oldest, contiguous with the last burst (stop-on-full) — not a drain later,
         # mixed with what came after the turned-away samples
+        data_started = self.transport.now_ns()
         status, count_now, pk = part.read_status_and_packets(packets * icm42688p.PACKET)
+        data_done = self.transport.now_ns()
         if count_now > icm42688p.FIFO_BYTES:
             raise OSError(5, f"FIFO count {count_now} > {icm42688p.FIFO_BYTES}: bad transfer or part gone")
         filled_since = bool(status & icm42688p.FIFO_FULL_INT)
@@ -317,9 +319,14 @@ class ICM42688PBoard(FifoBoard):
         # every packet valid (the usual burst): the arrays as decoded, not copied through the mask
         every = invalid is None
         ok = None if every else ~invalid
+        # a level read held up around its latch while the run's first reads place the clock:
+        # the data transfer's count bounds it too (free: read with the packets)
+        then = None
+        if self.timeline.wants_second_look(host, host_done):
+            then = LevelRead(data_started, data_done, count_now // icm42688p.PACKET, full or filled_since)
         # a full FIFO's newest sample is older than the read: timed from the clock's fit
         t = self.timeline.stamp(host, len(header), full=full, read_end_ns=host_done,
-                                level=count // icm42688p.PACKET)
+                                level=count // icm42688p.PACKET, then=then)
         if not every:
             t = t[ok]
         lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
@@ -368,6 +375,9 @@ class BMI088Board(FifoBoard):
 
     NAME = "bmi088"
     FIFO_FRAMES = 100  # the gyroscope die's FIFO (bmi088.GYRO_FIFO_FRAMES)
+    #: accelerometer samples held for pairing at most: the rows the host may queue
+    #: (``HOST_QUEUE_DEPTHS`` gyroscope FIFOs) span this many at 1 600 Hz beside 2 000 Hz
+    ACC_HELD_MAX = 1024
 
     def __init__(self, transport: RegisterTransport, *, acc_transport: RegisterTransport,
                  odr_hz: float = 2000, acc_odr_hz: float = 1600, gyro_range_dps: int = 2000,
@@ -420,8 +430,12 @@ class BMI088Board(FifoBoard):
         counts, full = self.acc.read_frames(level // bmi.ACC_FRAME * bmi.ACC_FRAME)
         if len(counts):
             t = self.acc_timeline.stamp(host, len(counts), full=full, read_end_ns=host_done)
-            self._acc_t = np.concatenate([self._acc_t[-1:], t])
-            self._acc_c = np.concatenate([self._acc_c[-1:], counts])
+            # every accelerometer sample a gyroscope row not read yet can still take: a
+            # burst that took fewer rows than its FIFO held (a host held after the level
+            # read, max_samples) leaves rows older than this read's samples, which keeping
+            # only the newest old one dropped unpaired and uncounted; trimmed after pairing
+            self._acc_t = np.concatenate([self._acc_t, t])[-self.ACC_HELD_MAX:]
+            self._acc_c = np.concatenate([self._acc_c, counts])[-self.ACC_HELD_MAX:]
         if full:
             self._flush_counting_loss(self.acc.flush, self.acc_timeline, self.acc_transport)
 
@@ -433,6 +447,12 @@ class BMI088Board(FifoBoard):
         frames, overrun = gyro.read_status()
         host_done = self.transport.now_ns()
         self._overflow_pending |= overrun
+        then = None
+        if self.timeline.wants_second_look(host, host_done):
+            look = self.transport.now_ns()
+            frames_then, overrun_then = gyro.read_status()
+            self._overflow_pending |= overrun_then
+            then = LevelRead(look, self.transport.now_ns(), frames_then, self._overflow_pending)
         take = min(frames, max_samples)
         g = gyro.read_frames(take) if take else np.empty((0, 3), np.int64)
         self._read_acc()
@@ -442,12 +462,16 @@ class BMI088Board(FifoBoard):
         if overflow and self._stale_start(gyro):
             _twin(self.transport).take_popped_truth()
             return SampleBlock.empty()
-        t = self.timeline.stamp(host, take, full=overflow, read_end_ns=host_done, level=frames)
+        t = self.timeline.stamp(host, take, full=overflow, read_end_ns=host_done, level=frames, then=then)
         lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and take == frames:
             self._flush_counting_loss(gyro.flush, self.timeline, self.transport)
             self._overflow_pending = False
         idx = hold_pairing(t, self._acc_t)  # the rule of drivers/fifo.py
+        acc_c = self._acc_c
+        if len(idx) and idx[-1] > 0:  # later rows pair with the newest row's sample or after it
+            first_needed = int(idx[-1])
+            self._acc_t, self._acc_c = self._acc_t[first_needed:], acc_c[first_needed:]
         ok = idx >= 0
         truth = None
         if self.transport.simulated:
@@ -456,7 +480,7 @@ class BMI088Board(FifoBoard):
             if rows and all(q is not None for q in rows):
                 truth = np.array(rows, dtype=float)
         g, t, idx = g[ok], t[ok], idx[ok]
-        a = self._acc_c[idx]
+        a = acc_c[idx]
         n = len(t)
         self.diagnostics.samples += n
         return SampleBlock(
@@ -510,6 +534,12 @@ class ICM20948Board(FifoBoard):
         if count > icm.FIFO_BYTES + 64:
             raise OSError(5, f"FIFO count {count} > {icm.FIFO_BYTES}: bad transfer or part gone")
         self._overflow_pending |= overflow
+        then = None
+        if self.timeline.wants_second_look(host, host_done):
+            look = self.transport.now_ns()
+            overflow_then, count_then = part.read_status()
+            self._overflow_pending |= overflow_then
+            then = LevelRead(look, self.transport.now_ns(), count_then // icm.PACKET, self._overflow_pending)
         packets = min(count // icm.PACKET, max_samples)
         if packets == 0:
             return self._empty()
@@ -519,7 +549,7 @@ class ICM20948Board(FifoBoard):
         if overflow and self._stale_start(part):
             return SampleBlock.empty()
         t = self.timeline.stamp(host, packets, full=overflow, read_end_ns=host_done,
-                                level=count // icm.PACKET)
+                                level=count // icm.PACKET, then=then)
         lost = self._take_loss()  # after stamping: a gap before these rows is counted by it
         if overflow and drained:
             self._flush_counting_loss(part.flush, self.timeline, self.transport)
