@@ -129,7 +129,7 @@ class SensorClock:
     #: bisection steps of the period search (the range shrinks by 0.618 each)
     STEPS = 48
 
-    def __init__(self, nominal_rate_hz: float, horizon_s: float = 20.0, refit_s: float = 0.25,
+    def __init__(self, nominal_rate_hz: float, horizon_s: float = 20.0, refit_s: float = 1.0,
                  max_segments: int = 64, segment_s: float = 10.0, overlap_s: float = 5.0) -> None:
         self.nominal_period_ns = 1e9 / nominal_rate_hz
         self.period_ns = self.nominal_period_ns
