@@ -150,6 +150,8 @@ class Service:
         # is open (a reload keeps the source)
         self._autopilot_link: Any = None
         self._timesync_logged_ns: int | None = None  # the TIMESYNC estimate last on /timesync
+        #: the handlers install_signal_handlers replaced, put back by close()
+        self._replaced_handlers: dict[signal.Signals, Any] = {}
 
     # ------------------------------------------------------------------ set-up
     def start(self) -> None:
@@ -440,9 +442,19 @@ class Service:
         self._reload_due_ns = min(now + RELOAD_SETTLE_NS, self._reload_first_ns + RELOAD_MAX_WAIT_NS)
 
     def install_signal_handlers(self) -> None:
-        signal.signal(signal.SIGTERM, self.request_stop)
-        signal.signal(signal.SIGINT, self.request_stop)
-        signal.signal(signal.SIGHUP, self.request_reload)
+        """SIGTERM and SIGINT stop the loop, SIGHUP reloads the configuration; :meth:`close`
+        puts back the handlers these replaced, once everything is closed (a signal during
+        the log's close only asks for a stop that is under way)."""
+        for sig, handler in ((signal.SIGTERM, self.request_stop), (signal.SIGINT, self.request_stop),
+                             (signal.SIGHUP, self.request_reload)):
+            self._replaced_handlers.setdefault(sig, signal.getsignal(sig))
+            signal.signal(sig, handler)
+
+    def _restore_signal_handlers(self) -> None:
+        for sig, previous in self._replaced_handlers.items():
+            if previous is not None:  # None: installed outside Python, nothing to put back
+                signal.signal(sig, previous)
+        self._replaced_handlers.clear()
 
     def report(self, text: str, severity: int = 6, kind: str | None = None) -> None:
         """A health message: STATUSTEXT on MAVLink, the service log and /log. ``kind`` puts
@@ -920,3 +932,4 @@ class Service:
             except Exception as exc:  # a failing part must not keep the others open
                 log.warning("closing %s: %s", type(part).__name__, exc)
         self.notifier.close()
+        self._restore_signal_handlers()

@@ -262,8 +262,8 @@ def test_a_signal_swallowed_inside_a_command_still_ends_it_as_interrupted(capsys
             pass
         return 0
 
-    # Python's own Ctrl-C handler, as a command line starts with (a service an earlier test ran
-    # in this process may have left its own)
+    # Python's own Ctrl-C handler, as a command line starts with (whatever an earlier test of
+    # this process left installed)
     before = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         monkeypatch.setattr(service_cli, "cmd_foxglove_layout", swallowing)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import os
 import threading
+import signal
 import time
 
 import numpy as np
@@ -775,3 +776,28 @@ def test_a_periodic_job_that_raises_is_reported_and_the_service_goes_on(tmp_path
                          "ZeroDivisionError: float division by zero" for n in (1, 2, 4)], texts
     assert attitudes_after_failure >= 20 and samples > 0
 
+
+
+def test_close_gives_back_the_signal_handlers_the_service_replaced(tmp_path, gcs):
+    """A service run in-process (the CLI's ``run``, an embedding program) installs its own
+    SIGTERM/SIGINT/SIGHUP handlers; once closed, a signal goes to what was there before —
+    not to the stopped service's request_stop, which would swallow a Ctrl-C."""
+    conn, port = gcs
+    signals = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+
+    def embedding_programs_handler(*_):
+        pass
+
+    before = {sig: signal.signal(sig, embedding_programs_handler) for sig in signals}
+    try:
+        svc = Service(service_config(tmp_path, port, log={"enabled": False}), duration_s=0.3)
+        svc.install_signal_handlers()
+        assert signal.getsignal(signal.SIGINT) == svc.request_stop
+        assert signal.getsignal(signal.SIGHUP) == svc.request_reload
+        svc.start()
+        svc.run()
+        svc.close()
+        assert [signal.getsignal(sig) for sig in signals] == [embedding_programs_handler] * 3
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
