@@ -452,8 +452,13 @@ class Service:
 
     def _restore_signal_handlers(self) -> None:
         for sig, previous in self._replaced_handlers.items():
-            if previous is not None:  # None: installed outside Python, nothing to put back
+            if previous is None:  # installed outside Python: nothing to put back
+                continue
+            try:
                 signal.signal(sig, previous)
+            except ValueError:  # closed from another thread than the one that installed them
+                log.warning("signal handlers not restored: close() called outside the main thread")
+                break
         self._replaced_handlers.clear()
 
     def report(self, text: str, severity: int = 6, kind: str | None = None) -> None:
