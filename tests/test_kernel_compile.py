@@ -5,6 +5,7 @@ passed as NOTIFY_SOCKET), the real ``ahrs-service`` process, a cold numba cache 
 
 from __future__ import annotations
 
+import json
 import re
 import signal
 import subprocess
@@ -114,3 +115,57 @@ def test_compile_refuses_an_unknown_estimator_in_one_line(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
         "ahrs-service compile: error: unknown estimator 'madgwik'; available: " + ", ".join(estimators.names())]
+
+
+# A fresh interpreter: the service started as `ahrs-service run` starts it; the numba
+# dispatchers of the package counted after start() and again after two seconds of its loop.
+# A kernel first called inside the loop (compiled on a first start, loaded from the cache on
+# every other) holds the loop while the part's FIFO fills: the default run's first start lost
+# 21-107 samples to the attitude variance's and the simulated motion's kernels that way.
+_KERNELS_AFTER_START = r"""
+import json, sys
+from numba.core.registry import CPUDispatcher
+import ahrs_service.service as service_mod
+from ahrs_service import cli
+
+def signatures():
+    out = {}
+    for name, module in list(sys.modules.items()):
+        if name.startswith("ahrs_service"):
+            for attr, value in list(vars(module).items()):
+                if isinstance(value, CPUDispatcher):
+                    out[f"{value.py_func.__module__}.{value.py_func.__qualname__}"] = len(value.signatures)
+    return out
+
+run = service_mod.Service.run
+def counted_run(self):
+    before = signatures()
+    code = run(self)
+    after = signatures()
+    new = sorted(k for k in after if after[k] > before.get(k, 0))
+    print("KERNELS-IN-LOOP " + json.dumps({"new": new, "known": len(before)}), flush=True)
+    return code
+service_mod.Service.run = counted_run
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.parametrize("source", [
+    None,  # the embedded default: the simulated GY-80, robust
+    'type = "simulated_spi"\nboard = "icm42688p"\nboard_options = { odr_hz = 1000 }\n',
+])
+def test_the_loop_compiles_and_loads_no_kernel_after_start(tmp_path, source):
+    args = ["run", "--duration", "2", "--log-dir", str(tmp_path / "logs")]
+    if source is not None:
+        config = tmp_path / "ahrs.toml"
+        config.write_text(f'[source]\n{source}\n[estimator]\nname = "madgwick"\n'
+                          '[mavlink]\nendpoints = ["udpout:127.0.0.1:14551"]\n')
+        args += ["-c", str(config)]
+    done = subprocess.run([sys.executable, "-c", _KERNELS_AFTER_START, *args],
+                          capture_output=True, text=True, timeout=200)
+    assert done.returncode == 0, done.stderr[-2000:]
+    line = re.search(r"^KERNELS-IN-LOOP (.*)$", done.stdout, re.M)
+    assert line is not None, done.stdout[-2000:] + done.stderr[-2000:]
+    found = json.loads(line.group(1))
+    assert found["known"] >= 10  # the counting saw the pipeline's kernels
+    assert found["new"] == []

@@ -103,6 +103,9 @@ class SimulatedImu:
         self._nominal_dt = 1.0 / nominal_rate_hz
         self._last_t: float | None = None
         self._last: dict[str, Any] | None = None
+        # the motion's compiled helpers (quat_rotate_inv) loaded, or compiled at a first
+        # start, now: not inside a simulated part's first FIFO read, while its FIFO fills
+        trajectory.state(0.0)
 
     def temperature(self, t: float) -> float:
         """Die temperature in °C at time t."""
