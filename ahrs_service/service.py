@@ -169,6 +169,10 @@ class Service:
         self._warm_up()
         if time.monotonic() - t0 > 1.0:
             log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
+        if cfg.log["enabled"]:
+            # imported before the part starts filling its FIFO: the log writer's modules (mcap,
+            # the schemas) took ~40 ms of _open_log, between the source's start and its first read
+            import ahrs_service.logs.writer  # noqa: F401
         # the heap so far (modules, compiled kernels) frozen before the part starts filling its
         # FIFO: run()'s own freeze then walks only what the start adds after this (tens of ms
         # less between the source's start and its first read)
