@@ -255,8 +255,8 @@ class EstimationPipeline:
         apply_calibration(sample, SensorCalibration().with_gyro_bias_shift(np.full(3, 1e-3)))
         probe.run_rows(np.array([[0.0, 0.0, 0.0, 0.0, 0.0, -G, 20.0, 0.0, 45.0, self.nominal_dt]]))
         # the diagnostics logged with the attitude (the attitude variance, the robust filter's
-        # gyro_scale_error): the first /attitude diagnostics must not compile them (a first
-        # start lost 21-107 samples of the default run to that 0.12-0.27 s compile)
+        # gyro_scale_error): the first /attitude diagnostics must not compile them (0.12-0.27 s;
+        # with the simulated motion's kernel, 21-176 samples of a default first start lost)
         probe.diagnostics  # noqa: B018 (a property: evaluated for its kernels)
         quat_to_euler(quat_mul(self._q_decl, (1.0, 0.0, 0.0, 0.0)))
 

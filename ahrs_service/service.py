@@ -32,6 +32,9 @@ from ahrs_service import estimators, kernels
 from ahrs_service.estimators import STATE_HEADER
 from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSource, LossCounts, SampleBlock
 from ahrs_service.drivers.calibration import SensorCalibration
+# imported with the service, not when the log opens: its ~40 ms of modules (mcap, the
+# schemas) fell between the source's start and its first read
+from ahrs_service.logs.writer import FlightLogWriter
 from ahrs_service.calibration.live import LiveCalibrationResult, LiveCalibrator
 from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
 from ahrs_service.mavlink_bridge import LatestAttitude, LatestEstimate, LinkHealth, ServiceLink
@@ -169,10 +172,6 @@ class Service:
         self._warm_up()
         if time.monotonic() - t0 > 1.0:
             log.info("compiled the %s kernels in %.0f s (first start only)", self.estimator.name, time.monotonic() - t0)
-        if cfg.log["enabled"]:
-            # imported before the part starts filling its FIFO: the log writer's modules (mcap,
-            # the schemas) took ~40 ms of _open_log, between the source's start and its first read
-            import ahrs_service.logs.writer  # noqa: F401
         # the heap so far (modules, compiled kernels) frozen before the part starts filling its
         # FIFO: run()'s own freeze then walks only what the start adds after this (tens of ms
         # less between the source's start and its first read)
@@ -331,8 +330,6 @@ class Service:
         if not cfg.log["enabled"]:
             self.log_writer = None
             return
-        from ahrs_service.logs.writer import FlightLogWriter
-
         mb, minutes = cfg.log["rotate_mb"], cfg.log["rotate_minutes"]
         self.log_writer = FlightLogWriter(
             cfg.log["directory"],

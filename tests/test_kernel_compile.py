@@ -121,7 +121,7 @@ def test_compile_refuses_an_unknown_estimator_in_one_line(tmp_path):
 # dispatchers of the package counted after start() and again after two seconds of its loop.
 # A kernel first called inside the loop (compiled on a first start, loaded from the cache on
 # every other) holds the loop while the part's FIFO fills: the default run's first start lost
-# 21-107 samples to the attitude variance's and the simulated motion's kernels that way.
+# 21-176 samples to the attitude variance's and the simulated motion's kernels that way.
 _KERNELS_AFTER_START = r"""
 import json, sys
 from numba.core.registry import CPUDispatcher

@@ -3,6 +3,7 @@ truncated and corrupted files are read up to the damage, and the damage is repor
 
 from __future__ import annotations
 
+import io
 import struct
 
 import os
@@ -16,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.records import Footer
+from mcap.stream_reader import StreamReader
 
 from ahrs_service.cli import main as cli_main
 from ahrs_service.logs.reader import read_log
@@ -110,11 +113,10 @@ def _complete_log(tmp_path: Path, n: int = 3000) -> tuple[Path, np.ndarray]:
 
 
 def _summary_start(data: bytes) -> int:
-    """Where the summary section begins: the footer record before the closing magic (MCAP
-    spec, "Footer": opcode 0x02, length 20, summary_start u64, summary_offset_start u64, crc)."""
-    footer = len(data) - 8 - (1 + 8 + 20)
-    assert data[footer] == 0x02
-    return struct.unpack_from("<Q", data, footer + 9)[0]
+    """Where the summary section begins (the file's Footer record, read with mcap)."""
+    footer = next(r for r in StreamReader(io.BytesIO(data)).records if isinstance(r, Footer))
+    assert 0 < footer.summary_start < len(data)
+    return footer.summary_start
 
 
 # a cut in the summary section (5 bytes into its first record: a fraction of the file there
