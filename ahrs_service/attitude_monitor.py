@@ -1,8 +1,8 @@
 """A second opinion on the autopilot's attitude: its ATTITUDE_QUATERNION against our estimate.
 
 When the service runs beside a flight controller (an autopilot link, ``source.type =
-"mavlink"``), the autopilot's own attitude arrives as ATTITUDE_QUATERNION (#31, preferred) or
-ATTITUDE (#30). Each one is compared with the service's estimate **at the autopilot's time**:
+"mavlink"``), the autopilot's own attitude arrives as ATTITUDE_QUATERNION (message 31, preferred) or
+ATTITUDE (message 30). Each one is compared with the service's estimate **at the autopilot's time**:
 the message's ``time_boot_ms`` is mapped onto our clock by the link's
 :class:`~ahrs_service.protocols.mavlink.autopilot_link.RemoteTimeline` (the mapping the IMU
 samples use, so both sides share one time base) and the estimate is interpolated there
@@ -34,7 +34,21 @@ from typing import Any
 
 import numpy as np
 
-from ahrs_service.quaternion import quat_conj, quat_from_euler, quat_mul, quat_rotate_inv, quat_to_euler
+from ahrs_service.core.quaternion import quat_conj, quat_from_euler, quat_mul, quat_rotate_inv, quat_to_euler
+from ahrs_service.core.settings import Section, boolean, number
+
+#: the warning rule's defaults: a disagreement above THRESHOLD_DEG for HOLD_S of autopilot time
+THRESHOLD_DEG = 5.0
+HOLD_S = 2.0
+
+#: the ``[monitor]`` section of the configuration: the autopilot's attitude against ours when
+#: an autopilot link is up (docs/autopilot.md)
+MONITOR: Section = {
+    "enabled": (True, boolean),
+    "threshold_deg": (THRESHOLD_DEG, number(0.1, 180.0)),
+    "hold_s": (HOLD_S, number(0.0, 600.0)),
+    "rate_hz": (5.0, number(0.1, 50.0)),  # NAMED_VALUE_FLOAT of the disagreement, Hz
+}
 
 #: NAMED_VALUE_FLOAT names (≤ 10 characters), degrees
 NAME_TOTAL = "ATT_DIFF"
@@ -186,7 +200,7 @@ class AttitudeMonitor:
     taken on the link's thread (a deque); :meth:`update` runs on the loop's thread.
     """
 
-    def __init__(self, link: Any, *, threshold_deg: float = 5.0, hold_s: float = 2.0) -> None:
+    def __init__(self, link: Any, *, threshold_deg: float = THRESHOLD_DEG, hold_s: float = HOLD_S) -> None:
         self.link = link
         self.threshold_deg = float(threshold_deg)
         self.hold_ns = int(hold_s * 1e9)
@@ -229,6 +243,11 @@ class AttitudeMonitor:
     def add_estimates(self, t_ns: np.ndarray, q: np.ndarray) -> None:
         """A block of our estimates (a sample block's times, ns, and quaternions, oldest first)."""
         self.history.add_many(t_ns, q)
+
+    def receive(self, estimated: Any) -> None:
+        """An estimated block from the service's loop (``pipeline.EstimatedBlock``): its
+        estimates join the history (the monitor is one of the service's sinks)."""
+        self.history.add_many(estimated.t_ns, estimated.q)
 
     def update(self, declination_deg: float = 0.0) -> tuple[list[Disagreement], list[MonitorEvent]]:
         """Compares every autopilot attitude received since the last call whose time the

@@ -21,7 +21,7 @@ from ahrs_service.execution import RunnerError
 _COMMAND_MODULES = [
     "ahrs_service.service_cli",
     "ahrs_service.evaluation.command",
-    "ahrs_service.logs.command",
+    "ahrs_service.log_commands",
     "ahrs_service.calibration.command",
 ]
 
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     ``except BaseException``, a C call that clears the error it was raised in) would let the
     command finish as if nothing happened, exit status 0. The signal is therefore also noted
     when it arrives, and a command that returns after one still ends with the same line and
-    status (a CI run once saw ``compile`` exit 0 after a Ctrl-C)."""
+    status."""
     global _received
     _received = None
     handlers = threading.current_thread() is threading.main_thread()  # main thread only

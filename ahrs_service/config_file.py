@@ -12,7 +12,8 @@ it as ``<name>.bak``.
 
 Writers: the calibration (``ahrs-service calibrate … --config FILE --write``, a ground station's
 MAV_CMD_PREFLIGHT_CALIBRATION), both through :func:`ahrs_service.calibration.storage.save_calibration`.
-:func:`render` is the renderer of a whole configuration dict (``run --print-default``).
+:func:`render` (:func:`ahrs_service.core.settings.render`, re-exported here) renders a whole
+configuration dict (``run --print-default``).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import tomlkit
 from tomlkit.exceptions import TOMLKitError
 
 from ahrs_service import config as config_mod
+from ahrs_service.core.settings import plain, render
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -35,32 +37,6 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 __all__ = ["render", "update_config_file"]
-
-
-def _plain(value: Any) -> Any:
-    """``value`` with numpy arrays and scalars turned into the lists and floats TOML knows."""
-    if isinstance(value, Mapping):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if hasattr(value, "tolist"):  # numpy array or scalar
-        return _plain(value.tolist())
-    return value
-
-
-def render(cfg: Mapping[str, Mapping[str, Any]]) -> str:
-    """A TOML document of a configuration dict ({section: {key: value}}); a key whose value is
-    None (not set) becomes a comment ``# key = (not set)``, a dict a sub-table."""
-    doc = tomlkit.document()
-    for section, keys in cfg.items():
-        table = tomlkit.table()
-        for key, value in keys.items():
-            if value is None:
-                table.add(tomlkit.comment(f"{key} = (not set)"))
-            else:
-                table.add(key, _plain(value))
-        doc.add(section, table)
-    return tomlkit.dumps(doc)
 
 
 def update_config_file(
@@ -88,7 +64,7 @@ def update_config_file(
         if not isinstance(table, Mapping):
             raise config_mod.ConfigError(f"{path}: [{section}] is not a table, not rewritten")
         for key, value in keys.items():
-            table[key] = _plain(value)
+            table[key] = plain(value)
     text = tomlkit.dumps(doc)
     # the service must be able to start from what we write: check before touching the file
     config_mod.validate(tomllib.loads(text))

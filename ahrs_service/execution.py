@@ -1,4 +1,5 @@
-"""One execution layer for the batch commands (``evaluate`` today): each job is a Dask task.
+"""One execution layer for the batch commands (``evaluate``, fleet ``replay``, ``tune``): each job
+is a Dask task.
 
 ``open_runner(workers=N, scheduler=ADDRESS)`` gives a :class:`Runner` whose :meth:`Runner.map`
 runs ``fn(job)`` for every job and returns the results **in the jobs' order**, whatever order
@@ -243,10 +244,9 @@ def open_runner(
 
 
 #: Dask settings of the embedded LocalCluster (docs/fleet.md, "The embedded cluster's
-#: settings"), measured on the 2-core machine with two 3 s CPU-bound tasks (benchmarks/README.md,
-#: "Dask's own cost on 2 cores"): Dask's defaults cost 0.15 s of the scheduler's process and
-#: 0.14 s of each worker's beside the tasks (wall 3.33 s), these 0.02–0.04 and 0.01–0.02 s
-#: (wall 3.06 s) — on 2 cores, CPU the cluster spends on itself is taken from the jobs.
+#: settings"): Dask's defaults spend several times more of the scheduler's and each worker's
+#: CPU beside the tasks than these (figures: benchmarks/README.md, "Dask's own cost on 2
+#: cores") — on 2 cores, CPU the cluster spends on itself is taken from the jobs.
 LOCAL_CLUSTER_CONFIG: dict[str, Any] = {
     # Dask's nannies set MALLOC_TRIM_THRESHOLD_, which freezes glibc's mmap threshold: every
     # array of a recording's size became a fresh mmap and the jobs ran 2x slower

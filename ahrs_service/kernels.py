@@ -2,7 +2,7 @@
 process that compiles for a start under systemd and for a reload to another estimator.
 
 The first use of an estimator on a machine compiles its numba kernels (seconds for a paper
-filter, 40–75 s for ``robust`` on the development VM, minutes on a Raspberry Pi); afterwards
+filter, a minute or more for ``robust``, longer on a Raspberry Pi: docs/systemd.md); afterwards
 they load from numba's on-disk cache (``__pycache__`` beside the sources, or
 ``$NUMBA_CACHE_DIR``). Compiling holds the interpreter lock for long stretches (LLVM), so it
 can neither run on the estimation loop nor on a thread beside it: a thread would stall the
@@ -49,8 +49,8 @@ def loaded(name: str) -> bool:
 def warm_up(name: str) -> float:
     """Compiles (or loads from the cache) every kernel the service's per-sample path uses
     with estimator ``name``, in this process; returns the seconds it took."""
+    from ahrs_service.core.vibration import VibrationMonitor
     from ahrs_service.pipeline import EstimationPipeline
-    from ahrs_service.vibration import VibrationMonitor
 
     t0 = time.monotonic()
     EstimationPipeline(estimators.create(name)).warm_up()

@@ -9,10 +9,14 @@ sample). The slow channels (``/loop``, ``/log``, ``/params``, ``/config``) are p
 they are written to the log. Channel names and JSON schemas are the log's
 (:data:`ahrs_service.logs.schemas.CHANNELS`), so one Foxglove layout serves both.
 
+The view is one of the service's sinks (``ahrs_service.sinks``): the loop hands it every
+estimated block (:meth:`LiveView.receive`), and it publishes the newest state of the pipeline
+that estimated it at its own rate.
+
 The estimator's parameters appear as Foxglove parameters ``estimator.<name>``. A client's
 set request is queued by the server thread and applied by the loop at its next IO tick
-through :meth:`ahrs_service.service.Service.set_estimator_param` — the path of a MAVLink
-PARAM_SET: between two samples, logged on ``/params`` with its sample index. The request
+through the ``set_param`` the service gives the view (its ``set_estimator_param``) — the
+path of a MAVLink PARAM_SET: between two samples, logged on ``/params`` with its sample index. The request
 waits (at most ``SET_WAIT_S``) for the loop and answers with the value now in force.
 
 Faults: a port already in use gives one warning and no live view (the service runs on);
@@ -26,13 +30,12 @@ import collections
 import logging
 import threading
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import Any, Callable, Mapping
 
 from ahrs_service.estimators import STATE_HEADER
+from ahrs_service.live_settings import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_RATE_HZ
 from ahrs_service.logs import schemas
-
-if TYPE_CHECKING:  # the service imports this module, not the other way round at run time
-    from ahrs_service.service import Service
+from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline
 
 log = logging.getLogger("ahrs_service.live")
 
@@ -60,20 +63,25 @@ class _SetRequest:
 class LiveView:
     """The Foxglove WebSocket server of a running service.
 
-    service: the running service (its pipeline is read at IO rate, its set_estimator_param
-        called on the loop thread).
+    estimates: the pipeline whose newest state is published (read at IO rate; each block
+        received names the pipeline that estimated it).
+    set_param: (name, value, source) → the value in force: applies an estimator parameter
+        live (called on the loop thread).
     host, port: where to listen (port 0: any free port; see :attr:`port`).
     rate_hz: per-sample channels are published at most this often.
     """
 
-    def __init__(self, service: "Service", host: str = "127.0.0.1", port: int = 8765, rate_hz: float = 30.0) -> None:
+    def __init__(self, estimates: EstimationPipeline, set_param: Callable[[str, float, str], float],
+                 host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
+                 rate_hz: float = DEFAULT_RATE_HZ) -> None:
         try:
             import foxglove
             from foxglove.websocket import Capability
         except ImportError:
             raise LiveViewUnavailable("live view needs the 'live' extra: pip install 'ahrs-service[live]'") from None
         self._foxglove = foxglove
-        self.service = service
+        self.estimates = estimates
+        self.set_param = set_param
         self.period_ns = int(1e9 / rate_hz)
         self._next_ns = 0
         self._requests: collections.deque[_SetRequest] = collections.deque()
@@ -107,6 +115,14 @@ class LiveView:
         self.port = self._server.port
 
     # ---------------------------------------------------------------- loop thread
+    def receive(self, estimated: EstimatedBlock) -> None:
+        """An estimated block (once per block): published from its pipeline at the view's rate."""
+        self.estimates = estimated.pipeline
+
+    def follow(self, pipeline: EstimationPipeline) -> None:
+        """Publishes ``pipeline``'s state from now on (a reload built a new one)."""
+        self.estimates = pipeline
+
     def tick(self, now_ns: int) -> None:
         """Called by the loop at IO rate: applies queued parameter sets, then (every
         ``1/rate_hz``) publishes the latest sample's /imu/raw, /attitude, /tf and truth."""
@@ -115,7 +131,7 @@ class LiveView:
         if now_ns < self._next_ns:
             return
         self._next_ns = now_ns + self.period_ns
-        pipeline = self.service.pipeline
+        pipeline = self.estimates
         sample = pipeline.last_sample
         if sample is None:
             return
@@ -125,7 +141,7 @@ class LiveView:
         self.publish("/imu/raw", t_ns, schemas.raw_message(t_ns, pipeline.row.tolist(), sample.flags, sample.raw,
                                                            sample.temperature_c, pipeline.samples - 1))
         self.publish("/attitude", t_ns, schemas.attitude_message(t_ns, q, est.name, est.state[_H.bias].tolist(),
-                                                                 self.service.diagnostics()))
+                                                                 pipeline.diagnostics()))
         if all(v == v for v in q):  # a NaN rotation would break the 3-D panel
             self.publish("/tf", t_ns, schemas.tf_message(t_ns, q))
         if sample.truth_q is not None:
@@ -148,7 +164,7 @@ class LiveView:
             lo, hi = self._bounds(req.name)
             if not lo <= req.value <= hi:  # NaN too: the bounds a MAVLink PARAM_SET has
                 raise ValueError(f"outside [{lo:g}, {hi:g}]")
-            self.service.set_estimator_param(req.name, req.value, source="foxglove")
+            self.set_param(req.name, req.value, "foxglove")
         except (KeyError, ValueError, TypeError) as exc:  # a value the estimator refuses
             self.refused_sets += 1
             log.warning("live view: parameter %s = %r refused: %s", req.name, req.value, exc)
@@ -163,7 +179,7 @@ class LiveView:
         from ahrs_service import estimators
         from ahrs_service.mavlink_bridge import estimator_param_bounds
 
-        default = estimators.create(self.service.estimator.name).get_params()[name]
+        default = estimators.create(self.estimates.estimator.name).get_params()[name]
         return estimator_param_bounds(float(default))
 
     def params_changed(self) -> None:
@@ -178,7 +194,7 @@ class LiveView:
 
     def _current_params(self) -> dict[str, float]:
         # loop thread (and the constructor): the numeric parameters of the running estimator
-        return {k: float(v) for k, v in self.service.estimator.get_params().items()
+        return {k: float(v) for k, v in self.estimates.estimator.get_params().items()
                 if isinstance(v, (int, float)) and not isinstance(v, bool)}
 
     # ---------------------------------------------------------------- server threads
@@ -224,10 +240,11 @@ def _listener(view: LiveView) -> Any:
     return Listener()
 
 
-def open_live_view(service: "Service", settings: Mapping[str, Any]) -> LiveView | None:
+def open_live_view(estimates: EstimationPipeline, set_param: Callable[[str, float, str], float],
+                   settings: Mapping[str, Any]) -> LiveView | None:
     """The configured live view, or None after one warning when it cannot start."""
     try:
-        view = LiveView(service, settings["host"], settings["port"], settings["rate_hz"])
+        view = LiveView(estimates, set_param, settings["host"], settings["port"], settings["rate_hz"])
     except LiveViewUnavailable as exc:
         log.warning("%s; running without live view", exc)
         return None

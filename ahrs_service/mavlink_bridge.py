@@ -9,10 +9,12 @@ Parameters the ground station sees (PARAM_REQUEST_LIST):
   publishing rates;
 * ``LOOP_RATE_HZ`` — the estimation rate (read-only: change it in the configuration).
 
-The bridge sees the service only through :class:`ServiceLink`: the newest estimate
-(:class:`LatestEstimate`), the health and loss counters (:class:`LinkHealth`), the estimator's
-parameters, the declination, the loop rate and the two calibration commands. It holds no
-reference to the service, its pipeline, scheduler, source or estimator.
+The bridge is one of the service's sinks (``ahrs_service.sinks``): the loop hands it every
+estimated block (:meth:`MavlinkBridge.receive`), and the streams publish, at their own rates,
+the newest estimate of the pipeline that estimated it (:class:`LatestEstimate`, built only
+when a stream is due). What a ground station sends — parameter writes, calibration commands —
+goes into the service through :class:`ServiceLink`, with the health and loss counters
+(:class:`LinkHealth`). The bridge holds no reference to the service, its scheduler or source.
 """
 
 from __future__ import annotations
@@ -21,55 +23,17 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
-from ahrs_service import estimators
+from ahrs_service import _moved, estimators
+from ahrs_service.estimators.settings import param_bounds
+from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline, LatestAttitude, LatestEstimate
 from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, ParameterTable, SensorStatus, Telemetry
 from ahrs_service.protocols.mavlink.dialect import mavlink
 from ahrs_service.protocols.mavlink.odometry import RULES as ODOMETRY_RULES
 from ahrs_service.protocols.mavlink.odometry import AttitudeEstimate, OdometrySender
+from ahrs_service.protocols.mavlink.settings import RATE_CONFIG_KEYS
 
 if TYPE_CHECKING:
     from ahrs_service.config import Config
-
-
-@dataclass(frozen=True, slots=True)
-class LatestEstimate:
-    """The newest estimated sample, as the streams publish it.
-
-    samples: samples estimated so far (grows with every new one: freshness). t_ns: the
-    sample's time, monotonic ns. q: q_earth←body [w, x, y, z] against true north (declination
-    applied), NED/FRD. body_rate: (p, q, r) rad/s, bias removed. gyr, acc, mag: calibrated
-    body-frame readings, rad/s, m/s², µT (mag None: no reading). mag_new: the field is a fresh
-    reading. temperature_c: °C or None. initialised: the estimator's output is trustworthy.
-    mag_used: the field is in use (a magnetometer estimator, not in reduced form). reduced:
-    the heading is not observed (reduced form, or an estimator without magnetometer).
-    estimator_id: identifies the estimator object (a new one after a reload: ODOMETRY's
-    reset counter follows it). declination_deg: the declination in ``q``, degrees east.
-    """
-
-    samples: int
-    t_ns: int
-    q: Sequence[float]
-    body_rate: Sequence[float]
-    gyr: Sequence[float]
-    acc: Sequence[float]
-    mag: Sequence[float] | None
-    mag_new: bool
-    temperature_c: float | None
-    initialised: bool
-    mag_used: bool
-    reduced: bool
-    estimator_id: int
-    declination_deg: float
-
-
-@dataclass(frozen=True, slots=True)
-class LatestAttitude:
-    """The newest estimate's attitude alone, what ATTITUDE and ATTITUDE_QUATERNION carry:
-    samples (freshness), q (as :class:`LatestEstimate`'s), body_rate rad/s."""
-
-    samples: int
-    q: Sequence[float]
-    body_rate: Sequence[float]
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,27 +58,32 @@ class LinkHealth:
 
 @dataclass(frozen=True)
 class ServiceLink:
-    """Everything the bridge may ask of the running service (built by the service).
+    """The control the bridge passes into the running service, its constants, and the
+    status the estimate does not carry (built by the service).
 
-    boot_ns: the service's start, monotonic ns (MAVLink's "time since boot"). estimator:
-    the running estimator's name; param_names: its tuning parameters. latest: the newest
-    estimate, None before the first. health: :class:`LinkHealth` now. get_param /
-    set_param: an estimator parameter (set applies it live, logged; returns the value in
-    force). get_declination / set_declination: degrees east. loop_rate_hz: the estimation
-    rate. calibrate_gyro: () → (accepted, text). start_calibration: kind ("mag" | "accel")
-    → (started, text). vibration: the VIBRATION levels now (``vibration.VibrationLevels``).
-    attitude_variance: the estimator's roll/pitch/yaw variances now, rad² (ODOMETRY).
-    odometry_send, odometry_clock: beside an autopilot, where ODOMETRY goes (the autopilot
-    link's ``send``) and the clock it is stamped in (``AutopilotLink.clock``: TIMESYNC under
-    the link's lock); None: the bridge's own endpoints, our clock (docs/autopilot.md).
-    latest_attitude: the newest estimate's :class:`LatestAttitude`, None before the first
-    (cheaper than ``latest`` for the attitude streams); None: taken from ``latest``.
+    Constants — boot_ns: the service's start, monotonic ns (MAVLink's "time since boot").
+    estimator: the running estimator's name; param_names: its tuning parameters.
+
+    Control — get_param / set_param: an estimator parameter (set applies it live, logged;
+    returns the value in force). get_declination / set_declination: degrees east.
+    loop_rate_hz: the estimation rate. calibrate_gyro: () → (accepted, text).
+    start_calibration: kind ("mag" | "accel") → (started, text).
+
+    Status — health: :class:`LinkHealth` now. vibration: the VIBRATION levels now
+    (``vibration.VibrationLevels``). odometry_send, odometry_clock: beside an autopilot,
+    where ODOMETRY goes (the autopilot link's ``send``) and the clock it is stamped in
+    (``AutopilotLink.clock``: TIMESYNC under the link's lock); None: the bridge's own
+    endpoints, our clock (docs/autopilot.md).
+
+    For a bridge with no pipeline to follow (driven by hand, as in tests): latest,
+    latest_attitude: the newest estimate and its attitude, None before the first;
+    attitude_variance: the roll/pitch/yaw variances now, rad² (ODOMETRY). A bridge that
+    follows a pipeline (:meth:`MavlinkBridge.receive`) reads these from the pipeline.
     """
 
     boot_ns: int
     estimator: str
     param_names: Sequence[str]
-    latest: Callable[[], LatestEstimate | None]
     health: Callable[[], LinkHealth]
     get_param: Callable[[str], float]
     set_param: Callable[[str, float], float]
@@ -124,10 +93,11 @@ class ServiceLink:
     calibrate_gyro: Callable[[], tuple[bool, str]]
     start_calibration: Callable[[str], tuple[bool, str]]
     vibration: Callable[[], Any]
-    attitude_variance: Callable[[], Any]
     odometry_send: Callable[[Any], Any] | None = None
     odometry_clock: Any = None
+    latest: Callable[[], LatestEstimate | None] | None = None
     latest_attitude: Callable[[], LatestAttitude | LatestEstimate | None] | None = None
+    attitude_variance: Callable[[], Any] | None = None
 
 # incoming commands and parameter writes are handled at 50 Hz: a ground station does not
 # notice 20 ms, and an idle non-blocking read costs as much as a published message
@@ -140,14 +110,6 @@ RATE_PARAMS = {
     "RATE_SYSST_HZ": "SYS_STATUS",
     "RATE_VIBE_HZ": "VIBRATION",
 }
-RATE_CONFIG_KEYS = {
-    "HEARTBEAT": "heartbeat_hz",
-    "ATTITUDE": "attitude_hz",
-    "ATTITUDE_QUATERNION": "attitude_quaternion_hz",
-    "HIGHRES_IMU": "highres_imu_hz",
-    "SYS_STATUS": "sys_status_hz",
-    "VIBRATION": "vibration_hz",
-}
 
 
 #: no sample estimated for this long: the attitude streams stop (Telemetry.attitude_fresh) and
@@ -158,21 +120,12 @@ STALE_NS = 250_000_000
 EST_RANGE_FACTOR = 1000.0
 
 
-#: how far the configuration file's ``estimator.params`` may move a value from its default:
-#: wider than over the air, short of values no filter survives (``beta = 1e300``)
-CONFIG_RANGE_FACTOR = 1e6
-
-
 def estimator_param_bounds(default: float, factor: float = EST_RANGE_FACTOR) -> tuple[float, float]:
-    """[minimum, maximum] of an estimator parameter: from 0 to ``factor`` times its default
-    on the default's side (a gain, a time constant, a noise level); ±factor around a default
-    of 0. ``EST_RANGE_FACTOR`` keeps PARAM_SET from putting 3e38 into a filter over the air;
-    the configuration file (``estimator.params``) gets ``CONFIG_RANGE_FACTOR``."""
-    if default > 0:
-        return 0.0, default * factor
-    if default < 0:
-        return default * factor, 0.0
-    return -factor, factor
+    """[minimum, maximum] of an estimator parameter over the air
+    (:func:`ahrs_service.estimators.settings.param_bounds`): ``EST_RANGE_FACTOR`` keeps
+    PARAM_SET from putting 3e38 into a filter; the configuration file (``estimator.params``)
+    gets the wider ``CONFIG_RANGE_FACTOR`` of the same module."""
+    return param_bounds(default, factor)
 
 
 def estimator_param_names(names: list[str]) -> dict[str, str]:
@@ -196,12 +149,16 @@ def estimator_param_names(names: list[str]) -> dict[str, str]:
 
 
 class MavlinkBridge:
-    """The service's MAVLink side; :meth:`tick` is called from the estimation loop."""
+    """The service's MAVLink side: a sink of estimated blocks (:meth:`receive`);
+    :meth:`tick` is called from the estimation loop."""
 
-    def __init__(self, link: ServiceLink, cfg: "Config", *, io_period_ns: int) -> None:
-        """link: what the bridge may use of the service. io_period_ns: how often the loop
-        calls :meth:`tick` (ns); the fastest a stream can go."""
+    def __init__(self, link: ServiceLink, cfg: "Config", *, io_period_ns: int,
+                 estimates: EstimationPipeline | None = None) -> None:
+        """link: the control and status interface of the service. io_period_ns: how often
+        the loop calls :meth:`tick` (ns); the fastest a stream can go. estimates: the pipeline
+        whose newest estimate the streams publish, until a block of another one arrives."""
         self.link = link
+        self.estimates = estimates
         self._next_poll_ns = 0
         self._samples_seen = -1  # samples estimated at the last telemetry, and when it last grew
         self._fresh_at_ns = 0
@@ -222,11 +179,42 @@ class MavlinkBridge:
             mag_calibration=lambda action: self._start_collection("mag"),
             accel_calibration=lambda action: self._start_collection("accel"),
             max_rate_hz=1e9 / io_period_ns,
-            current_telemetry=lambda: self.telemetry(time.monotonic_ns(), self.link.latest()),
+            current_telemetry=lambda: self.telemetry(time.monotonic_ns(), self.latest()),
         )
         self.odometry = self._odometry_sender(mcfg["odometry"])
 
-    # ------------------------------------------------------------------ ODOMETRY (issue 17)
+    # ------------------------------------------------------------------ estimates in
+    def receive(self, estimated: EstimatedBlock) -> None:
+        """An estimated block (loop thread, once per block): the streams publish from the
+        pipeline that estimated it, at their own rates (nothing is built here)."""
+        self.estimates = estimated.pipeline
+
+    def follow(self, pipeline: EstimationPipeline) -> None:
+        """Publishes ``pipeline``'s estimates from now on (a reload built a new one)."""
+        self.estimates = pipeline
+
+    def latest(self) -> LatestEstimate | None:
+        """The newest estimate to publish; None before the first."""
+        estimates = self.estimates
+        if estimates is not None:
+            return estimates.latest_estimate()
+        latest = self.link.latest
+        return latest() if latest is not None else None
+
+    def _latest_attitude(self) -> LatestAttitude | LatestEstimate | None:
+        estimates = self.estimates
+        if estimates is not None:
+            return estimates.latest_attitude()
+        link = self.link
+        return link.latest_attitude() if link.latest_attitude is not None else self.latest()
+
+    def _attitude_variance(self) -> Any:
+        estimates = self.estimates
+        if estimates is not None:
+            return estimates.estimator.attitude_variance()
+        return self.link.attitude_variance() if self.link.attitude_variance is not None else None
+
+    # ------------------------------------------------------------------ ODOMETRY
     def _odometry_sender(self, ocfg: dict[str, Any]) -> OdometrySender | None:
         if ocfg["rate_hz"] <= 0.0:
             return None
@@ -255,7 +243,7 @@ class MavlinkBridge:
         if self._odometry_ref is not None and ref != self._odometry_ref:
             self._odometry_epoch += 1
         self._odometry_ref = ref
-        var = self.link.attitude_variance()
+        var = self._attitude_variance()
         return AttitudeEstimate(
             t_ns=int(est.t_ns),
             q=est.q,
@@ -353,7 +341,7 @@ class MavlinkBridge:
         """What ATTITUDE and ATTITUDE_QUATERNION publish now (``attitude_only``: the health,
         readings and vibration fields left at their defaults); None before the first sample."""
         link = self.link
-        att = link.latest_attitude() if link.latest_attitude is not None else link.latest()
+        att = self._latest_attitude()
         if att is None:
             return None
         return Telemetry.from_quaternion((now_ns - link.boot_ns) // 1_000_000, att.q, att.body_rate,
@@ -370,11 +358,11 @@ class MavlinkBridge:
         component, odometry = self.component, self.odometry
         odometry_due = odometry is not None and odometry.due(now_ns)
         # the newest estimate in full only where ODOMETRY or a full snapshot needs it, once
-        est = self.link.latest() if odometry_due else None
+        est = self.latest() if odometry_due else None
         if component.due(now_ns):
             component.publish_built(now_ns, lambda attitude_only: (
                 self.attitude_telemetry(now_ns) if attitude_only
-                else self.telemetry(now_ns, est if est is not None else self.link.latest())))
+                else self.telemetry(now_ns, est if est is not None else self.latest())))
         if odometry_due:
             odometry.tick(now_ns, self.odometry_estimate(now_ns, est))  # type: ignore[union-attr]
         if now_ns >= self._next_poll_ns:
@@ -389,3 +377,7 @@ class MavlinkBridge:
 
     def close(self) -> None:
         self.component.close()
+
+
+def __getattr__(name: str):  # names that moved out of this module keep working for one release
+    return _moved.moved_name(__name__, name)

@@ -2,7 +2,7 @@
 estimator over the block.
 
 This is the per-sample work of the service, kept apart from timing and I/O so that tests and
-replays drive it directly. A source hands the loop a :class:`~ahrs_service.drivers.base.SampleBlock`
+replays drive it directly. A source hands the loop a :class:`~ahrs_service.core.samples.SampleBlock`
 (one FIFO burst, or the one sample a polling source read); :meth:`EstimationPipeline.process_block`
 calibrates it in one compiled pass, gives each row its time on the sensor's clock, fills the
 estimator rows and runs the estimator's batch kernel over them — the kernel that loops the
@@ -11,11 +11,16 @@ same bits (``tests/test_blocks.py``). :meth:`process` is the same path for one s
 
 Sample times: a source whose stamps are already sample instants on the sensor's clock
 (``times_on_sensor_clock``: FIFO boards, a flight log) is taken as it is; any other source's
-stamps (host read times) go through :class:`~ahrs_service.sample_clock.SampleClock` here,
+stamps (host read times) go through :class:`~ahrs_service.core.sample_clock.SampleClock` here,
 one stamp per row, so its recovered times do not depend on how the rows were blocked. The
 row handed to the estimator (its ``dt`` from the recovered times) is exactly what the log
 records, beside both times, so replaying the log reproduces the published attitude and never
 recovers again.
+
+The stages, in order, each named in :meth:`EstimationPipeline.process_block`: sample times
+(the clock recovery below), calibration (:attr:`EstimationPipeline.calibration` applied to the
+whole block, :func:`~ahrs_service.core.calibration.apply_calibration_block`), the estimator
+rows (validity, magnetometer hold, dt) and the estimator's batch kernel.
 
 Magnetometers run slower than gyroscopes: the last valid field reading is held for
 ``mag_timeout_s`` (zero-order hold, as the sample rows record it). When no valid reading
@@ -27,18 +32,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 from numba import njit
 
 from ahrs_service.calibration.gyro import GyroBiasResult, gyro_bias_at_rest
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample, SampleBlock
-from ahrs_service.drivers.calibration import SensorCalibration, apply_calibration, apply_calibration_block
+from ahrs_service.core.calibration import SensorCalibration, apply_calibration, apply_calibration_block
+from ahrs_service.core.layout import Layout, Slot
+from ahrs_service.core.quaternion import quat_from_euler, quat_mul, quat_to_euler
+from ahrs_service.core.sample_clock import SampleClock
+from ahrs_service.core.samples import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample, SampleBlock
 from ahrs_service.estimators import SAMPLE_ROW, STATE_HEADER
 from ahrs_service.estimators.base import Estimator
-from ahrs_service.estimators.layout import Layout, Slot
-from ahrs_service.quaternion import quat_from_euler, quat_mul, quat_to_euler
-from ahrs_service.sample_clock import SampleClock
 
 _R = SAMPLE_ROW.slices
 _R0 = SAMPLE_ROW.index  # first column of each part of a row (compile-time constants)
@@ -133,6 +139,47 @@ def _fill_rows(gyr, acc, mag, flags, t_ns, use_mag, mag_timeout_ns, nominal_dt, 
     return start
 
 
+@dataclass(frozen=True, slots=True)
+class LatestEstimate:
+    """The newest estimated sample, as the streams publish it.
+
+    samples: samples estimated so far (grows with every new one: freshness). t_ns: the
+    sample's time, monotonic ns. q: q_earth←body [w, x, y, z] against true north (declination
+    applied), NED/FRD. body_rate: (p, q, r) rad/s, bias removed. gyr, acc, mag: calibrated
+    body-frame readings, rad/s, m/s², µT (mag None: no reading). mag_new: the field is a fresh
+    reading. temperature_c: °C or None. initialised: the estimator's output is trustworthy.
+    mag_used: the field is in use (a magnetometer estimator, not in reduced form). reduced:
+    the heading is not observed (reduced form, or an estimator without magnetometer).
+    estimator_id: identifies the estimator object (a new one after a reload: ODOMETRY's
+    reset counter follows it). declination_deg: the declination in ``q``, degrees east.
+    """
+
+    samples: int
+    t_ns: int
+    q: Sequence[float]
+    body_rate: Sequence[float]
+    gyr: Sequence[float]
+    acc: Sequence[float]
+    mag: Sequence[float] | None
+    mag_new: bool
+    temperature_c: float | None
+    initialised: bool
+    mag_used: bool
+    reduced: bool
+    estimator_id: int
+    declination_deg: float
+
+
+@dataclass(frozen=True, slots=True)
+class LatestAttitude:
+    """The newest estimate's attitude alone, what ATTITUDE and ATTITUDE_QUATERNION carry:
+    samples (freshness), q (as :class:`LatestEstimate`'s), body_rate rad/s."""
+
+    samples: int
+    q: Sequence[float]
+    body_rate: Sequence[float]
+
+
 @dataclass(slots=True)
 class EstimatedBlock:
     """The rows of one block the estimator ran over, for the log and the publishers.
@@ -147,6 +194,8 @@ class EstimatedBlock:
         raw: the driver's counts per row, or None. truth_q: (n, 4) or None. first_index: the
         number of row 0 since the pipeline started (what /params ``sample_index`` counts).
         state: the estimator's state after the last row (a copy).
+    pipeline: the pipeline that estimated it — where sinks read what the rows do not carry
+        (the estimator's name and diagnostics, the newest published attitude).
     """
 
     t_ns: np.ndarray
@@ -159,6 +208,7 @@ class EstimatedBlock:
     truth_q: np.ndarray | None
     first_index: int
     state: np.ndarray
+    pipeline: EstimationPipeline | None = None
 
     def __len__(self) -> int:
         return len(self.t_ns)
@@ -262,7 +312,7 @@ class EstimationPipeline:
 
     def use_sample_clock(self, nominal_rate_hz: float) -> None:
         """From now on each row's stamp is a host read time: its sample time is recovered by
-        a :class:`~ahrs_service.sample_clock.SampleClock` at ``nominal_rate_hz`` (Hz)."""
+        a :class:`~ahrs_service.core.sample_clock.SampleClock` at ``nominal_rate_hz`` (Hz)."""
         self.clock = SampleClock(nominal_rate_hz)
 
     def set_declination(self, degrees: float) -> None:
@@ -288,9 +338,12 @@ class EstimationPipeline:
         n = len(raw)
         if n == 0:
             return None
+        # stage 1: each row's time on the sensor's clock
         t_source = raw.t_ns
         t_ns = t_source if self.clock is None else self._recovered(t_source)
+        # stage 2: calibration, sensor axes → calibrated body FRD, the whole block in one pass
         block = apply_calibration_block(raw, self.calibration)
+        # stage 3: the estimator rows (validity, magnetometer hold, dt); stage 4: the estimator
         rows = np.empty((n, 10))
         start = _fill_rows(_c(block.gyr), _c(block.acc), _c(block.mag), np.ascontiguousarray(block.flags, np.int64),
                            np.ascontiguousarray(t_ns, np.int64), bool(self.use_mag), int(self.mag_timeout_ns),
@@ -310,9 +363,9 @@ class EstimationPipeline:
             return EstimatedBlock(
                 t_ns, t_source, rows, q, block.flags[cut], block.temperature_c[cut],
                 None if block.raw is None else {k: v[cut] for k, v in block.raw.items()},
-                None if block.truth_q is None else block.truth_q[cut], first, self.estimator.state.copy())
+                None if block.truth_q is None else block.truth_q[cut], first, self.estimator.state.copy(), self)
         return EstimatedBlock(t_ns, t_source, rows, q, block.flags, block.temperature_c, block.raw, block.truth_q,
-                              first, self.estimator.state.copy())
+                              first, self.estimator.state.copy(), self)
 
     def _recovered(self, t_source: np.ndarray) -> np.ndarray:
         """Each stamp through the sample clock, one sample per stamp (host arrival times)."""
@@ -326,6 +379,40 @@ class EstimationPipeline:
         if self.declination_deg == 0.0:
             return q  # type: ignore[return-value]
         return quat_mul(self._q_decl, q)
+
+    def latest_estimate(self) -> LatestEstimate | None:
+        """The newest estimated sample for the publishers; None before the first."""
+        sample = self.last_sample
+        if sample is None:
+            return None
+        estimator = self.estimator
+        return LatestEstimate(
+            samples=self.samples,
+            t_ns=sample.t_ns,
+            q=self.published_quaternion(),
+            body_rate=self.body_rates(),
+            gyr=sample.gyr,
+            acc=sample.acc,
+            mag=sample.mag,
+            mag_new=bool(sample.flags & MAG_NEW),
+            temperature_c=sample.temperature_c,
+            initialised=bool(estimator.state[STATE_HEADER.index.initialised]),
+            mag_used=self.use_mag and not self.reduced,
+            reduced=self.reduced or not self.use_mag,
+            estimator_id=id(estimator),
+            declination_deg=self.declination_deg,
+        )
+
+    def latest_attitude(self) -> LatestAttitude | None:
+        """The newest estimate's attitude alone (what ATTITUDE / ATTITUDE_QUATERNION carry);
+        None before the first sample."""
+        if self.last_sample is None:
+            return None
+        return LatestAttitude(self.samples, self.published_quaternion(), self.body_rates())
+
+    def diagnostics(self) -> dict:
+        """The estimator's diagnostics (rest, rejections, bias trust …) and the form it runs in."""
+        return dict(self.estimator.diagnostics, reduced=self.reduced)
 
     def published_euler(self) -> tuple[float, float, float]:
         return quat_to_euler(self.published_quaternion())

@@ -157,7 +157,7 @@ class FixedRateScheduler:
 class DataReadyScheduler(FixedRateScheduler):
     """Paces the loop by a data-ready (FIFO watermark) line instead of a timer.
 
-    :meth:`wait` blocks on ``line`` (a :class:`~ahrs_service.drivers.gpio.drdy.DataReadyLine`)
+    :meth:`wait` blocks on ``line`` (a :class:`~ahrs_service.drivers.buses.drdy.DataReadyLine`)
     for at most ``timeout_periods`` periods of ``rate_hz`` (the watermark rate), then returns
     like a timer tick: an unwired or silent line degrades to polling at that timeout, never
     to a stall. ``rate_hz`` is the expected wake-up rate (for jitter and load figures);

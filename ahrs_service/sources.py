@@ -16,27 +16,20 @@
 * ``recorded`` — an MCAP log or a BROAD HDF5 recording (``source.recorded_path``).
 * ``mavlink`` — the autopilot's IMU (``source.mavlink_imu``) over its link
   (``source.mavlink_connection``), which the service also uses to talk to the autopilot.
+
+The section's keys, defaults and checks are declared in :mod:`ahrs_service.source_settings`.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from ahrs_service.drivers.base import ImuSource
-
-# the simulated parts of each board, for the sensor error models
-_BOARD_PARTS = {
-    "gy80": ("L3G4200D", "ADXL345", "HMC5883L"),
-    "minimu9v2": ("L3GD20", "LSM303DLHC_ACC", "LSM303DLHC_MAG"),
-    "mpu9250": ("MPU9250_GYRO", "MPU9250_ACC", "AK8963"),
-    "icm42688p": ("ICM42688P_GYRO", "ICM42688P_ACC", "ideal"),  # no magnetometer
-    "icm20948": ("ICM20948_GYRO", "ICM20948_ACC", "AK09916"),
-    "bmi088": ("BMI088_GYRO", "BMI088_ACC", "ideal"),  # no magnetometer
-}
+from ahrs_service.core.samples import ImuSource
 
 
 def simulated_imu(source_cfg: dict[str, Any]):
     """The motion simulator with the error models of the configured board's parts."""
+    from ahrs_service.drivers.boards import BOARDS
     from ahrs_service.drivers.sim.imu import MonotonicClock, SimulatedImu
     from ahrs_service.drivers.sim.motion import profile
     from ahrs_service.drivers.sim.sensor_model import PART_MODELS
@@ -48,7 +41,7 @@ def simulated_imu(source_cfg: dict[str, Any]):
         trajectory = Vibrating(trajectory, source_cfg["vibration_mss"], source_cfg["vibration_hz"])
     if source_cfg["sensor_errors"]:
         # analog(): the register devices quantise and saturate at their configured range
-        gyr, acc, mag = (PART_MODELS[p].analog() for p in _BOARD_PARTS[source_cfg["board"]])
+        gyr, acc, mag = (PART_MODELS[p].analog() for p in BOARDS[source_cfg["board"]].sensor_models)
     else:
         gyr = acc = mag = PART_MODELS["ideal"]
     models = {"gyr": gyr, "acc": acc, "mag": mag}
@@ -60,15 +53,15 @@ def make_source(source_cfg: dict[str, Any], estimation_hz: float, system_id: int
     the service's MAVLink system id, its address on an autopilot link)."""
     kind = source_cfg["type"]
     if kind in ("spi", "simulated_spi") or (kind in ("i2c", "simulated_i2c")
-                                             and source_cfg["board"] in _transport_boards()):
+                                             and _on_transport(source_cfg["board"])):
         return make_fifo_source(source_cfg)
     if kind == "simulated_i2c":
-        from ahrs_service.drivers.i2c.boards import make_simulated_board
+        from ahrs_service.drivers.boards import make_simulated_board
 
         return make_simulated_board(source_cfg["board"], simulated_imu(source_cfg),
                                     i2c_speed_hz=source_cfg["i2c_speed_hz"], **source_cfg["board_options"])
     if kind == "i2c":
-        from ahrs_service.drivers.i2c.boards import make_board
+        from ahrs_service.drivers.boards import make_board
 
         return make_board(source_cfg["board"], source_cfg["i2c_bus"], i2c_speed_hz=source_cfg["i2c_speed_hz"],
                           **source_cfg["board_options"])
@@ -77,7 +70,7 @@ def make_source(source_cfg: dict[str, Any], estimation_hz: float, system_id: int
 
         return SimulatedSource(simulated_imu(source_cfg), rate_hz=estimation_hz)
     if kind in ("can", "simulated_can"):
-        from ahrs_service.drivers.can.source import DroneCanConfig, DroneCanImuSource
+        from ahrs_service.protocols.dronecan.imu_source import DroneCanConfig, DroneCanImuSource
 
         can_cfg = DroneCanConfig(
             interface=source_cfg["can_interface"],
@@ -89,7 +82,7 @@ def make_source(source_cfg: dict[str, Any], estimation_hz: float, system_id: int
             return DroneCanImuSource(can_cfg)
         return SimulatedCanSource(can_cfg, simulated_imu(source_cfg), estimation_hz)
     if kind == "recorded":
-        from ahrs_service.drivers.recorded import RecordedSource
+        from ahrs_service.recorded import RecordedSource
 
         return RecordedSource(source_cfg["recorded_path"], realtime=source_cfg["recorded_realtime"])
     if kind == "mavlink":
@@ -99,18 +92,19 @@ def make_source(source_cfg: dict[str, Any], estimation_hz: float, system_id: int
 
 def make_mavlink_source(source_cfg: dict[str, Any], system_id: int = 1) -> ImuSource:
     """The autopilot's IMU over a new autopilot link (opened with the source)."""
-    from ahrs_service.drivers.mavlink_imu import MavlinkImuSource, parse_raw_scale
     from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink
+    from ahrs_service.protocols.mavlink.imu_source import MavlinkImuSource, parse_raw_scale
 
     link = AutopilotLink(source_cfg["mavlink_connection"], system_id=system_id)
     return MavlinkImuSource(link, message=source_cfg["mavlink_imu"], rate_hz=source_cfg["mavlink_imu_hz"],
                             raw_scale=parse_raw_scale(source_cfg["mavlink_raw_scale"]))
 
 
-def _transport_boards() -> dict:
-    from ahrs_service.drivers.boards import TRANSPORT_BOARDS
+def _on_transport(board: str) -> bool:
+    """True for a board of one part behind a register transport (SPI or I2C): a FIFO source."""
+    from ahrs_service.drivers.boards import BOARDS
 
-    return TRANSPORT_BOARDS
+    return board in BOARDS and BOARDS[board].on_transport
 
 
 def make_fifo_source(source_cfg: dict[str, Any]) -> ImuSource:
@@ -129,13 +123,13 @@ def make_fifo_source(source_cfg: dict[str, Any]) -> ImuSource:
     spec = source_cfg["drdy_gpio"]
     if spec:
         if simulated:
-            from ahrs_service.drivers.gpio.drdy import SimulatedDataReadyLine
-            from ahrs_service.drivers.imu.boards import _twin
+            from ahrs_service.drivers.sim.bus import twin_behind
+            from ahrs_service.drivers.sim.drdy import SimulatedDataReadyLine
 
             # the line carries the watermark of the part that drives the rows (BMI088: the gyro's INT3)
-            board.data_ready_line = SimulatedDataReadyLine(_twin(board.transport), imu.clock, name=spec)
+            board.data_ready_line = SimulatedDataReadyLine(twin_behind(board.transport), imu.clock, name=spec)
         else:
-            from ahrs_service.drivers.gpio.drdy import GpiodLine
+            from ahrs_service.drivers.buses.drdy import GpiodLine
 
             board.data_ready_line = GpiodLine(spec)
     return board
@@ -145,7 +139,7 @@ class SimulatedCanSource(ImuSource):
     """A DroneCAN source plus, in this process, a simulated IMU node publishing on the same bus."""
 
     def __init__(self, can_cfg, imu, rate_hz: float) -> None:
-        from ahrs_service.drivers.can.source import DroneCanImuSource
+        from ahrs_service.protocols.dronecan.imu_source import DroneCanImuSource
 
         super().__init__()
         self.can_cfg, self.imu, self.rate_hz = can_cfg, imu, rate_hz
@@ -155,7 +149,7 @@ class SimulatedCanSource(ImuSource):
         self.node = None
 
     def open(self) -> None:
-        from ahrs_service.drivers.can.sim_node import SimulatedDroneCanImuNode
+        from ahrs_service.protocols.dronecan.sim_node import SimulatedDroneCanImuNode
 
         self.inner.open()
         self.node = SimulatedDroneCanImuNode(self.can_cfg.open_bus(), self.imu, rate_hz=self.rate_hz)

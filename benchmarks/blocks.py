@@ -6,7 +6,7 @@ against the per-sample pipeline before blocks (taken from git), in alternating r
 Each run feeds the same 1 kHz samples (a calibration with every term, a 100 Hz magnetometer)
 through a fresh pipeline: ``old per-sample`` is ``EstimationPipeline.process`` of revision
 ``--old`` (one ``ImuSample`` at a time: calibrate, fill the row, ``update_row``); ``block of 1``
-is today's ``process`` (a one-row block: ``SampleBlock.from_samples`` + ``process_block``, the
+is the current ``process`` (a one-row block: ``SampleBlock.from_samples`` + ``process_block``, the
 polling path); ``block of 10`` is ``process_block`` over 10-row blocks built beforehand (a FIFO
 drained at 100 Hz, as the FIFO board hands them). Printed: the median µs per sample of each and
 the ratios, and whether the three end in the same estimator state (they must: bit for bit).
@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from ahrs_service import estimators
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample, SampleBlock
-from ahrs_service.drivers.calibration import SensorCalibration
 from ahrs_service import pipeline as new_pipeline
+from ahrs_service.core.calibration import SensorCalibration
+from ahrs_service.core.samples import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample, SampleBlock
 
 REPO = Path(__file__).resolve().parents[1]
 

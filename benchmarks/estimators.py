@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 
 from ahrs_service import estimators
-from ahrs_service.quaternion import quat_conj_array, quat_from_rotvec_array, quat_mul_array, quat_rotate_array
+from ahrs_service.core.quaternion import quat_conj_array, quat_from_rotvec_array, quat_mul_array, quat_rotate_array
 
 RATE_HZ = 285.714
 BLOCK = 100  # per-sample calls timed together; the median over blocks is reported

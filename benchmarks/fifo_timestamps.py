@@ -9,7 +9,7 @@ machine): the simulated part samples at (1 + clock_error) × its nominal rate; t
 0.5–3 ms: a busy host); each bus transfer takes its wire time (400 kHz I2C, 8 MHz SPI).
 Every row carries its true sample time (the stand-in physics puts it in the truth), so the
 error of each row's ``t_ns`` is exact. Printed: p50 / p99 / max |error| over the rows after
-``--settle`` s (10 s: issue 18's target is p99 ≤ 50 µs), beside the reference in the same
+``--settle`` s (10 s; the target is p99 ≤ 50 µs), beside the reference in the same
 run: the same rows stamped at the host's read time, one nominal period apart back from the
 newest (what a driver without the sensor clock does).
 """
@@ -73,8 +73,7 @@ def _timed_transfers(bus, src: TruthClockImu, seconds_per_byte: float, overhead_
 def run(board_name: str, bus_kind: str, options: dict, clock_error: float, seconds: float,
         settle_s: float, seed: int) -> dict[str, np.ndarray]:
     """Errors (ns) of the rows after ``settle_s``: {"sensor_clock": …, "host_read": …}."""
-    from ahrs_service.drivers.boards import make_transport_board
-    from ahrs_service.drivers.i2c.boards import make_simulated_board
+    from ahrs_service.drivers.boards import make_simulated_board, make_transport_board
 
     rng = random.Random(seed)
     src = TruthClockImu()

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID
+from ahrs_service.core.samples import ACC_VALID, GYR_VALID, MAG_VALID
 from ahrs_service.logs.plot import build_figure, read_series
 from ahrs_service.logs.reader import MessageSource
 from ahrs_service.logs.writer import FlightLogWriter

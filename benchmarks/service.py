@@ -5,7 +5,7 @@
     python benchmarks/service.py --fifo-pairs 5 [--seconds 20] [--rate 1000] [--fifo-truth]
 
 ``--fifo-pairs N``: the simulated MPU-9250 on the simulated I2C bus at 1 kHz, every sample
-estimated and logged (raw + estimate, as issue 18 sets it up and a real sensor's log is:
+estimated and logged (raw + estimate, as a real sensor's log is:
 ``log.truth = false``; ``--fifo-truth`` logs the simulator's ground truth too), ATTITUDE + ATTITUDE_QUATERNION at ``--publish`` Hz, read through its
 FIFO (drained at 100 Hz: the loop wakes 100 times a second, a block each) and polled one
 sample per tick (``board_options = { fifo = false }``, the reference), with the empty loop at
@@ -64,7 +64,7 @@ def recording_1khz(seconds: float, truth: bool = True) -> Path:
     path = CACHE / f"sim-figure8-1khz-{int(seconds)}s{'' if truth else '-notruth'}.mcap"
     if path.exists():
         return path
-    from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID
+    from ahrs_service.core.samples import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID
     from ahrs_service.drivers.sim.imu import ManualClock, SimulatedImu
     from ahrs_service.drivers.sim.motion import profile
     from ahrs_service.drivers.sim.sensor_model import PART_MODELS
@@ -450,7 +450,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--markdown", action="store_true")
     ap.add_argument("--fifo-truth", action="store_true",
                     help="--fifo-pairs: log the simulator's ground truth too (a third message a sample; "
-                         "issue 18's setup logs raw + estimate, as a real sensor's log)")
+                         "the default logs raw + estimate, as a real sensor's log)")
     ap.add_argument("--fifo-pairs", type=int, default=0, metavar="N",
                     help="only compare the MPU-9250 read through its FIFO against polling, N alternating pairs")
     args = ap.parse_args(argv)

@@ -20,7 +20,7 @@ Printed: CPU of this process (one core = 100 %) over the run, the twin's CPU apa
 service's own CPU, samples estimated and logged against the samples the part produced, lost
 samples by cause, the rate the part ran at and the tracked one, ATTITUDE messages seen, and
 the FIFO's view of the host: every read is timed from the previous one, so each overflow is
-shown with the time the FIFO went without a read before it — issue 15's rule is that every
+shown with the time the FIFO went without a read before it — the rule checked is that every
 loss follows a host stall longer than the FIFO's depth (12.7 ms at 8 kHz), none a shorter one.
 
 The log is written one message per FIFO burst at 8 kHz (``log.block_messages_above_hz``);
@@ -72,8 +72,8 @@ class RecordedImu:
 
 def twin_cost_us(recording: RecordedImu, odr: float, n_samples: int) -> float:
     """CPU µs per sample of the twin alone (latch, pack, FIFO) on the recording."""
-    from ahrs_service.drivers.imu.icm42688p import SimulatedICM42688P
     from ahrs_service.drivers.sim.clock import ManualClock
+    from ahrs_service.drivers.sim.icm42688p import SimulatedICM42688P
 
     clock = ManualClock()
     saved, recording.clock = recording.clock, clock
@@ -120,15 +120,16 @@ def main(argv: list[str] | None = None) -> int:
                          "per-sample: one /imu/raw + /attitude per sample, for comparison")
     args = ap.parse_args(argv)
     if args.loop_hz is None:
-        from ahrs_service.drivers.imu.boards import ICM42688PBoard
+        from ahrs_service.drivers.boards.transport import ICM42688PBoard
 
         args.loop_hz = ICM42688PBoard.FIFO_READ_HZ
 
-    from ahrs_service import config, service as service_mod, sources
+    from ahrs_service import config, sources
+    from ahrs_service import service as service_mod
     from ahrs_service.drivers.boards import make_transport_board
-    from ahrs_service.drivers.gpio.drdy import SimulatedDataReadyLine
-    from ahrs_service.drivers.imu.boards import _twin
-    from ahrs_service.drivers.imu.icm42688p import FIFO_DATA, INT_STATUS, STATUS_BYTES
+    from ahrs_service.drivers.parts.icm42688p import FIFO_DATA, INT_STATUS, STATUS_BYTES
+    from ahrs_service.drivers.sim.bus import twin_behind
+    from ahrs_service.drivers.sim.drdy import SimulatedDataReadyLine
     from ahrs_service.drivers.sim.imu import MonotonicClock
 
     clock = MonotonicClock()
@@ -169,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         # clock when the call returns — a loop thread preempted between the part's catch-up
         # and its latch (the GIL held by the log writer, say) read a level as old as the
         # catch-up, and timed at the return the window looked that much shorter
-        part = _twin(board.transport)
+        part = twin_behind(board.transport)
         make_samples = part.update
 
         def timed_update(now: float) -> None:
@@ -207,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
 
         bus.transfer, bus.now_ns = timed_transfer, timed_now_ns
         if args.drdy:
-            board.data_ready_line = SimulatedDataReadyLine(_twin(board.transport), clock)
+            board.data_ready_line = SimulatedDataReadyLine(twin_behind(board.transport), clock)
         boards.append(board)
         return board
 
@@ -276,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
             return block
 
         def _counts(rows_to_estimate: int) -> dict:
-            twin, diag = _twin(board.transport), board.diagnostics
+            twin, diag = twin_behind(board.transport), board.diagnostics
             return {"produced": twin.samples_latched + twin.samples_unseen - twin.fifo.level // 20,
                     "dropped": twin.fifo.dropped + twin.fifo.discarded, "read": diag.samples,
                     "lost": (diag.lost.fifo_overflow, diag.lost.bus_error, diag.extra["fifo_overflows"]),

@@ -5,8 +5,8 @@
 For each peer count, that many sockets on 127.0.0.1 each send one valid HEARTBEAT to a
 component's ``udpin`` endpoint and close; the component reads them all; then ``--sends``
 ATTITUDE messages go out (one publish's worth each). The CPU time of those sends is compared,
-in the same run, between mavutil's own peer handling (every sender kept for good: the link as
-it was before issue 14) and the endpoint's peer tracking (``endpoints.MAX_PEERS``, expiry after
+in the same run, between mavutil's own peer handling (every sender kept for good: the link
+without peer tracking) and the endpoint's peer tracking (``endpoints.MAX_PEERS``, expiry after
 ``PEER_TIMEOUT_S``). Loopback only; bounded in count.
 """
 

@@ -19,8 +19,8 @@ import numba
 import numpy as np
 
 from ahrs_service import estimators
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID
-from ahrs_service.vibration import VibrationMonitor
+from ahrs_service.core.samples import ACC_VALID, GYR_VALID
+from ahrs_service.core.vibration import VibrationMonitor
 
 
 @numba.njit(cache=True)

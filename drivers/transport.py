@@ -1,22 +1,24 @@
 """Register transports: how a part's driver reaches its registers, over I2C or SPI.
 
-Today's IMUs (ICM-42688-P, ICM-20948, BMI088) speak the same register protocol over either
-bus, so their drivers (``drivers/imu/``) talk to a :class:`RegisterTransport` and never to a
-bus directly:
+A register part speaks the same register protocol over either bus (today's IMUs: ICM-42688-P,
+ICM-20948, BMI088 wire on both), so every part's driver (``drivers/parts/``, on the one base
+:class:`~ahrs_service.drivers.device.RegisterDevice`) holds a :class:`RegisterTransport`:
 
-* :class:`I2CTransport` — one address on an :class:`~ahrs_service.drivers.i2c.bus.I2CBus`
-  (``/dev/i2c-N`` or the simulated I2C bus); a burst is one read on an adapter that speaks
-  plain I2C, else split into the SMBus's 32-byte blocks (``I2CBus.max_read_bytes``).
-* :class:`SPITransport` — one chip select on an :class:`~ahrs_service.drivers.spi.bus.SPIBus`
+* :class:`I2CTransport` — one address on an :class:`~ahrs_service.drivers.buses.i2c.I2CBus`
+  (``/dev/i2c-N`` or the simulated I2C bus): a byte is an SMBus byte read, a burst an SMBus
+  block up to 32 bytes and one plain-I2C read beyond (``I2C_RDWR``) on an adapter that
+  speaks it (``I2CBus.max_read_bytes``). The bus's methods are looked up at each transfer,
+  so a test may wrap them on a bus whose parts are built already.
+* :class:`SPITransport` — one chip select on an :class:`~ahrs_service.drivers.buses.spi.SPIBus`
   (``/dev/spidevB.C`` or the simulated SPI bus); the first byte is the register address
   with the read bit (0x80 for every part here) set for reads, and ``dummy_bytes`` bytes the
   part clocks out before its data are dropped (one on the BMI088 accelerometer, datasheet
   BST-BMI088-DS001 §6.1.2).
 
-:class:`TransportDevice` is the driver base on top: register access with the same retry and
-fault counting as :class:`~ahrs_service.drivers.i2c.device.I2CDevice`, the identity check,
-and :meth:`TransportDevice.read_fifo`, which reads a FIFO data register in transfers of at
-most ``transport.max_read`` bytes.
+The driver base on top, :class:`~ahrs_service.drivers.device.RegisterDevice`, retries and
+counts each transfer and reads a FIFO data register in transfers of at most
+``transport.max_read`` bytes. A transfer that keeps failing becomes the transport's
+:meth:`~RegisterTransport.transfer_error` (``drivers/errors.py``), which names the part's place.
 
 ``wire_bytes(n)`` is what a burst of ``n`` data bytes costs on the wire (start, address,
 register, restart, data on I2C; command + dummy + data on SPI): the board multiplies it by
@@ -26,39 +28,15 @@ its reads per second to refuse a rate the bus cannot carry (:func:`check_bus_rat
 from __future__ import annotations
 
 import abc
-import errno
-from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
-from ahrs_service.drivers.base import SourceDiagnostics
-from ahrs_service.drivers.i2c.bus import SMBUS_BLOCK_MAX
-from ahrs_service.drivers.i2c.device import DeviceIdentityError, _hex, run_retried
+from ahrs_service import _moved
+from ahrs_service.drivers import errors
+from ahrs_service.drivers.buses.i2c import SMBUS_BLOCK_MAX
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ahrs_service.drivers.i2c.bus import I2CBus
-    from ahrs_service.drivers.spi.bus import SPIBus
-
-class TransportError(OSError):
-    """A register transfer failed after the retries: names bus, address or chip select, register."""
-
-    def __init__(self, where: str, part: str, register: int, action: str, cause: OSError):
-        self.where, self.part, self.register, self.cause = where, part, register, cause
-        super().__init__(cause.errno or errno.EIO,
-                         f"{part} at {where}: {action} register 0x{register:02X} failed: "
-                         f"{cause.strerror or cause}")
-
-
-class PartIdentityError(DeviceIdentityError):
-    """The part behind a transport is not the expected one (identity register mismatch)."""
-
-    def __init__(self, where: str, part: str, register: int, got: int, expected: Sequence[int],
-                 what: str) -> None:
-        self.bus, self.address, self.part, self.register = where, None, part, register
-        self.read, self.expected = bytes((got,)), [bytes((e,)) for e in expected]
-        RuntimeError.__init__(
-            self, f"{where}: expected {part}, but {what} (register 0x{register:02X}) reads "
-            f"{_hex(self.read)}, expected {' or '.join(_hex(e) for e in self.expected)} — another "
-            f"part here, no part at all (0x00/0xFF), or a wrong chip select/address/board setting?")
+    from ahrs_service.drivers.buses.i2c import I2CBus
+    from ahrs_service.drivers.buses.spi import SPIBus
 
 
 class RegisterTransport(abc.ABC):
@@ -79,9 +57,18 @@ class RegisterTransport(abc.ABC):
     def read(self, reg: int, n: int) -> bytes:
         """``n`` bytes from ``reg`` (``n`` ≤ ``max_read``) in one transfer."""
 
+    def read_u8(self, reg: int) -> int:
+        """One register byte (the common case: status and identity registers)."""
+        return self.read(reg, 1)[0]
+
     @abc.abstractmethod
     def write(self, reg: int, value: int) -> None:
         """One byte to ``reg``."""
+
+    def transfer_error(self, part: str, register: int, action: str, cause: OSError) -> OSError:
+        """The error raised when a transfer to ``register`` (datasheet number) of ``part``
+        failed after the retries: ``action`` "reading" or "writing", ``cause`` the last error."""
+        return errors.TransportError(self.where, part, register, action, cause)
 
     @abc.abstractmethod
     def wire_bytes(self, n: int) -> float:
@@ -107,8 +94,18 @@ class I2CTransport(RegisterTransport):
         self.bus, self.address, self.clock_hz = bus, int(address), float(clock_hz)
         self.where = f"{bus.name} address 0x{self.address:02X}"
         self.simulated = bus.simulated
-        # an adapter that speaks plain I2C reads a whole FIFO burst in one transaction
-        self.max_read = bus.max_read_bytes
+        self._max_read: int | None = None
+
+    @property
+    def max_read(self) -> int:
+        """The adapter's longest read (an SMBus block, or a whole FIFO burst on an adapter
+        that speaks plain I2C), asked at each burst: a bus may be narrowed after its parts are
+        built; setting it narrows this transport alone."""
+        return self.bus.max_read_bytes if self._max_read is None else self._max_read
+
+    @max_read.setter
+    def max_read(self, n: int) -> None:
+        self._max_read = int(n)
 
     def read(self, reg: int, n: int) -> bytes:
         if n == 1:
@@ -117,8 +114,14 @@ class I2CTransport(RegisterTransport):
             return bytes(self.bus.read_i2c_block_data(self.address, reg, n))
         return bytes(self.bus.read_burst(self.address, reg, n))
 
+    def read_u8(self, reg: int) -> int:
+        return self.bus.read_byte_data(self.address, reg)
+
     def write(self, reg: int, value: int) -> None:
         self.bus.write_byte_data(self.address, reg, value)
+
+    def transfer_error(self, part: str, register: int, action: str, cause: OSError) -> OSError:
+        return errors.I2CDeviceError(self.bus.name, self.address, part, register, action, cause)
 
     def wire_bytes(self, n: int) -> float:
         # START + addr/W + reg, repeated START + addr/R, n data bytes; 9 clocks a byte with ACK
@@ -193,57 +196,5 @@ def check_bus_rate(transport: RegisterTransport, key: str, rate_hz: float, bytes
                                      " or raise source.spi_speed_hz"))
 
 
-class TransportDevice:
-    """Driver base: one part behind a :class:`RegisterTransport`, with retries and counters.
-
-    Subclasses set ``PART``; registers are read with :meth:`read_u8` / :meth:`read_regs`,
-    written with :meth:`write_u8`. Each failed transfer is counted in
-    ``diagnostics.bus_errors`` and retried ``retries`` times before :class:`TransportError`.
-    """
-
-    PART = "device"
-
-    def __init__(self, transport: RegisterTransport, *, diagnostics: SourceDiagnostics | None = None,
-                 retries: int = 2) -> None:
-        if retries < 0:
-            raise ValueError(f"{self.PART}: retries must be >= 0, got {retries}")
-        self.transport = transport
-        self.diagnostics = diagnostics if diagnostics is not None else SourceDiagnostics()
-        self.retries = int(retries)
-
-    def _transfer(self, fn: Callable[..., Any], reg: int, action: str, *args: Any) -> Any:
-        return run_retried(lambda: fn(reg, *args), self.retries, self.diagnostics,
-                           lambda exc: TransportError(self.transport.where, self.PART, reg, action, exc))
-
-    def read_u8(self, reg: int) -> int:
-        return self._transfer(self.transport.read, reg, "reading", 1)[0]
-
-    def read_regs(self, reg: int, n: int) -> bytes:
-        """``n`` consecutive registers from ``reg`` in one transfer (``n`` ≤ max_read)."""
-        return self._transfer(self.transport.read, reg, "reading", n)
-
-    def write_u8(self, reg: int, value: int) -> None:
-        self._transfer(self.transport.write, reg, "writing", value)
-
-    def read_fifo(self, reg: int, n: int, granule: int = 1) -> bytes:
-        """``n`` bytes from the FIFO data register ``reg``, in transfers of at most
-        ``max_read`` bytes rounded down to whole ``granule``-byte frames."""
-        step = max(granule, self.transport.max_read // granule * granule)
-        if n <= step:
-            return self.read_regs(reg, n)
-        parts = []
-        for start in range(0, n, step):
-            parts.append(self.read_regs(reg, min(step, n - start)))
-        return b"".join(parts)
-
-    def check_identity(self, reg: int, expected: Sequence[int], what: str) -> int:
-        """Reads ``reg`` and compares with the accepted ``expected`` values."""
-        got = self.read_u8(reg)
-        if got not in expected:
-            raise PartIdentityError(self.transport.where, self.PART, reg, got, expected, what)
-        return got
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.transport.where})"
-
-
+def __getattr__(name: str):  # names that moved out of this module keep working for one release
+    return _moved.moved_name(__name__, name)

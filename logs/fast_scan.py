@@ -1,9 +1,8 @@
 """A fast, read-only pass over an MCAP file's messages, for tools that read whole long logs.
 
 :class:`~ahrs_service.logs.reader.MessageSource` goes through the ``mcap`` library, which
-builds a record object per message: about 17 µs a message on the reference machine, 40 s for
-a one-hour 200 Hz log. :func:`scan_messages` walks the same records with ``struct`` on the
-decompressed chunk bytes and hands out only the wanted topics' payloads, without objects —
+builds a record object per message: slow over a whole long log. :func:`scan_messages` walks
+the same records with ``struct`` on the decompressed chunk bytes and hands out only the wanted topics' payloads, without objects —
 the MCAP format's record layout (https://mcap.dev/spec): opcode u8, length u64, then the
 fields; a Chunk's records are compressed with zstd (this project's writer) or stored.
 
@@ -20,9 +19,9 @@ import struct
 from dataclasses import dataclass
 from typing import Callable
 
+from ahrs_service.logs.magic import MCAP_MAGIC
 from ahrs_service.logs.recover import chunk_bytes
 
-_MAGIC = b"\x89MCAP0\r\n"
 _HEAD = struct.Struct("<BQ")
 _CHUNK = struct.Struct("<QQQI")  # message start, message end, uncompressed size, uncompressed CRC
 _MSG = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
@@ -51,7 +50,7 @@ def scan_messages(path: str | os.PathLike, handlers: dict[str, Callable[[int, by
     wanted: dict[int, Callable[[int, bytes], None] | None] = {}
     with open(path, "rb") as f:
         size = os.fstat(f.fileno()).st_size
-        if f.read(8) != _MAGIC:
+        if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
             result.damage = "not an MCAP file (bad magic)"
             return result
         pos = 8

@@ -8,8 +8,8 @@ quick-look ``plot``) take each field through these accessors, which check its JS
 raises :class:`BadMessage` naming the field and what it holds; the reader turns that into
 damage at that message (``logs/reader.py``), so a hostile file is reported, never a traceback.
 
-Full JSON Schema validation (``schemas.validate``) costs about 40 µs a message, twenty times
-the decoding; these checks cost a few isinstance calls and so are done on every message.
+Full JSON Schema validation (``schemas.validate``) costs many times the decoding; these
+checks cost a few isinstance calls and so are done on every message.
 """
 
 from __future__ import annotations

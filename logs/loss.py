@@ -1,7 +1,7 @@
 """What a flight log says was lost: IMU samples by cause, and what the writer could not log.
 
 Both are running totals the service writes in every ``/loop`` message (once a second):
-``source.lost`` — the source's :class:`~ahrs_service.drivers.base.LossCounts` (samples that
+``source.lost`` — the source's :class:`~ahrs_service.core.samples.LossCounts` (samples that
 never reached the host: ``fifo_overflow``, ``bus_error``, ``gap``, ``host_stall``) — and ``log``
 (the writer's ``stats()``: ``samples_not_logged``, ``outage_s`` …, samples that reached the host
 but not the disk). :func:`log_losses` reads them back for ``ahrs-service log info``.
@@ -13,7 +13,7 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
-from ahrs_service.drivers.base import LossCounts
+from ahrs_service.core.samples import LossCounts
 from ahrs_service.logs.fields import BadMessage, decoded, integer, number, obj
 from ahrs_service.logs.reader import MessageSource
 

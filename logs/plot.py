@@ -24,11 +24,11 @@ from typing import Any
 
 import numpy as np
 
+from ahrs_service.core.quaternion import euler_of
 from ahrs_service.logs.fast_scan import scan_messages
 from ahrs_service.logs.fields import BadMessage, decoded, integers, number, obj, scalar, vector, vectors
 from ahrs_service.logs.reader import MessageSource
 from ahrs_service.logs.schemas import CHANNELS
-from ahrs_service.quaternion import euler_of
 
 DRAW_BINS = 2000  # envelope bins per series: a few per pixel column of a wide figure
 FORMATS = (".png", ".pdf", ".svg")

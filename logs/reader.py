@@ -18,10 +18,21 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata
 
-from ahrs_service.logs.fields import BadMessage, decoded, integer, integers, numbers, obj, scalar, string, vector, vectors
+from ahrs_service.core.paths import regular_file
+from ahrs_service.logs.fields import (
+    BadMessage,
+    decoded,
+    integer,
+    integers,
+    numbers,
+    obj,
+    scalar,
+    string,
+    vector,
+    vectors,
+)
 from ahrs_service.logs.recover import MAX_CHUNK_BYTES, Damage, RecordScanner
 from ahrs_service.logs.schemas import CHANNELS
-from ahrs_service.paths import regular_file
 
 
 class MessageSource:

@@ -39,9 +39,8 @@ from mcap.records import (
 )
 from mcap.writer import CompressionType, Writer
 
-from ahrs_service.paths import regular_file
-
-MAGIC = bytes([137, 77, 67, 65, 80, 48, 13, 10])
+from ahrs_service.core.paths import regular_file
+from ahrs_service.logs.magic import MCAP_MAGIC as MAGIC
 
 _RECORDS = {
     Opcode.HEADER: Header,
@@ -149,7 +148,7 @@ class RecordScanner:
     def __iter__(self) -> Iterator[Any]:
         size = self.path.stat().st_size
         with open(self.path, "rb") as f:
-            if f.read(8) != MAGIC:
+            if f.read(len(MAGIC)) != MAGIC:
                 self.damage = Damage(0, size, "not an MCAP file (bad magic)")
                 return
             pos = 8
@@ -182,7 +181,7 @@ class RecordScanner:
                 for record in records:
                     yield record
                 if opcode == Opcode.FOOTER:
-                    if f.read(8) == MAGIC:
+                    if f.read(len(MAGIC)) == MAGIC:
                         self.complete = True
                         self.valid_end = pos + 8
                     else:

@@ -30,7 +30,8 @@ from typing import Any
 import numpy as np
 import orjson
 
-from ahrs_service.drivers.base import (
+from ahrs_service.core.quaternion import euler_of as euler
+from ahrs_service.core.samples import (
     ACC_SATURATED,
     ACC_VALID,
     GYR_SATURATED,
@@ -40,7 +41,6 @@ from ahrs_service.drivers.base import (
     MAG_VALID,
 )
 from ahrs_service.estimators import SAMPLE_ROW
-from ahrs_service.quaternion import euler_of as euler
 
 _R = SAMPLE_ROW.slices
 
@@ -79,7 +79,7 @@ IMU_RAW = {
             "maxItems": 3,
             "description": "magnetic field, µT, body FRD; null when there is no reading",
         },
-        "flags": {"type": "integer", "description": "validity bit mask (ahrs_service.drivers.base)"},
+        "flags": {"type": "integer", "description": "validity bit mask (ahrs_service.core.samples)"},
         "valid": {
             "type": "object",
             "description": "the flag bits decoded",
@@ -116,7 +116,7 @@ ATTITUDE = {
             "type": "object",
             "description": "estimator counters (initialised, *_skipped …)",
             "properties": {
-                # issue 17: optional, in the diagnostics the service writes at log.diagnostics_hz
+                # optional: in the diagnostics the service writes at log.diagnostics_hz
                 "attitude_variance": {
                     "type": "object",
                     "description": "variances of roll, pitch, yaw (ZYX), rad²; null: unknown (estimators.uncertainty)",
@@ -166,7 +166,7 @@ IMU_RAW_BLOCK = {
         "gyr": _rows_of(_vec(3, _NUM_OR_NULL, "rad/s"), "angular rate, rad/s, body FRD"),
         "acc": _rows_of(_vec(3, _NUM_OR_NULL, "m/s²"), "specific force, m/s², body FRD"),
         "mag": _rows_of(_vec(3, _NUM_OR_NULL, "µT"), "magnetic field, µT, body FRD; nulls: no reading"),
-        "flags": _rows_of(_INT, "validity bit mask (ahrs_service.drivers.base)"),
+        "flags": _rows_of(_INT, "validity bit mask (ahrs_service.core.samples)"),
         "raw": {"type": ["object", "null"], "description": "uncalibrated readings (counts), {name: one entry per row}"},
         "temperature": {"type": ["array", "null"], "items": _NUM_OR_NULL, "description": "°C per row"},
     },

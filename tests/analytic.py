@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ahrs_service.quaternion import (
+from ahrs_service.core.quaternion import (
     quat_conj_array,
     quat_from_euler,
     quat_from_euler_array,
-    quat_integrate,
     quat_from_rotvec_array,
+    quat_integrate,
     quat_mul_array,
     quat_rotate_array,
 )

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from ahrs_service.quaternion import quat_from_euler, quat_mul
+from ahrs_service.core.quaternion import quat_from_euler, quat_mul
 
 G = 9.80665
 

@@ -20,12 +20,12 @@ from pymavlink.dialects.v20 import common as mavlink2
 from ahrs_service import config as config_mod
 from ahrs_service import estimators
 from ahrs_service.attitude_monitor import AttitudeMonitor, Disagreement, EstimateHistory
-from ahrs_service.drivers.mavlink_imu import MavlinkImuSource, decode_scaled
+from ahrs_service.core.quaternion import quat_from_euler, quat_mul
 from ahrs_service.estimators import SAMPLE_ROW
 from ahrs_service.logs.reader import MessageSource, read_log
 from ahrs_service.logs.schemas import decode
 from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink, RemoteTimeline
-from ahrs_service.quaternion import quat_from_euler, quat_mul
+from ahrs_service.protocols.mavlink.imu_source import MavlinkImuSource, decode_scaled
 from ahrs_service.service import Service
 from tests.test_service import make_gcs
 
@@ -53,7 +53,7 @@ def broad_segment(broad_dir):
     """SECONDS of BROAD trial 07 (fast rotation) as the autopilot streams it: float32 values,
     whole-µs times 3500 µs apart (the trial's own 285.714 Hz), and the autopilot's own
     attitude: another filter's estimate over the same samples."""
-    from ahrs_service.logs.broad_import import load_broad
+    from ahrs_service.evaluation.broad_import import load_broad
 
     s = load_broad(broad_dir / "07_undisturbed_fast_rotation_B.hdf5", 10.0, SECONDS)
     period_us = int(round(1e6 / s.rate_hz))
@@ -308,7 +308,7 @@ def test_scaled_imu_units():
 
 
 def test_raw_imu_counts_take_the_configured_scale_and_scaled2_decodes_like_scaled():
-    from ahrs_service.drivers.mavlink_imu import RawScale, decode_raw, parse_raw_scale
+    from ahrs_service.protocols.mavlink.imu_source import RawScale, decode_raw, parse_raw_scale
 
     raw = mavlink2.MAVLink_raw_imu_message(5_000_123, 0, 0, -4096, 100, 0, -100, 300, 0, 0, 0, 0)
     r = decode_raw(raw, RawScale(acc=9.80665 / 4096, gyr=0.001, mag=0.15))  # a 4096 LSB/g part

@@ -14,19 +14,19 @@ import numpy as np
 import pytest
 
 from ahrs_service import estimators
-from ahrs_service.estimators import SAMPLE_ROW, STATE_HEADER
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample, SampleBlock
-from ahrs_service.drivers.calibration import SensorCalibration, apply_calibration, apply_calibration_block
-from ahrs_service.drivers.recorded import RecordedSource
+from ahrs_service.core.calibration import SensorCalibration, apply_calibration, apply_calibration_block
+from ahrs_service.core.samples import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample, SampleBlock
 from ahrs_service.drivers.sim.clock import ManualClock
 from ahrs_service.drivers.sim.imu import SimulatedImu
 from ahrs_service.drivers.sim.motion import profile
 from ahrs_service.drivers.sim.sensor_model import PART_MODELS
 from ahrs_service.drivers.sim.source import SimulatedSource
+from ahrs_service.estimators import SAMPLE_ROW, STATE_HEADER
 from ahrs_service.logs.reader import read_log
-from ahrs_service.logs.replay import replay
 from ahrs_service.logs.writer import FlightLogWriter
 from ahrs_service.pipeline import EstimationPipeline
+from ahrs_service.recorded import RecordedSource
+from ahrs_service.replay import replay
 
 _spec = importlib.util.spec_from_file_location(
     "make_fixtures", Path(__file__).resolve().parent / "fixtures" / "make_fixtures.py"
@@ -289,7 +289,7 @@ def test_a_block_log_replays_and_plots_like_a_per_sample_log(tmp_path):
     """``replay`` of a block log writes blocks again (new /attitude_block, the recorded one
     kept as /attitude/original_block); ``log plot``'s series hold every row."""
     from ahrs_service.logs.plot import read_series
-    from ahrs_service.logs.replay import replay, write_replay
+    from ahrs_service.replay import replay, write_replay
 
     t_ns, rows, q_true = make_fixtures.analytic_trajectory(200.0, 1.0)
     q = estimators.create("madgwick").run_rows(rows)

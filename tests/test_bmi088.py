@@ -14,12 +14,12 @@ import math
 
 import numpy as np
 import pytest
+from test_icm42688p import ConstantImu
 
 from ahrs_service.drivers.boards import make_transport_board
-from ahrs_service.drivers.gpio.drdy import SimulatedDataReadyLine
-from ahrs_service.drivers.transport import PartIdentityError, SPITransport
-
-from test_icm42688p import ConstantImu
+from ahrs_service.drivers.device import PartIdentityError
+from ahrs_service.drivers.sim.drdy import SimulatedDataReadyLine
+from ahrs_service.drivers.transport import SPITransport
 
 G0 = 9.80665
 D2R = math.pi / 180

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from ahrs_service.drivers.base import GYR_VALID, MAG_NEW, ImuSample
-from ahrs_service.drivers.calibration import SensorCalibration, apply_calibration, mounting_from_rpy_deg
+from ahrs_service.core.calibration import SensorCalibration, apply_calibration, mounting_from_rpy_deg
+from ahrs_service.core.samples import GYR_VALID, MAG_NEW, ImuSample
 from ahrs_service.drivers.sim.clock import ManualClock
 from ahrs_service.drivers.sim.imu import SimulatedImu
 from ahrs_service.drivers.sim.motion import FigureEight

@@ -20,24 +20,24 @@ import numpy as np
 import pytest
 
 from ahrs_service import config as config_mod
+from ahrs_service.calibration import live as live_mod
 from ahrs_service.calibration.accelerometer import G0, find_static_segments, fit_accelerometer
 from ahrs_service.calibration.declination import declination_deg, field_at
 from ahrs_service.calibration.gyro import gyro_bias_at_rest
-from ahrs_service.calibration import live as live_mod
 from ahrs_service.calibration.live import FIT_THREAD_NAME, LiveCalibrator
 from ahrs_service.calibration.magnetometer import fit_magnetometer, sphere_coverage
 from ahrs_service.calibration.storage import calibration_from_config_dict, save_calibration
 from ahrs_service.cli import main as cli_main
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample
-from ahrs_service.drivers.calibration import SensorCalibration, apply_calibration, mounting_from_rpy_deg
-from ahrs_service.drivers.sim import SensorErrorModel
-from ahrs_service.quaternion import (
+from ahrs_service.core.calibration import SensorCalibration, apply_calibration, mounting_from_rpy_deg
+from ahrs_service.core.quaternion import (
     quat_conj_array,
     quat_from_euler_array,
     quat_from_rotvec_array,
     quat_mul_array,
     quat_rotate_array,
 )
+from ahrs_service.core.samples import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID, ImuSample
+from ahrs_service.drivers.sim import SensorErrorModel
 
 FIELD_NED = np.array([20.0, 1.5, 45.0])  # µT, a mid-latitude field, |B| ≈ 49.3 µT
 F_TRUE = float(np.linalg.norm(FIELD_NED))

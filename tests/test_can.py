@@ -21,11 +21,11 @@ import dronecan
 import numpy as np
 import pytest
 
-from ahrs_service.drivers.base import ACC_SATURATED, ACC_VALID, GYR_SATURATED, GYR_VALID, MAG_NEW, MAG_VALID
-from ahrs_service.drivers.can.sim_node import SimulatedDroneCanImuNode
-from ahrs_service.drivers.can.source import DroneCanConfig, DroneCanImuSource
-from ahrs_service.sample_clock import SensorClockMap
-from ahrs_service.protocols import dronecan as dc
+from ahrs_service.core.sample_clock import SensorClockMap
+from ahrs_service.core.samples import ACC_SATURATED, ACC_VALID, GYR_SATURATED, GYR_VALID, MAG_NEW, MAG_VALID
+from ahrs_service.protocols.dronecan import messages as dc
+from ahrs_service.protocols.dronecan.imu_source import DroneCanConfig, DroneCanImuSource
+from ahrs_service.protocols.dronecan.sim_node import SimulatedDroneCanImuNode
 
 F16_RTOL = 2.0**-11  # float16 keeps 11 significant bits: half an ulp relative error at most
 EPOCH_US = 5_000_000  # the simulated node's clock reads 5 s at simulation time 0
@@ -556,11 +556,11 @@ def test_node_thread_starts_and_stops(buses):
 
 def test_end_to_end_madgwick_reproduces_simulator_truth(buses):
     pytest.importorskip("ahrs_service.drivers.sim.imu", reason="drivers/sim not available")
+    from analytic import error_deg
+
     from ahrs_service import estimators
     from ahrs_service.drivers.sim.imu import ManualClock, SimulatedImu
     from ahrs_service.drivers.sim.motion import profile
-
-    from analytic import error_deg
 
     rate, mag_rate = 100, 50
     sim_clock = ManualClock()
@@ -611,7 +611,7 @@ def test_end_to_end_madgwick_reproduces_simulator_truth(buses):
 
 _RX = """
 import json, sys, time
-from ahrs_service.drivers.can.source import DroneCanImuSource
+from ahrs_service.protocols.dronecan.imu_source import DroneCanImuSource
 src = DroneCanImuSource({{"interface": "udp_multicast", "channel": "{group}", "node_id": 42}})
 src.open()
 open("{ready}", "w").close()
@@ -630,7 +630,7 @@ import os, sys, time
 import can
 sys.path.insert(0, "{tests}")
 from test_can import RampImu
-from ahrs_service.drivers.can.sim_node import SimulatedDroneCanImuNode
+from ahrs_service.protocols.dronecan.sim_node import SimulatedDroneCanImuNode
 deadline = time.monotonic() + 15
 while not os.path.exists("{ready}") and time.monotonic() < deadline:
     time.sleep(0.01)

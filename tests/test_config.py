@@ -133,7 +133,7 @@ def _calibration_keys():
 
     import numpy as np
 
-    from ahrs_service.drivers.calibration import SensorCalibration
+    from ahrs_service.core.calibration import SensorCalibration
 
     default = SensorCalibration()
     for f in dataclasses.fields(SensorCalibration):

@@ -12,7 +12,7 @@ import pytest
 from ahrs_service import config as config_mod
 from ahrs_service.calibration.storage import save_calibration
 from ahrs_service.config_file import render, update_config_file
-from ahrs_service.drivers.calibration import SensorCalibration
+from ahrs_service.core.calibration import SensorCalibration
 
 if sys.version_info >= (3, 11):
     import tomllib

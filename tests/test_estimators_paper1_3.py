@@ -3,15 +3,15 @@
 import h5py
 import numpy as np
 import pytest
+from analytic import FIELD_NED, constant_rotation, error_deg, measure, static
 
 from ahrs_service import estimators
-from ahrs_service.quaternion import (
+from ahrs_service.core.quaternion import (
+    ned_to_enu_array,
     quat_conj_array,
     quat_from_euler_array,
     quat_mul_array,
-    ned_to_enu_array,
 )
-from analytic import FIELD_NED, constant_rotation, error_deg, measure, static
 
 RATE = 200.0
 NINE_AXIS = ["complementary_full", "ekf", "valenti"]
@@ -204,7 +204,7 @@ def test_complementary_soft_gate_weights_the_gravity_angles():
 
 
 def quat_rotate_body(q, v_earth):
-    from ahrs_service.quaternion import quat_rotate_array
+    from ahrs_service.core.quaternion import quat_rotate_array
 
     return quat_rotate_array(quat_conj_array(q), np.broadcast_to(v_earth, (len(q), 3)))
 

@@ -7,11 +7,10 @@ import math
 import h5py
 import numpy as np
 import pytest
+from analytic import FIELD_NED, constant_rotation, error_deg, measure, static
 
 from ahrs_service import estimators
-from ahrs_service.estimators.quest import quest_quat
-from ahrs_service.estimators.triad import triad_quat
-from ahrs_service.quaternion import (
+from ahrs_service.core.quaternion import (
     ned_to_enu_array,
     quat_conj_array,
     quat_from_euler,
@@ -20,7 +19,8 @@ from ahrs_service.quaternion import (
     quat_mul_array,
     quat_rotate_inv,
 )
-from analytic import FIELD_NED, constant_rotation, error_deg, measure, static
+from ahrs_service.estimators.quest import quest_quat
+from ahrs_service.estimators.triad import triad_quat
 
 
 def _paper(name: str) -> str | None:

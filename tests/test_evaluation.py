@@ -11,13 +11,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2, studentized_range
 
-from ahrs_service.evaluation import broad, command, metrics, peers, report, stats
-from ahrs_service.quaternion import (
+from ahrs_service.core.quaternion import (
     quat_from_euler_array,
     quat_from_rotvec_array,
     quat_mul_array,
     quat_to_matrix_array,
 )
+from ahrs_service.evaluation import broad, command, metrics, peers, report, stats
 from tests.analytic import static
 
 RATE = 100.0

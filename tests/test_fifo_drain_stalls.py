@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ahrs_service.drivers.i2c import mpu9250 as m
-from ahrs_service.drivers.i2c.boards import make_simulated_board
+from ahrs_service.drivers.boards import make_simulated_board
+from ahrs_service.drivers.parts import mpu9250 as m
 from tests.test_i2c import StandInImu
 
 RATE_HZ = 1000.0

@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, SampleBlock
-from ahrs_service.drivers.i2c import mpu9250 as m
-from ahrs_service.drivers.i2c.boards import make_simulated_board
-from ahrs_service.drivers.i2c.device import FifoLayout, watermark_frames
+from ahrs_service.core.samples import ACC_VALID, GYR_VALID, SampleBlock
+from ahrs_service.drivers.boards import make_simulated_board
+from ahrs_service.drivers.device import FifoLayout, watermark_frames
+from ahrs_service.drivers.parts import mpu9250 as m
 from tests.test_i2c import StandInImu
 
 

@@ -16,16 +16,20 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from ahrs_service.drivers.base import ACC_SATURATED, ACC_VALID, GYR_SATURATED, GYR_VALID
-from ahrs_service.drivers.i2c import adxl345 as adxl
-from ahrs_service.drivers.i2c import st_fifo as st
-from ahrs_service.drivers.i2c.adxl345 import ADXL345, SimulatedADXL345
-from ahrs_service.drivers.i2c.boards import make_simulated_board
-from ahrs_service.drivers.i2c.bus import SimulatedI2CBus
-from ahrs_service.drivers.i2c.l3g4200d import L3G4200D, SimulatedL3G4200D
-from ahrs_service.drivers.i2c.l3gd20 import L3GD20, SimulatedL3GD20
-from ahrs_service.drivers.i2c.lsm303dlhc import LSM303DLHCAcc, SimulatedLSM303DLHCAcc
+from ahrs_service.core.samples import ACC_SATURATED, ACC_VALID, GYR_SATURATED, GYR_VALID
+from ahrs_service.drivers.boards import make_simulated_board
+from ahrs_service.drivers.parts import adxl345 as adxl
+from ahrs_service.drivers.parts import st_fifo as st
+from ahrs_service.drivers.parts.adxl345 import ADXL345
+from ahrs_service.drivers.parts.l3g4200d import L3G4200D
+from ahrs_service.drivers.parts.l3gd20 import L3GD20
+from ahrs_service.drivers.parts.lsm303dlhc import LSM303DLHCAcc
+from ahrs_service.drivers.sim.adxl345 import SimulatedADXL345
+from ahrs_service.drivers.sim.bus import SimulatedI2CBus
 from ahrs_service.drivers.sim.clock import ManualClock
+from ahrs_service.drivers.sim.l3g4200d import SimulatedL3G4200D
+from ahrs_service.drivers.sim.l3gd20 import SimulatedL3GD20
+from ahrs_service.drivers.sim.lsm303dlhc import SimulatedLSM303DLHCAcc
 
 GYR_SLOPE, ACC_SLOPE = 20.0, 100.0
 

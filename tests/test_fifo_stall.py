@@ -21,7 +21,7 @@ from tests.test_daemon import FakeSystemd, running, write_config
 
 pytestmark = pytest.mark.timeout(180)
 
-from ahrs_service.drivers.i2c.mpu9250 import SimulatedMPU9250
+from ahrs_service.drivers.sim.mpu9250 import SimulatedMPU9250
 
 # the part's output period at 200 Hz, on the simulated unit's own (off-nominal) oscillator
 PERIOD_NS = 5_000_000 / (1.0 + SimulatedMPU9250.CLOCK_ERROR)

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from ahrs_service import fleet
 from ahrs_service.cli import main as cli_main
-from ahrs_service.logs import fleet
 from ahrs_service.logs.reader import read_log
 
 pq = pytest.importorskip("pyarrow.parquet")
@@ -60,7 +60,7 @@ def test_fleet_replay_on_two_workers_equals_serial_and_reports_the_damaged_log(l
     # NaN (no truth found); measured 1.05 deg
     assert int(a["lost_samples"]) == 0 and 0.0 < float(a["truth_total_rmse_deg"]) < 5.0
     # the truth column is the single-log comparison's (what was replayed is what was recorded)
-    from ahrs_service.logs.replay import compare
+    from ahrs_service.replay import compare
 
     log_a = read_log(logs_dir / "a.mcap")
     assert float(a["truth_total_rmse_deg"]) == pytest.approx(compare(log_a, log_a.attitudes)["vs_truth"]["total"], rel=1e-12)

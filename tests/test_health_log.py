@@ -38,9 +38,9 @@ def test_a_forced_sensor_fault_is_on_the_log_channel(tmp_path):
     try:
         assert _wait(lambda: svc.pipeline.samples > 50)
         svc.source.bus.set_present(gyro, False)  # the gyro stops answering on the simulated bus
-        assert _wait(lambda: svc._last_lost)
+        assert _wait(lambda: svc.health_report.last_lost)
         svc.source.bus.set_present(gyro, True)
-        assert _wait(lambda: not svc._last_lost)
+        assert _wait(lambda: not svc.health_report.last_lost)
     finally:
         run.stop()
     (path,) = (tmp_path / "logs").glob("*.mcap")

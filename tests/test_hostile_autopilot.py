@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ahrs_service.drivers.mavlink_imu import MavlinkImuSource
 from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink
+from ahrs_service.protocols.mavlink.imu_source import MavlinkImuSource
 from ahrs_service.service import Service
 from tests.test_autopilot import drain, free_udp_port, service_config
 from tests.test_service import make_gcs

@@ -25,8 +25,8 @@ import pytest
 import zstandard
 from mcap.writer import CompressionType, Writer
 
+from ahrs_service import fleet
 from ahrs_service.cli import main
-from ahrs_service.logs import fleet
 from ahrs_service.logs.reader import read_log
 from ahrs_service.logs.schemas import CHANNELS, schema_bytes
 

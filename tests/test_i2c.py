@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from ahrs_service.drivers.base import (
+from ahrs_service.core.samples import (
     ACC_SATURATED,
     ACC_VALID,
     GYR_SATURATED,
@@ -23,21 +23,25 @@ from ahrs_service.drivers.base import (
     MAG_SATURATED,
     MAG_VALID,
 )
-from ahrs_service.drivers.i2c.adxl345 import ADXL345, SimulatedADXL345
-from ahrs_service.drivers.i2c.ak8963 import AK8963, SimulatedAK8963
-from ahrs_service.drivers.i2c.boards import board_names, make_board, make_simulated_board
-from ahrs_service.drivers.i2c.bus import SimulatedI2CBus, SMBusI2C
-from ahrs_service.drivers.i2c.device import DeviceIdentityError, I2CDeviceError
-from ahrs_service.drivers.i2c.hmc5883l import HMC5883L, SimulatedHMC5883L
-from ahrs_service.drivers.i2c.l3g4200d import L3G4200D, SimulatedL3G4200D
-from ahrs_service.drivers.i2c.l3gd20 import L3GD20, SimulatedL3GD20
-from ahrs_service.drivers.i2c.lsm303dlhc import (
-    LSM303DLHCAcc,
-    LSM303DLHCMag,
-    SimulatedLSM303DLHCAcc,
-    SimulatedLSM303DLHCMag,
-)
-from ahrs_service.drivers.i2c.mpu9250 import MPU9250, SimulatedMPU9250
+from ahrs_service.drivers.boards import i2c_board_names as board_names
+from ahrs_service.drivers.boards import make_board, make_simulated_board
+from ahrs_service.drivers.buses.i2c import SMBusI2C
+from ahrs_service.drivers.device import DeviceIdentityError, I2CDeviceError
+from ahrs_service.drivers.parts.adxl345 import ADXL345
+from ahrs_service.drivers.parts.ak8963 import AK8963
+from ahrs_service.drivers.parts.hmc5883l import HMC5883L
+from ahrs_service.drivers.parts.l3g4200d import L3G4200D
+from ahrs_service.drivers.parts.l3gd20 import L3GD20
+from ahrs_service.drivers.parts.lsm303dlhc import LSM303DLHCAcc, LSM303DLHCMag
+from ahrs_service.drivers.parts.mpu9250 import MPU9250
+from ahrs_service.drivers.sim.adxl345 import SimulatedADXL345
+from ahrs_service.drivers.sim.ak8963 import SimulatedAK8963
+from ahrs_service.drivers.sim.bus import SimulatedI2CBus
+from ahrs_service.drivers.sim.hmc5883l import SimulatedHMC5883L
+from ahrs_service.drivers.sim.l3g4200d import SimulatedL3G4200D
+from ahrs_service.drivers.sim.l3gd20 import SimulatedL3GD20
+from ahrs_service.drivers.sim.lsm303dlhc import SimulatedLSM303DLHCAcc, SimulatedLSM303DLHCMag
+from ahrs_service.drivers.sim.mpu9250 import SimulatedMPU9250
 
 G0 = 9.80665
 D2R = math.pi / 180

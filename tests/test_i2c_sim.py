@@ -15,8 +15,8 @@ sim = pytest.importorskip("ahrs_service.drivers.sim", reason="motion simulator (
 from analytic import error_deg  # noqa: E402
 
 from ahrs_service import estimators  # noqa: E402
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID  # noqa: E402
-from ahrs_service.drivers.i2c.boards import make_simulated_board  # noqa: E402
+from ahrs_service.core.samples import ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID  # noqa: E402
+from ahrs_service.drivers.boards import make_simulated_board
 
 RATE = 100.0  # Hz: the L3G4200D's slowest rate keeps the test short
 
@@ -86,7 +86,7 @@ def test_gy80_validation_manoeuvre_through_registers_and_madgwick():
 def test_counts_array_rounds_and_clips_as_to_counts():
     """The twins' vectorised digitisation is the per-value one: ties to even, clipped to the
     register's range, +inf to the top, −inf and NaN to the bottom."""
-    from ahrs_service.drivers.i2c.device import counts_array, to_counts
+    from ahrs_service.drivers.sim.register_device import counts_array, to_counts
 
     values = np.array([0.0, 0.5, 1.5, 2.5, -0.5, -1.5, 0.49999999, 1e9, -1e9, np.inf, -np.inf, np.nan,
                        32767.4, 32767.6, -32768.5, -32769.0, 123.456])

@@ -11,13 +11,12 @@ import math
 
 import numpy as np
 import pytest
+from test_icm42688p import ConstantImu
 
 from ahrs_service import config
-from ahrs_service.drivers.base import MAG_NEW, MAG_VALID
+from ahrs_service.core.samples import MAG_NEW, MAG_VALID
 from ahrs_service.drivers.boards import make_transport_board
-from ahrs_service.drivers.transport import PartIdentityError
-
-from test_icm42688p import ConstantImu
+from ahrs_service.drivers.device import PartIdentityError
 
 G0 = 9.80665
 D2R = math.pi / 180

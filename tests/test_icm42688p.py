@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from ahrs_service.drivers.boards import make_transport_board
-from ahrs_service.drivers.imu.icm42688p import decode_hires, invalid_packets
+from ahrs_service.drivers.device import PartIdentityError
+from ahrs_service.drivers.parts.icm42688p import decode_hires, invalid_packets
 from ahrs_service.drivers.sim.clock import ManualClock
-from ahrs_service.drivers.transport import PartIdentityError
 
 G0 = 9.80665
 D2R = math.pi / 180

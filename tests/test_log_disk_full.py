@@ -180,7 +180,7 @@ def test_disk_full_one_file_statustext_and_a_summary_that_adds_up(tmp_path, free
         assert "File too large" in m[8]
         ended = read_log(path)
         if ended.damage is None:
-            # ended short (FlightLogWriter._end_short): after its last complete record the
+            # ended short (LogFiles._end_short in logs/log_files.py): after its last complete record the
             # writer's final counters, so `log info` and `log recover` report what the service's
             # summary says was not logged, not a clean cut of "0 bytes lost" (issue 14 re-probe)
             info = subprocess.run(ahrs_service_command() + ["log", "info", str(path), "--json"],

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from ahrs_service.cli import main
-from ahrs_service.drivers.base import LossCounts
+from ahrs_service.core.samples import LossCounts
 from ahrs_service.logs.loss import log_losses
 from tests.test_service import RunningService, make_gcs, service_config
 
@@ -98,8 +98,9 @@ def test_the_logs_last_counters_cover_a_loss_just_before_the_stop(tmp_path):
 
 
 def test_log_info_of_a_log_without_loss_counters_says_so(tmp_path, capsys):
-    from ahrs_service.logs.writer import FlightLogWriter
     import numpy as np
+
+    from ahrs_service.logs.writer import FlightLogWriter
 
     w = FlightLogWriter(tmp_path)
     w.write_raw(1, np.zeros(10), 0)

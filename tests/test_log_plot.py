@@ -10,10 +10,10 @@ import pytest
 pytest.importorskip("matplotlib")
 
 from ahrs_service.cli import main  # noqa: E402
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID  # noqa: E402
+from ahrs_service.core.quaternion import quat_from_euler  # noqa: E402
+from ahrs_service.core.samples import ACC_VALID, GYR_VALID, MAG_VALID  # noqa: E402
 from ahrs_service.logs import plot as plot_mod  # noqa: E402
 from ahrs_service.logs.writer import FlightLogWriter  # noqa: E402
-from ahrs_service.quaternion import quat_from_euler  # noqa: E402
 
 N = 12_000  # samples at 200 Hz: long enough that every per-sample series is decimated
 SPIKE = 7_777  # the one sample with a gyro spike, which the envelope must keep

@@ -12,15 +12,15 @@ import time
 import h5py
 import numpy as np
 import pytest
+from analytic import error_deg
 from mcap.reader import make_reader
 
 from ahrs_service.cli import main as cli_main
-from ahrs_service.logs.broad_import import CITATION, import_broad
+from ahrs_service.core.quaternion import ned_to_enu_array
+from ahrs_service.evaluation.broad_import import CITATION, import_broad
 from ahrs_service.logs.reader import read_log
-from ahrs_service.logs.replay import compare, replay
-from ahrs_service.drivers.recorded import RecordedSource
-from ahrs_service.quaternion import ned_to_enu_array
-from analytic import error_deg
+from ahrs_service.recorded import RecordedSource
+from ahrs_service.replay import compare, replay
 
 TRIAL = "02_undisturbed_slow_rotation_B.hdf5"
 START_S, DURATION_S = 20.0, 30.0
@@ -107,7 +107,7 @@ def test_recorded_source_paces_a_log_in_real_time(imported, monkeypatch):
     offset from the first one has elapsed, never before."""
     import types
 
-    from ahrs_service.drivers import recorded as source_mod
+    from ahrs_service import recorded as source_mod
 
     now = {"ns": 5_000_000_000}
     monkeypatch.setattr(source_mod, "time", types.SimpleNamespace(monotonic_ns=lambda: now["ns"]))
@@ -143,7 +143,7 @@ def test_recorded_source_catches_up_in_order_after_a_late_read():
     """A replay must not lose samples when the loop is late: the missed ones come in order."""
     from pathlib import Path
 
-    from ahrs_service.drivers.recorded import RecordedSource
+    from ahrs_service.recorded import RecordedSource
 
     fixture = Path(__file__).parent / "fixtures" / "logs" / "analytic_madgwick.mcap"
     for catch_up in (True, False):

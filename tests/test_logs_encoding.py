@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from ahrs_service.drivers import base as B
+from ahrs_service.core import samples as B
 from ahrs_service.logs import schemas
 from ahrs_service.logs.schemas import (
     attitude_message,

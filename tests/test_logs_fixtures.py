@@ -17,7 +17,7 @@ from mcap.reader import make_reader
 
 from ahrs_service.logs import schemas
 from ahrs_service.logs.reader import read_log
-from ahrs_service.logs.replay import compare, replay
+from ahrs_service.replay import compare, replay
 
 LOGS = Path(__file__).resolve().parent / "fixtures" / "logs"
 ANALYTIC = LOGS / "analytic_madgwick.mcap"

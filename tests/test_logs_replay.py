@@ -14,7 +14,7 @@ from mcap.reader import make_reader
 from ahrs_service.cli import main as cli_main
 from ahrs_service.logs import schemas
 from ahrs_service.logs.reader import read_log
-from ahrs_service.logs.replay import compare, error_angles, replay
+from ahrs_service.replay import compare, error_angles, replay
 
 _spec = importlib.util.spec_from_file_location(
     "make_fixtures", Path(__file__).resolve().parent / "fixtures" / "make_fixtures.py"

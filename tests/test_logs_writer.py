@@ -14,10 +14,12 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from ahrs_service.drivers.base import ACC_VALID, GYR_SATURATED, GYR_VALID, MAG_NEW, MAG_VALID
-from ahrs_service.logs import mcap_file as mcap_file_mod, schemas, writer as writer_mod
-from ahrs_service.logs.reader import read_log
+from ahrs_service.core.samples import ACC_VALID, GYR_SATURATED, GYR_VALID, MAG_NEW, MAG_VALID
+from ahrs_service.logs import mcap_file as mcap_file_mod
+from ahrs_service.logs import schemas
+from ahrs_service.logs import writer as writer_mod
 from ahrs_service.logs.mcap_file import McapLogFile
+from ahrs_service.logs.reader import read_log
 from ahrs_service.logs.writer import FlightLogWriter
 
 RNG = np.random.default_rng(3)
@@ -195,7 +197,7 @@ def test_disk_full_keeps_one_valid_file_and_goes_on_in_it(tmp_path, monkeypatch)
     w.write_config(0, {"estimator": {"name": "madgwick", "params": {"beta": 0.1}}})
     for i in range(20):
         w.write_raw(i + 1, np.full(10, float(i)), 0)
-    assert _wait_for(lambda: w.status == "ok" and w._file.committed_bytes > 0 and w._file.unflushed == 0)
+    assert _wait_for(lambda: w.status == "ok" and w._log_files.current.committed_bytes > 0 and w._log_files.current.unflushed == 0)
     disk.full = True
     i = 20
     while w.status != "error" and i < 2000:  # bounded
@@ -238,7 +240,7 @@ def test_close_during_an_outage_leaves_a_recoverable_file_or_none(tmp_path, monk
     w = FlightLogWriter(tmp_path / "a", flush_interval_s=0.05, retry_first_s=0.05)
     for i in range(30):
         w.write_raw(i + 1, np.full(10, float(i)), 0)
-    assert _wait_for(lambda: w._file is not None and w._file.committed_bytes > 0 and w._file.unflushed == 0)
+    assert _wait_for(lambda: w._log_files.current is not None and w._log_files.current.committed_bytes > 0 and w._log_files.current.unflushed == 0)
     disk.full = True
     for i in range(30, 60):
         w.write_raw(i + 1, np.full(10, float(i)), 0)
@@ -278,7 +280,7 @@ def test_log_folder_deleted_then_a_file_in_its_place_mid_run(tmp_path):
             time.sleep(0.002)
 
     feed(30)
-    assert _wait_for(lambda: w._file is not None and w._file.committed_bytes > 0)
+    assert _wait_for(lambda: w._log_files.current is not None and w._log_files.current.committed_bytes > 0)
     (first,) = w.files
     shutil.rmtree(folder)
     folder.write_text("a file where the log folder was")
@@ -431,13 +433,13 @@ def test_new_file_during_a_pending_rotation_leaves_no_one_sample_file(tmp_path, 
     # a rotation (by duration) is due and waits for the loop's state snapshot when the service
     # calls new_file(): the new file must not be rotated again by that snapshot after one sample
     gate = threading.Event()
-    handle = FlightLogWriter._HANDLERS[writer_mod._NewFile]
+    handle = FlightLogWriter._on_new_file
 
     def gated_handle(self, item):
         gate.wait(10.0)
         handle(self, item)
 
-    monkeypatch.setitem(FlightLogWriter._HANDLERS, writer_mod._NewFile, gated_handle)
+    monkeypatch.setattr(FlightLogWriter, "_on_new_file", gated_handle)
     w = FlightLogWriter(tmp_path, rotate_seconds=3600.0, tf_rate_hz=None)
     state = np.arange(4.0)
 
@@ -457,7 +459,7 @@ def test_new_file_during_a_pending_rotation_leaves_no_one_sample_file(tmp_path, 
     w.new_file()  # the service rebuilt its estimator
     if not snapshot_before_new_file:
         gate.set()
-        assert _wait_for(lambda: w._file is None)  # new_file() handled before the next sample
+        assert _wait_for(lambda: w._log_files.current is None)  # new_file() handled before the next sample
     w.write_config(6, {"estimator": {"name": "madgwick", "params": {"beta": 0.2}}}, reason="reload")
     for i in range(6, 10):
         sample(i)  # with the gate closed, sample 6 answers the request: a snapshot is queued
@@ -588,11 +590,11 @@ def test_a_write_that_drops_the_file_loses_the_rest_of_its_record_counted(tmp_pa
     monkeypatch.setattr(McapLogFile, "write_encoded", write_encoded)
     w = FlightLogWriter(tmp_path, retry_first_s=60.0, flush_interval_s=3600.0)  # the sample stays unflushed
     w.write_raw(1, np.zeros(10), 0)
-    assert _wait_for(lambda: w._file is not None and w.written == 1)
+    assert _wait_for(lambda: w._log_files.current is not None and w.written == 1)
     q = [1.0, 0.0, 0.0, 0.0]
     w.write_autopilot_attitude(SimpleNamespace(t_ns=2, q_autopilot=q, q_estimate=q, total_deg=0.0,
                                                inclination_deg=0.0, heading_deg=0.0))
-    assert _wait_for(lambda: w._file is None)
+    assert _wait_for(lambda: w._log_files.current is None)
     w.close()
     assert w.errors == 1 and w.last_error.startswith("RuntimeError"), (w.errors, w.last_error)
     # the sample the given-up file held, and /tf and /monitor of the record (the write that

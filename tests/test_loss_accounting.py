@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ahrs_service.drivers.base import LossCounts, SampleBlock, SourceDiagnostics
+from ahrs_service.core.samples import LossCounts, SampleBlock, SourceDiagnostics
 from ahrs_service.protocols.mavlink import Telemetry
 from ahrs_service.protocols.mavlink.health import encode_sys_status
 

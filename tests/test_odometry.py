@@ -11,7 +11,9 @@ import time
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
+from timesync_peer import ClockPeer, link_to, sync
 
+from ahrs_service.core.quaternion import quat_from_euler
 from ahrs_service.protocols.mavlink.attitude import encode_attitude_quaternion
 from ahrs_service.protocols.mavlink.odometry import (
     ARDUPILOT,
@@ -28,8 +30,6 @@ from ahrs_service.protocols.mavlink.odometry import (
 )
 from ahrs_service.protocols.mavlink.telemetry import Telemetry
 from ahrs_service.protocols.mavlink.timesync import TimeSync
-from ahrs_service.quaternion import quat_from_euler
-from timesync_peer import ClockPeer, link_to, sync
 
 pytestmark = pytest.mark.timeout(90)
 M = mavlink2

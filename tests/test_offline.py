@@ -18,14 +18,14 @@ import numpy as np
 import pytest
 
 from ahrs_service import estimators
-from ahrs_service.estimators import offline
-from ahrs_service.estimators.base import stack_rows, time_steps
-from ahrs_service.evaluation import broad, metrics
-from ahrs_service.quaternion import (
+from ahrs_service.core.quaternion import (
     quat_conj_array,
     quat_integrate,
     quat_rotate_array,
 )
+from ahrs_service.estimators import offline
+from ahrs_service.estimators.base import stack_rows, time_steps
+from ahrs_service.evaluation import broad, metrics
 from tests.analytic import FIELD_NED, G, error_deg, simulate, wobble
 
 DEG = math.pi / 180.0
@@ -364,7 +364,7 @@ def test_replay_offline_follows_the_recorded_parameter_changes(recording):
     """The forward pass is the causal replay, bit for bit; the backward pass uses at each
     sample the value in force there: β = 0.3 from the change on (where it starts), the
     recorded start value before it."""
-    from ahrs_service.logs.replay import replay, replay_offline
+    from ahrs_service.replay import replay, replay_offline
 
     log, k = recording
     res = replay_offline(log)
@@ -380,7 +380,7 @@ def test_replay_offline_follows_the_recorded_parameter_changes(recording):
 def test_cli_replay_offline_writes_the_offline_estimate(recording, tmp_path, capsys):
     from ahrs_service.cli import main as cli_main
     from ahrs_service.logs.reader import read_log
-    from ahrs_service.logs.replay import replay_offline
+    from ahrs_service.replay import replay_offline
 
     log, _ = recording
     out = tmp_path / "offline.mcap"

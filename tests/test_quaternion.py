@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from ahrs_service import quaternion as Q
+from ahrs_service.core import quaternion as Q
 
 
 def random_quats(n, seed=0):

@@ -19,14 +19,14 @@ import numpy as np
 import pytest
 
 from ahrs_service import estimators
-from ahrs_service.estimators import robust as R
-from ahrs_service.estimators.base import stack_rows
-from ahrs_service.quaternion import (
+from ahrs_service.core.quaternion import (
     ned_to_enu_array,
     quat_conj_array,
     quat_mul_array,
     quat_rotate_array,
 )
+from ahrs_service.estimators import robust as R
+from ahrs_service.estimators.base import stack_rows
 from tests.analytic import FIELD_NED, G, error_deg, simulate, wobble
 
 DEG = math.pi / 180.0

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ahrs_service.sample_clock import SampleClock, recover_times
+from ahrs_service.core.sample_clock import SampleClock, recover_times
 
 RATE = 400.0
 T = 1.0 / RATE
@@ -188,7 +188,7 @@ def test_a_block_read_early_never_goes_back_in_time():
 
 
 def test_whole_periods_rounds_to_the_nearest_with_halves_up():
-    from ahrs_service.sample_clock import whole_periods
+    from ahrs_service.core.sample_clock import whole_periods
 
     assert [whole_periods(d, 2.0) for d in (0.0, 0.99, 1.0, 2.9, 3.0, -1.0, -1.01, 1e9 + 1.0)] == \
         [0, 0, 1, 1, 2, 0, -1, 500_000_001]
@@ -197,11 +197,11 @@ def test_whole_periods_rounds_to_the_nearest_with_halves_up():
 def test_every_source_kind_gets_its_times_from_the_sample_clock_package():
     """One place for sample times (#21): the FIFO boards' clock and the CAN node's clock map
     are the package's classes, not copies of their own."""
-    from ahrs_service import sample_clock
-    from ahrs_service.drivers.boards import make_transport_board
-    from ahrs_service.drivers.can.source import DroneCanImuSource
-
     from test_icm42688p import ConstantImu
+
+    from ahrs_service.core import sample_clock
+    from ahrs_service.drivers.boards import make_transport_board
+    from ahrs_service.protocols.dronecan.imu_source import DroneCanImuSource
 
     imu = ConstantImu()
     board = make_transport_board("icm42688p", "spi", simulated_imu=imu, odr_hz=1000)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ahrs_service.sample_clock import SensorClock
+from ahrs_service.core.sample_clock import SensorClock
 
 
 def _run(clock: SensorClock, true_t_ns: np.ndarray, read_every_s: float, seconds: float,

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import math
 import os
-import threading
 import signal
+import threading
 import time
 
 import numpy as np
@@ -20,19 +20,19 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
-from ahrs_service import estimators  # noqa: E402
 from ahrs_service import config as config_mod  # noqa: E402
+from ahrs_service import estimators  # noqa: E402
 from ahrs_service.calibration import live as live_mod  # noqa: E402
 from ahrs_service.calibration.magnetometer import MagCalibrationResult  # noqa: E402
 from ahrs_service.calibration.storage import calibration_from_config_dict  # noqa: E402
-from ahrs_service.logs.reader import read_log  # noqa: E402
-from ahrs_service.quaternion import (  # noqa: E402
+from ahrs_service.core.quaternion import (  # noqa: E402
     euler_from_quat_array,
     quat_angle_array,
     quat_conj_array,
     quat_mul_array,
     quat_rotate_array,
 )
+from ahrs_service.logs.reader import read_log  # noqa: E402
 from ahrs_service.service import Service  # noqa: E402
 
 pytestmark = pytest.mark.timeout(120)
@@ -236,7 +236,7 @@ def test_parameters_change_the_running_estimator(tmp_path, gcs):
     assert len(changes) == 1 and changes[0]["new"] == pytest.approx(0.033)
     assert 0 < changes[0]["sample_index"] < len(log.t_ns)
     # ... so replaying the log reproduces every recorded attitude bit for bit
-    from ahrs_service.logs.replay import replay
+    from ahrs_service.replay import replay
 
     assert np.array_equal(replay(log), log.attitudes)
     assert not np.array_equal(replay(log, follow_param_changes=False), log.attitudes)
@@ -371,7 +371,7 @@ def test_declination_from_the_world_magnetic_model(tmp_path, gcs):
     assert pipeline.declination_deg == pytest.approx(declination_deg(52.5, 13.4))
     assert abs(pipeline.declination_deg) > 1.0  # Berlin: several degrees east
     # the published yaw is the estimator's magnetic heading turned by the declination
-    from ahrs_service.quaternion import quat_to_euler
+    from ahrs_service.core.quaternion import quat_to_euler
 
     yaw_magnetic = quat_to_euler(tuple(pipeline.estimator.state[:4]))[2]
     diff = (pipeline.published_euler()[2] - yaw_magnetic + math.pi) % (2 * math.pi) - math.pi

@@ -18,9 +18,9 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from ahrs_service import config as config_mod  # noqa: E402
+from ahrs_service.core.vibration import VibrationMonitor  # noqa: E402
 from ahrs_service.mavlink_bridge import LatestEstimate, LinkHealth, MavlinkBridge, ServiceLink  # noqa: E402
 from ahrs_service.service import LoopSchedule, PeriodicJob  # noqa: E402
-from ahrs_service.vibration import VibrationMonitor  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -7,10 +7,20 @@ import math
 
 import numpy as np
 import pytest
+from analytic import error_deg
 
 from ahrs_service import estimators
-from ahrs_service.drivers.base import ACC_SATURATED, ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID
-from ahrs_service.drivers.calibration import apply_calibration
+from ahrs_service.core.calibration import apply_calibration
+from ahrs_service.core.quaternion import (
+    quat_angle_array,
+    quat_conj,
+    quat_conj_array,
+    quat_from_euler_array,
+    quat_integrate,
+    quat_mul,
+    quat_rotate_array,
+)
+from ahrs_service.core.samples import ACC_SATURATED, ACC_VALID, GYR_VALID, MAG_NEW, MAG_VALID
 from ahrs_service.drivers.sim.clock import ManualClock, MonotonicClock
 from ahrs_service.drivers.sim.imu import SimulatedImu
 from ahrs_service.drivers.sim.motion import (
@@ -28,16 +38,6 @@ from ahrs_service.drivers.sim.sensor_model import (
     part_model,
 )
 from ahrs_service.drivers.sim.source import SimulatedSource
-from ahrs_service.quaternion import (
-    quat_angle_array,
-    quat_conj,
-    quat_conj_array,
-    quat_from_euler_array,
-    quat_integrate,
-    quat_mul,
-    quat_rotate_array,
-)
-from analytic import error_deg
 
 G_EARTH = np.array([0.0, 0.0, 9.81])
 

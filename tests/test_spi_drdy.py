@@ -14,18 +14,19 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from test_icm42688p import ConstantImu
 
 from ahrs_service import config
 from ahrs_service.drivers.boards import make_transport_board
-from ahrs_service.drivers.gpio.drdy import GpiodLine, SimulatedDataReadyLine, parse_line_spec
-from ahrs_service.drivers.i2c.device import SimulatedRegisterDevice
-from ahrs_service.drivers.imu.icm42688p import SimulatedICM42688P
+from ahrs_service.drivers.buses.drdy import GpiodLine, parse_line_spec
+from ahrs_service.drivers.buses.spi import SpidevSPI
+from ahrs_service.drivers.sim.bus import SimulatedSPIBus, spi_answer
 from ahrs_service.drivers.sim.clock import ManualClock
-from ahrs_service.drivers.spi.bus import SimulatedSPIBus, SpidevSPI, spi_answer
+from ahrs_service.drivers.sim.drdy import SimulatedDataReadyLine
+from ahrs_service.drivers.sim.icm42688p import SimulatedICM42688P
+from ahrs_service.drivers.sim.register_device import SimulatedRegisterDevice
 from ahrs_service.drivers.transport import SPITransport
 from ahrs_service.scheduler import DataReadyScheduler
-
-from test_icm42688p import ConstantImu
 
 
 # ----------------------------------------------------------------------------- spidev
@@ -64,7 +65,7 @@ class FakeSpiDev:
 def fake_spidev(monkeypatch):
     FakeSpiDev.instances, FakeSpiDev.parts = [], {}
     monkeypatch.setitem(sys.modules, "spidev", types.SimpleNamespace(SpiDev=FakeSpiDev))
-    monkeypatch.setattr("ahrs_service.drivers.spi.bus.os.path.exists", lambda p: p.startswith("/dev/spidev0."))
+    monkeypatch.setattr("ahrs_service.drivers.buses.spi.os.path.exists", lambda p: p.startswith("/dev/spidev0."))
     return FakeSpiDev
 
 

@@ -13,11 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_presets import PAPER_FILTERS
 
 from ahrs_service.estimators.presets import load_preset
 from ahrs_service.evaluation import report
-
-from test_presets import PAPER_FILTERS
 
 NO_HEADING = {"complementary_reduced", "kalman_roll_pitch", "immersion_invariance"}
 
@@ -87,7 +86,7 @@ def test_tuned_default_meets_the_broad_target(name, broad_recordings):
 def test_tuned_default_keeps_its_measured_broad_score(name, broad_recordings):
     value = mean_score(name, broad_recordings, heading=name not in NO_HEADING)
     assert value <= 1.02 * BROAD_TARGET_MISSED[name], f"{name}: {value:.2f}°"
-    # and far better than the paper's values on the same trials (README: preset "paper")
+    # and far better than the paper's values on the same trials (docs/accuracy.md: preset "paper")
     assert value < mean_score(name, broad_recordings, heading=name not in NO_HEADING, preset="paper")
 
 
@@ -98,8 +97,9 @@ def test_tuned_default_meets_the_dido_target(name, dido_recordings):
     assert value <= 5.0, f"{name}: {value:.2f}°"
 
 
-# The papers' values at the figures recorded before tuning (README, 2026-12-01, when they were
-# the defaults): preset="paper" must give back exactly those filters.
+# The papers' values at the figures recorded before tuning (docs/accuracy.md, column "BROAD
+# `paper`"; 2026-12-01, when they were the defaults): preset="paper" must give back exactly
+# those filters.
 PAPER_BROAD = {"mahony_direct": 39.81, "mahony_passive": 40.13, "quaternion_kf": 22.22, "madgwick": 5.86,
                "kalman_roll_pitch": 12.36, "immersion_invariance": 14.47}
 

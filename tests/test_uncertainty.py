@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from ahrs_service import estimators
+from ahrs_service.core.quaternion import quat_from_euler
 from ahrs_service.estimators.uncertainty import ErrorModel, euler_jacobian, euler_variance_of_quaternion_covariance
-from ahrs_service.quaternion import quat_from_euler
 
 pytestmark = pytest.mark.timeout(300)
 

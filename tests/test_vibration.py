@@ -11,10 +11,10 @@ import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from ahrs_service.drivers.base import ACC_SATURATED, ACC_VALID, GYR_VALID  # noqa: E402
+from ahrs_service.core.samples import ACC_SATURATED, ACC_VALID, GYR_VALID  # noqa: E402
+from ahrs_service.core.vibration import CLIP_LIMIT_MSS, FLOOR_HZ, VIBE_HZ, VibrationMonitor  # noqa: E402
 from ahrs_service.drivers.sim.motion import Vibrating, profile  # noqa: E402
 from ahrs_service.logs.reader import read_log  # noqa: E402
-from ahrs_service.vibration import CLIP_LIMIT_MSS, FLOOR_HZ, VIBE_HZ, VibrationMonitor  # noqa: E402
 from tests.test_service import RunningService, collect, service_config  # noqa: E402
 
 pytestmark = pytest.mark.timeout(240)  # a first start compiles every kernel

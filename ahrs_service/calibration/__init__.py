@@ -2,5 +2,5 @@
 accelerometer, and magnetic declination from the World Magnetic Model.
 
 Applying a calibration to samples happens in one place only:
-:mod:`ahrs_service.drivers.calibration`.
+:mod:`ahrs_service.core.calibration`.
 """

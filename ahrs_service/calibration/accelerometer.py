@@ -16,7 +16,7 @@ move it between them. From the recording:
    squares of |A(x_k − b)| − g over every still segment (tilted ones too), which drops the
    assumption that the six faces are exactly perpendicular.
 
-The result follows :mod:`ahrs_service.drivers.calibration`: acc_corrected = A·(acc − b).
+The result follows :mod:`ahrs_service.core.calibration`: acc_corrected = A·(acc − b).
 """
 
 from __future__ import annotations

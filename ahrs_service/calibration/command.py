@@ -34,8 +34,8 @@ from ahrs_service.calibration.declination import field_at
 from ahrs_service.calibration.gyro import gyro_bias_at_rest
 from ahrs_service.calibration.magnetometer import fit_magnetometer
 from ahrs_service.calibration.storage import calibration_from_config_dict, calibration_section, save_calibration
-from ahrs_service.drivers.base import MAG_NEW, MAG_VALID
-from ahrs_service.drivers.calibration import SensorCalibration
+from ahrs_service.core.calibration import SensorCalibration
+from ahrs_service.core.samples import MAG_NEW, MAG_VALID
 from ahrs_service.estimators import SAMPLE_ROW
 
 _R = SAMPLE_ROW.slices

@@ -17,10 +17,28 @@ from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
 
-__all__ = ["FieldAtPlace", "declination_deg", "field_at"]
+from ahrs_service.core.settings import ConfigError, Section, number, optional
 
+__all__ = ["LOCATION", "FieldAtPlace", "check_location_section", "declination_deg", "field_at"]
+
+#: the altitudes the model is defined for, km above the WGS-84 ellipsoid
 ALT_MIN_KM = -1.0
 ALT_MAX_KM = 850.0
+
+#: the ``[location]`` section of the configuration: where the vehicle flies. When latitude and
+#: longitude are set, the magnetic declination comes from the World Magnetic Model for today
+#: (it replaces estimator.declination_deg)
+LOCATION: Section = {
+    "latitude_deg": (None, optional(number(-90.0, 90.0))),
+    "longitude_deg": (None, optional(number(-180.0, 180.0))),
+    "altitude_km": (0.0, number(ALT_MIN_KM, ALT_MAX_KM)),
+}
+
+
+def check_location_section(section: dict[str, Any]) -> None:
+    """The checked ``[location]`` section as a whole: a place is both coordinates or none."""
+    if (section["latitude_deg"] is None) != (section["longitude_deg"] is None):
+        raise ConfigError("location: give both latitude_deg and longitude_deg, or neither")
 
 
 @dataclass(frozen=True)

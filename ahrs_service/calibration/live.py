@@ -57,8 +57,8 @@ import numpy as np
 from ahrs_service.calibration.accelerometer import AXIS_LABELS, fit_accelerometer
 from ahrs_service.calibration.gyro import gyro_bias_at_rest
 from ahrs_service.calibration.magnetometer import fit_magnetometer, sphere_coverage
-from ahrs_service.drivers.base import ACC_VALID, GYR_VALID, MAG_VALID, ImuSample
-from ahrs_service.drivers.calibration import SensorCalibration
+from ahrs_service.core.calibration import SensorCalibration
+from ahrs_service.core.samples import ACC_VALID, GYR_VALID, MAG_VALID, ImuSample
 
 __all__ = ["KINDS", "DEFAULT_DURATION_S", "FIT_THREAD_NAME", "LiveCalibrationResult", "LiveCalibrator"]
 

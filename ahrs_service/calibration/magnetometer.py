@@ -6,7 +6,7 @@ The readings of a sensor turned through all orientations lie on the ellipsoid
 
     (m − h)ᵀ Q (m − h) = 1,
 
-and the correction of :mod:`ahrs_service.drivers.calibration`, ``S·(m − h)``, has the
+and the correction of :mod:`ahrs_service.core.calibration`, ``S·(m − h)``, has the
 constant norm F when Sᵀ S = F² Q. Of all such S the fit returns the symmetric one,
 S = F·Q^½ (it rotates the sensor axes least; a rotation between the magnetometer and the
 other sensors is the mounting's business, not this fit's).

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from ahrs_service.config_file import update_config_file
-from ahrs_service.drivers.calibration import SensorCalibration
+from ahrs_service.core.calibration import MOUNTING, SensorCalibration
 
 __all__ = ["SENSOR_KEYS", "calibration_from_config_dict", "calibration_section", "save_calibration"]
 
@@ -39,7 +39,7 @@ def calibration_from_config_dict(cfg: dict[str, Any]) -> SensorCalibration:
     data = dict(cfg.get("calibration") or {})
     if not any(k in data for k in _MOUNTING_KEYS):
         mounting = cfg.get("mounting") or {}
-        data["mounting_rpy_deg"] = [float(mounting.get(k, 0.0)) for k in ("roll_deg", "pitch_deg", "yaw_deg")]
+        data["mounting_rpy_deg"] = [float(mounting.get(k, 0.0)) for k in MOUNTING]
     return SensorCalibration.from_dict(data)
 
 

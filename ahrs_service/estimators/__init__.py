@@ -15,7 +15,6 @@ every estimator shares (``state[STATE_HEADER.slices.bias]``); see ``layout``.
 
 from __future__ import annotations
 
-import importlib
 import os
 from typing import Any
 
@@ -27,37 +26,8 @@ drop_stale_kernels()  # before any kernel is loaded from the cache
 
 from ahrs_service.estimators._kernel import SAMPLE_ROW, STATE_HEADER  # noqa: E402
 from ahrs_service.estimators.base import Estimator, stack_rows, time_steps  # noqa: E402
-
-# name -> (module, class). Order: first paper, second paper, third paper, then the project's own.
-_REGISTRY: dict[str, tuple[str, str]] = {
-    "complementary_reduced": ("complementary", "ComplementaryReduced"),
-    "complementary_full": ("complementary", "ComplementaryFull"),
-    "triad": ("triad", "Triad"),
-    "quest": ("quest", "Quest"),
-    "kalman_roll_pitch": ("kalman_roll_pitch", "KalmanRollPitch"),
-    "quaternion_kf": ("quaternion_kf", "QuaternionKF"),
-    "mahony_direct": ("mahony", "MahonyDirect"),
-    "mahony_passive": ("mahony", "MahonyPassive"),
-    "immersion_invariance": ("immersion_invariance", "ImmersionInvariance"),
-    "ekf": ("ekf", "QuaternionEKF"),
-    "madgwick": ("madgwick", "Madgwick"),
-    "valenti": ("valenti", "Valenti"),
-    "robust": ("robust", "RobustEstimator"),
-}
-
-
-def names() -> list[str]:
-    """Names of all estimators available, in the order of the source papers."""
-    return list(_REGISTRY)
-
-
-def get(name: str) -> type[Estimator]:
-    """The estimator class registered under ``name``."""
-    try:
-        module, cls = _REGISTRY[name]
-    except KeyError:
-        raise ValueError(f"unknown estimator {name!r}; available: {', '.join(names())}") from None
-    return getattr(importlib.import_module(f"{__name__}.{module}"), cls)
+from ahrs_service.estimators.presets import load_preset  # noqa: E402
+from ahrs_service.estimators.registry import get, names  # noqa: E402
 
 
 def create(name: str, preset: str | os.PathLike | None = None, **params: float) -> Estimator:
@@ -67,8 +37,6 @@ def create(name: str, preset: str | os.PathLike | None = None, **params: float) 
     whose parameters the instance starts from; ``params`` override it.
     """
     if preset is not None:
-        from ahrs_service.estimators.presets import load_preset
-
         params = {**load_preset(name, preset), **params}
     return get(name)(**params)
 
@@ -89,7 +57,7 @@ def run(
 
     gyr rad/s, acc m/s² (specific force), mag µT or None, each (N, 3) in the sensor's axes.
     Time steps come from ``timestamps`` (s) when given, else from ``rate_hz``. Host stamps are
-    first recovered onto the sensor's steady clock (``ahrs_service.sample_clock``, causal;
+    first recovered onto the sensor's steady clock (``ahrs_service.core.sample_clock``, causal;
     uniform stamps pass unchanged); ``recover_clock=False`` integrates the raw steps instead.
     Stamps that cannot be seconds (NaN, not increasing, steps over a second) raise ValueError.
     ``preset`` and ``params`` as for :func:`create`.

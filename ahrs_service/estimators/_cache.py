@@ -1,8 +1,9 @@
 """Keeps numba's on-disk kernel cache of this package consistent with its sources.
 
 numba keys a cached kernel (``cache=True``) on the time stamp of the file that defines it,
-but every estimator kernel inlines code from other files: ``_kernel.py``, ``quaternion.py``
-and sibling modules. After any of those changes (``git pull`` on an editable install, an
+but every estimator kernel inlines code from other files: ``_kernel.py``, sibling modules and
+the ground floor's ``core/quaternion.py`` (and the row layouts of ``core/layout.py`` and
+``core/samples.py``, constants in compiled code). After any of those changes (``git pull`` on an editable install, an
 edit), the cached kernels of the files that did not change would run the old code. So the
 package stamps its cache folder with a digest of all those sources and empties it when the
 digest differs; the kernels are then compiled again once.
@@ -23,7 +24,9 @@ _HERE = Path(__file__).resolve().parent
 # modules that call kernels but that no kernel reads (functions or constants) from: editing
 # them must not cost a recompilation of everything
 _NOT_KERNEL_SOURCES = {"_cache.py", "offline.py", "uncertainty.py"}
-_SOURCES = sorted(p for p in _HERE.glob("*.py") if p.name not in _NOT_KERNEL_SOURCES) + [_HERE.parent / "quaternion.py"]
+_CORE = _HERE.parent / "core"
+_SOURCES = sorted(p for p in _HERE.glob("*.py") if p.name not in _NOT_KERNEL_SOURCES) + [
+    _CORE / "quaternion.py", _CORE / "layout.py", _CORE / "samples.py"]
 
 
 def cache_dir() -> Path:

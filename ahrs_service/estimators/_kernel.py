@@ -18,19 +18,10 @@ import math
 
 from numba import njit
 
-from ahrs_service.estimators.layout import Layout, Slot
-from ahrs_service.quaternion import quat_from_gravity_and_field, quat_from_rotvec, quat_rotate_inv, vec_is_usable
+from ahrs_service.core.layout import Layout, Slot
+from ahrs_service.core.quaternion import quat_from_gravity_and_field, quat_from_rotvec, quat_rotate_inv, vec_is_usable
+from ahrs_service.core.samples import SAMPLE_ROW
 
-#: the sample row: one sample's three sensors and its time step
-SAMPLE_ROW = Layout(
-    "sample row",
-    [
-        Slot("gyr", 3, "gyroscope, rad/s, sensor axes"),
-        Slot("acc", 3, "specific force, m/s², sensor axes"),
-        Slot("mag", 3, "magnetic field, µT, sensor axes (NaN: no new field)"),
-        Slot("dt", 1, "time since the previous sample, s"),
-    ],
-)
 GYR, ACC, MAG, DT = SAMPLE_ROW.index  # first columns, constants in compiled code
 ROW = SAMPLE_ROW.end  # row length
 
@@ -240,9 +231,11 @@ REST_SHARE_MIN = 0.5
 def rest_share_bias_update(s, prev, share, x, gain, tau, dt):
     """rest_bias_update, but a steady sample updates the bias only while most recent samples
     were steady states: the share of steady samples low-passed with time constant ``tau`` (s)
-    is at least REST_SHARE_MIN. Per sample the test also passes during motion, in short runs
-    (on BROAD at most 0.1 s), and each such sample moves the bias towards a rate of the motion;
-    at rest about 80 % of BROAD's samples pass it. ``tau`` 0: rest_bias_update itself.
+    is at least REST_SHARE_MIN. Per sample the test also passes during motion, in short runs,
+    and each such sample moves the bias towards a rate of the motion; at rest most samples
+    pass it, so a majority keeps rest learning and drops those runs (figures:
+    docs/estimators-paper1-3.md, "Why the defaults: measured figures"). ``tau`` 0:
+    rest_bias_update itself.
 
     ``share`` is the index of REST_SHARE_SLOTS in ``s``.
     """

@@ -223,7 +223,7 @@ def time_steps(
             raise ValueError(f"timestamps must have shape ({n},), got {t.shape}")
         check_timestamps(t, allow_equal=recover_clock)
         if recover_clock and n > 1:
-            from ahrs_service.sample_clock import recover_times
+            from ahrs_service.core.sample_clock import recover_times
 
             t = recover_times(t, nominal_rate_hz=rate_hz)
         dt = np.empty(n)

@@ -21,9 +21,9 @@ Adaptations to the project's conventions and to real data:
   Euler angles when the estimate turns by the gyro's rotation over the sample. To first order
   this is eq. 4, B(Θ̂) ω, but it never evaluates B's tan θ and 1/cos θ, so it stays finite and
   exact through gimbal lock (pitch ±90°), where B(Θ) is singular. Multiplying B(Θ̂) ω by Δt
-  loses track in fast rotations: on BROAD it scored 16.9° mean total RMSE against 8.0°, with
-  30° inclination error on the fast-rotation trial, because roll and yaw rates blow up
-  whenever pitch nears ±90°. Past ±90° the Euler angles are kept canonical (θ in [−π/2, π/2],
+  loses track in fast rotations, because roll and yaw rates blow up whenever pitch nears ±90°:
+  on BROAD it about doubles the mean total error (figures: docs/estimators-paper1-3.md, "Why
+  the defaults: measured figures"). Past ±90° the Euler angles are kept canonical (θ in [−π/2, π/2],
   roll and yaw turned by π), as the gravity angles of eq. 29–30 are.
 * Declination is positive east (magnetic north east of true north, as in the World Magnetic
   Model and ArduPilot's COMPASS_DEC), the sense of α in eq. 31–33. With that α the heading is
@@ -34,7 +34,7 @@ Adaptations to the project's conventions and to real data:
 * Linear-acceleration gate (not in the paper): a sample whose specific-force magnitude
   differs from g by more than ``acc_gate``·g gives no gravity angles (the gyro carries roll
   and pitch through it). Without it the filter follows the accelerations of BROAD's
-  fast-translation trials (37° inclination RMSE on one of them). With ``acc_lowpass`` > 0 the
+  fast-translation trials (docs/estimators-paper1-3.md, ``acc_gate``). With ``acc_lowpass`` > 0 the
   gate tests the magnitude of the specific force low-passed with that time constant in a frame
   turned with the gyro (``K.acc_disturbance``): vibration averages out and no longer shuts the
   gate, a sustained acceleration still does. 0 (``preset="paper"``): each sample's own.
@@ -63,11 +63,11 @@ from dataclasses import dataclass
 
 from numba import njit
 
+from ahrs_service.core.layout import Layout, Slot, param_index
+from ahrs_service.core.quaternion import quat_from_euler, quat_integrate, quat_rotate, quat_to_euler
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.presets import SearchRange, tunable
-from ahrs_service.estimators.layout import Layout, Slot, param_index
-from ahrs_service.quaternion import quat_from_euler, quat_integrate, quat_rotate, quat_to_euler
 
 # state after the common header: the filtered Euler angles Θ̂
 STATE = Layout(

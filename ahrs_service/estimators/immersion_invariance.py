@@ -39,12 +39,12 @@ from dataclasses import dataclass
 
 from numba import njit
 
+from ahrs_service.core.layout import Layout, Slot, param_index
+from ahrs_service.core.quaternion import quat_from_rotvec, quat_mul, quat_normalize, quat_rotate_inv
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.presets import SearchRange, tunable
-from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.triad import align_down, down_direction
-from ahrs_service.quaternion import quat_from_rotvec, quat_mul, quat_normalize, quat_rotate_inv
 
 STATE = Layout(
     "immersion_invariance state",
@@ -69,8 +69,9 @@ class ImmersionInvarianceParams:
     gamma2: γ₂, gain of the drift estimate ξ̂, 1/s. Paper: 0.7.
     gamma3: γ₃, gain of the accelerometer-deviation estimate μ̂_a, 1/s. Paper: 0.9.
     xi_bar: ξ̄, saturation (and sign) of the drift term, 1/s. Paper: −30 (the sign
-        makes the ξ loop a negative feedback). −3 scores far better on BROAD (4.9° mean
-        inclination RMSE against 14.5°): the paper's value lets fast translations tilt it.
+        makes the ξ loop a negative feedback). The paper's value lets fast translations tilt
+        the estimate; a smaller |ξ̄| (−3) damps this and scores far better on BROAD (figures:
+        docs/estimators-paper2.md, "Accuracy on BROAD and speed").
     mu_bar: μ̄_a, saturation of the accelerometer-deviation term. Paper: 10.
     acc_gate: not in the paper: the observer is held through a sample whose specific-force
         magnitude is off g by more than acc_gate·g. 1e9 (the paper): never.

@@ -12,9 +12,9 @@ Adaptations, all documented in docs/estimators-paper2.md:
   turned by the gyro's rotation h ω, the exact integral of eq. 7 for a rate constant over the
   sample, as the first paper's complementary filter does. The printed form x + h u with u the
   rate of eq. 7 at the sample's start (``exact_step`` 0, ``preset="paper"``) is first order and
-  singular at pitch ±90°: in fast turns it loses the attitude (the gyro alone on BROAD's
-  fast-rotation trial: 82° inclination RMSE, 17° with the exact step; the tuned filter there:
-  27° with the first-order step, 3.2° with the exact one);
+  singular at pitch ±90°: in fast turns it loses the attitude, on BROAD's fast-rotation trial
+  several times the exact step's error, the gyro alone and the tuned filter alike (figures:
+  docs/estimators-paper2.md, "Why the defaults: measured figures");
 * the measurement (eq. 29–30) is written for our specific force in FRD: at rest
   f = g (sin θ, −sin φ cos θ, −cos φ cos θ), so φ_y = atan2(−f_y, −f_z) (all four quadrants,
   upside-down included) and θ_y = atan2(f_x, √(f_y² + f_z²));
@@ -38,12 +38,12 @@ from dataclasses import dataclass
 
 from numba import njit
 
+from ahrs_service.core.layout import Layout, Slot, param_index
+from ahrs_service.core.quaternion import quat_from_euler, quat_integrate, quat_to_euler
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.presets import SearchRange, tunable
-from ahrs_service.estimators.layout import Layout, Slot, param_index
 from ahrs_service.estimators.uncertainty import AttitudeVariance
-from ahrs_service.quaternion import quat_from_euler, quat_integrate, quat_to_euler
 
 STATE = Layout(
     "kalman_roll_pitch state",

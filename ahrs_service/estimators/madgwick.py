@@ -17,11 +17,11 @@ from dataclasses import dataclass
 
 from numba import njit
 
+from ahrs_service.core.layout import param_index
+from ahrs_service.core.quaternion import quat_mul, quat_normalize, quat_rotate
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
-from ahrs_service.estimators.layout import param_index
 from ahrs_service.estimators.presets import SearchRange, tunable
-from ahrs_service.quaternion import quat_mul, quat_normalize, quat_rotate
 
 
 @dataclass
@@ -29,8 +29,9 @@ class MadgwickParams:
     """Tuning of :class:`Madgwick`.
 
     beta: gain of the gradient step, rad/s — the assumed gyroscope measurement error
-        (eq. 45). Paper (Madgwick's own value): 0.1; BROAD's authors found 0.12 best over their
-        whole benchmark. Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
+        (eq. 45). Paper (Madgwick's own value): 0.1; BROAD's authors found a slightly larger
+        value best over their whole benchmark (docs/estimators-paper1-3.md, "Why the defaults:
+        measured figures"). Defaults: the preset tuned on BROAD and DIDO together (docs/tuning.md); the paper's values
         are ``preset="paper"``.
     """
 

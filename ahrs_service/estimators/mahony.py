@@ -42,12 +42,12 @@ from dataclasses import dataclass, field, make_dataclass
 
 from numba import njit
 
+from ahrs_service.core.layout import Layout, param_index
+from ahrs_service.core.quaternion import quat_from_rotvec, quat_integrate, quat_rotate, quat_rotate_inv, vec_cross
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
-from ahrs_service.estimators.layout import Layout, param_index
 from ahrs_service.estimators.presets import SearchRange, tunable
 from ahrs_service.estimators.triad import down_direction
-from ahrs_service.quaternion import quat_from_rotvec, quat_integrate, quat_rotate, quat_rotate_inv, vec_cross
 
 
 @dataclass
@@ -70,9 +70,9 @@ class MahonyParams:
         |sin δ − sin δ_ref| exceeds it, δ the field's dip below the horizon, the references
         learned from the accepted samples with a 10 s time constant (as the EKF's gate,
         ``_kernel.mag_gate_accepts``; paper 1e9, off).
-    The paper's gains suit its 565 Hz robot-arm runs and follow BROAD's accelerations (mean
-    total RMSE about 40°). The direct filter also turns the gyro rate by the noisy R̃, which
-    only small weights λ keep quiet (docs/estimators-paper2.md).
+    The paper's gains suit its 565 Hz robot-arm runs and follow BROAD's accelerations
+    (figures: docs/estimators-paper2.md, "Accuracy on BROAD and speed"). The direct filter
+    also turns the gyro rate by the noisy R̃, which only small weights λ keep quiet.
     """
 
     # the passive filter sees λ₁ only through k_p λ₁, but the direct one also turns the measured

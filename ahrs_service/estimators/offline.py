@@ -37,9 +37,9 @@ So the two passes have the same timing: there is no half-sample lead of the back
 cancel a half-sample lag of the forward one. (With whole rows reversed there would be, if the
 gyro delivered the rate *at* t_k rather than over the interval before it: each pass would then
 be half a sample off, in opposite directions. The estimators, the simulator and the tests all
-take the interval reading, and on BROAD the exact pairing scores better: robust's inclination
-0.563° against 0.808° with whole rows reversed.) What does cancel is the lag of each filter's
-*corrections*, see "Why it helps".
+take the interval reading, and on BROAD the exact pairing scores clearly better than whole
+rows reversed; figures: docs/evaluation.md, "Offline mode".) What does cancel is the lag of
+each filter's *corrections*, see "Why it helps".
 
 Each pass has its own start-up: it begins from the first usable accelerometer (and
 magnetometer) sample *in its own direction*, learns its gyro bias and settles its corrections
@@ -58,14 +58,12 @@ than a few τ from both ends the two weigh equally.
 
 The default is about three times the accelerometer time constant of ``robust`` and VQF
 (3 s), so a pass counts fully once it has settled from an ordinary start. From a bad start (a
-recording that begins in motion) estimators with disturbance rejection take much longer: in
-``tests/test_offline.py``'s simulation (0.5 s of 3.6 m/s² linear acceleration at the start)
-``robust`` is still 12° off after 10 s and ``ekf`` 15° after 10 s and 10° after 30 s, while
-Madgwick has settled to 0.5° within 10 s. Raise τ for such recordings: τ = 20 s there
-lowers the offline error's peak in the first seconds from 3.7° to 2.3° (robust) and from 4.0°
-to 2.6° (ekf), at a small cost where the passes are good (Madgwick's RMS after 4 s 0.30° →
-0.35°). On BROAD, whose trials begin and end at rest outside the scored samples, τ from 0.3 s
-to 10 s changes the mean RMSEs by less than 0.01°, 20 s by 0.03°.
+recording that begins in motion) estimators with disturbance rejection take much longer:
+``robust`` and ``ekf`` are still far off after one τ where Madgwick has long settled
+(``tests/test_offline.py``'s simulation). Raise τ for such recordings: a longer τ lowers the
+offline error's peak in the first seconds, at a small cost where the passes are good. On
+BROAD, whose trials begin and end at rest outside the scored samples, τ hardly matters.
+Figures: docs/evaluation.md, "Offline mode".
 
 The average is a normalised linear interpolation (nlerp) of the two quaternions after putting
 them in the same hemisphere (q and −q are one attitude). It departs from slerp by a term of
@@ -101,14 +99,14 @@ Why it helps
 It cannot remove what both passes share: a lag of the sensor itself (its own filters) is seen
 by both. On BROAD every estimate lags the optical reference by about half a sample (see the
 ``robust`` estimator's ``output_lead``), the backward pass's and the offline one's as well:
-against the reference taken half a sample earlier, robust's inclination RMSE would be 0.51°
-forward, 0.43° backward and 0.39° offline, against 0.68°, 0.57° and 0.56° as scored. And the two passes are
-two different estimates: a filter tuned on forward runs of a data set may do worse backwards
-on it (see docs/evaluation.md, "Offline mode").
+scored against the reference taken half a sample earlier, each of them would be clearly
+better (figures: docs/evaluation.md, "Offline mode"). And the two passes are two different
+estimates: a filter tuned on forward runs of a data set may do worse backwards on it (see
+docs/evaluation.md, "Offline mode").
 
-Cost: two estimator runs and an O(N) fusion in NumPy, about three times the causal batch run:
-on the 12 BROAD trials 1.7 µs/sample for ``robust`` against 0.5 µs/sample (development VM,
-2026-11-22; ``ahrs-service evaluate --offline`` prints the figure per column).
+Cost: two estimator runs and an O(N) fusion in NumPy, about three times the causal batch run
+(``ahrs-service evaluate --offline`` prints the figure per column; measured figures:
+docs/evaluation.md, "Offline mode").
 """
 
 from __future__ import annotations
@@ -120,9 +118,9 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from ahrs_service import estimators
+from ahrs_service.core.quaternion import quat_conj_array, quat_mul_array, vecs_are_usable
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import stack_rows, time_steps
-from ahrs_service.quaternion import quat_conj_array, quat_mul_array, vecs_are_usable
 
 #: Default time constant (s) of the fusion weights w = 1 − exp(−t / τ).
 DEFAULT_BLEND_TIME_S = 10.0

@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ahrs_service.estimators.registry import get
+
 
 @dataclass(frozen=True)
 class SearchRange:
@@ -84,9 +86,7 @@ def load_preset(name: str, preset: str | os.PathLike) -> dict[str, Any]:
     ``preset`` is ``"paper"`` (the source paper's values, :func:`paper_params`) or a preset file.
     """
     if str(preset) == PAPER:
-        from ahrs_service import estimators
-
-        return paper_params(name, estimators.get(name).Params)
+        return paper_params(name, get(name).Params)
     path = Path(preset)
     if not path.is_file():
         raise ValueError(f"preset {str(preset)!r} of estimator {name!r}: no such file")

@@ -41,19 +41,19 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from ahrs_service.core.layout import Layout, Slot, param_index
+from ahrs_service.core.quaternion import quat_from_down_and_field, quat_normalize, quat_rotate
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.presets import SearchRange, tunable
-from ahrs_service.estimators.layout import Layout, Slot, param_index
+from ahrs_service.estimators.quest import DIP, learn_dip, quest_quat
+from ahrs_service.estimators.quest import STATE as QUEST_STATE
+from ahrs_service.estimators.triad import align_down, down_direction
 from ahrs_service.estimators.uncertainty import (
     AttitudeVariance,
     euler_variance_of_quaternion_covariance,
     with_unmodelled_floor,
 )
-from ahrs_service.estimators.quest import DIP, learn_dip, quest_quat
-from ahrs_service.estimators.quest import STATE as QUEST_STATE
-from ahrs_service.estimators.triad import align_down, down_direction
-from ahrs_service.quaternion import quat_from_down_and_field, quat_normalize, quat_rotate
 
 # after QUEST's learned dip (the start-up is QUEST's)
 STATE = Layout(

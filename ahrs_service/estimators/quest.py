@@ -26,12 +26,18 @@ from typing import ClassVar
 
 from numba import njit
 
+from ahrs_service.core.layout import Layout, Slot, param_index
+from ahrs_service.core.quaternion import quat_mul, quat_normalize
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
-from ahrs_service.estimators.layout import Layout, Slot, param_index
-from ahrs_service.estimators.triad import DISTURBANCE, down_direction, propagate_then_level, record_disturbance, snapshot_error_state
+from ahrs_service.estimators.triad import (
+    DISTURBANCE,
+    down_direction,
+    propagate_then_level,
+    record_disturbance,
+    snapshot_error_state,
+)
 from ahrs_service.estimators.uncertainty import AttitudeVariance, SnapshotErrorModel
-from ahrs_service.quaternion import quat_mul, quat_normalize
 
 _inline = njit(cache=True, inline="always")
 
@@ -153,8 +159,8 @@ class QuestParams:
 
     w_acc: weight ρ₁ of the gravity direction in Wahba's cost (eq. 17). Default 2 (the paper).
     w_mag: weight ρ₂ of the magnetic field direction. Default 2 (the paper). Only the ratio
-        matters to the solution; on BROAD equal weights score best (ρ₁/ρ₂ = 10: 53.5° total
-        RMSE against 51.7°, docs/estimators-paper2.md).
+        matters to the solution; on BROAD equal weights score best (figures:
+        docs/estimators-paper2.md, "Accuracy on BROAD and speed").
     """
 
     w_acc: float = 2.0

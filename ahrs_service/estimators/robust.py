@@ -74,13 +74,18 @@ from typing import ClassVar
 import numpy as np
 from numba import njit
 
+from ahrs_service.core.quaternion import quat_integrate, quat_mul, quat_normalize, quat_rotate
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators import robust_blocks as B
 from ahrs_service.estimators.base import Estimator, sample_age
-from ahrs_service.estimators.robust_layout import DEG, N_PARAMS, P, ST, STATE, STATE_SIZE, RobustParams
+from ahrs_service.estimators.robust_layout import DEG, N_PARAMS, ST, STATE, STATE_SIZE, P, RobustParams
 from ahrs_service.estimators.robust_mag import hard_iron_and_consistency, heading
-from ahrs_service.estimators.uncertainty import SUSTAINED_ACCELERATION_TAU, AttitudeVariance, ObservedErrorModel, ObservedErrorState
-from ahrs_service.quaternion import quat_integrate, quat_mul, quat_normalize, quat_rotate
+from ahrs_service.estimators.uncertainty import (
+    SUSTAINED_ACCELERATION_TAU,
+    AttitudeVariance,
+    ObservedErrorModel,
+    ObservedErrorState,
+)
 
 _jit = njit(cache=True, inline="always")
 
@@ -305,9 +310,10 @@ _step_jit = njit(cache=True, error_model="numpy", fastmath={"contract", "arcp", 
 # The step is laid out for speed. numba counts references to arrays: each time an inlined
 # helper receives one, an atomic increment and decrement, which its pruning removes only where
 # the control flow is simple (no early return, no array used on one branch only). Left in,
-# they took half of the step's time. So the helpers get the parameters and the row as tuples
-# of floats and only the state as an array, and the batch loop, which holds the state for all
-# its rows, calls two compiled functions, start-up and update, each with a single exit.
+# they took much of the step's time (docs/robust-estimator.md, "Speed"). So the helpers get
+# the parameters and the row as tuples of floats and only the state as an array, and the
+# batch loop, which holds the state for all its rows, calls two compiled functions, start-up
+# and update, each with a single exit.
 
 
 @_step_jit

@@ -13,8 +13,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from ahrs_service.core.layout import Layout, Slot, param_index
 from ahrs_service.estimators import _kernel as K
-from ahrs_service.estimators.layout import Layout, Slot, param_index
 
 DEG = math.pi / 180.0
 
@@ -28,8 +28,10 @@ class RobustParams:
         to make up for the delay of the sensor's own filters against the true motion. Off (0)
         by default: it is a property of the sensor, to be set to that IMU's filter delay.
         BROAD's IMU samples are about a sample late against its reference (the evaluate
-        report's timing table); 2.04 ms lowers every estimator's inclination error there, VQF's
-        included (see the doc). Only the output is affected, never the filter state.
+        report's timing table); carrying the output forward by that lag lowers every
+        estimator's inclination error there, VQF's included (value and figures:
+        docs/robust-estimator.md, "Latency compensation"). Only the output is affected, never
+        the filter state.
 
     Inclination and bias (VQF's parameters, same meaning):
     tau_acc: time constant of the accelerometer low-pass in the gyro frame while the sensor
@@ -40,8 +42,9 @@ class RobustParams:
         The gyro frame's inclination drifts by the residual bias plus the scale error times
         the tilt rate; where it drifts little, accelerations can be averaged for longer. 6 s:
         tau_acc·√(1 + 60/20), so that VQF's 3 s holds at the ≈ 60 °/s of handheld motion.
-        On quadrotor flights (sustained accelerations, tilt rates 7–30 °/s) it is what
-        brings DIDO's inclination from 1.80° to 1.24°.
+        On quadrotor flights (sustained accelerations, slow tilting) it is what cuts DIDO's
+        inclination error by about a third against a fixed 3 s (figures:
+        docs/robust-estimator.md, "Accuracy on quadrotor flights (DIDO)").
     tilt_rate_ref: tilt rate at which the gyro's scale-error drift equals its residual bias
         drift, °/s: bias 0.1 °/s (bias_sigma_motion) over a 0.5 % scale error, 20 °/s. 0
         disables the adaptation (τ = tau_acc).

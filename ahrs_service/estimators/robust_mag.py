@@ -22,9 +22,10 @@ import math
 
 from numba import njit
 
+from ahrs_service.core.quaternion import quat_rotate
 from ahrs_service.estimators import robust_blocks as B
-from ahrs_service.estimators.robust_layout import DEG, HI_SCRATCH as HS, P, ST
-from ahrs_service.quaternion import quat_rotate
+from ahrs_service.estimators.robust_layout import DEG, ST, P
+from ahrs_service.estimators.robust_layout import HI_SCRATCH as HS
 
 _jit = njit(cache=True, inline="always")
 

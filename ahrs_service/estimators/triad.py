@@ -23,11 +23,11 @@ from typing import ClassVar
 
 from numba import njit
 
+from ahrs_service.core.layout import Layout, Slot
+from ahrs_service.core.quaternion import quat_from_down_and_field, quat_integrate, quat_mul, quat_normalize, quat_rotate
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator, sample_age
-from ahrs_service.estimators.layout import Layout, Slot
 from ahrs_service.estimators.uncertainty import AttitudeVariance, SnapshotErrorModel, SnapshotErrorState
-from ahrs_service.quaternion import quat_from_down_and_field, quat_integrate, quat_mul, quat_normalize, quat_rotate
 
 _inline = njit(cache=True, inline="always")
 

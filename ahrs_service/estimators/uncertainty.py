@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ahrs_service.quaternion import euler_of
+from ahrs_service.core.quaternion import euler_of
 
 DEG = math.pi / 180.0
 
@@ -262,8 +262,8 @@ class CovarianceErrorModel:
     part by up to tan d times itself, which the heading follows. ē² is *not* in the tilt: it
     counts jerks of which the filter follows little as much as sustained acceleration of which
     it follows much; across BROAD (handheld) and DIDO (quadrotor) the tilt scales they need
-    differ by 3.7× with ē², 2.3× with neither, 1.0× with ā² (docs/autopilot.md "Attitude
-    covariance"). The floors are ``ObservedErrorModel``'s (accelerometer offset, magnetometer
+    differ most with ē², less with neither, and agree with ā² (figures: docs/autopilot.md
+    "Attitude covariance"). The floors are ``ObservedErrorModel``'s (accelerometer offset, magnetometer
     residual), B and d the filter's reference field. tilt_scale, heading_scale: the largest
     scale any data set needs (``python -m ahrs_service.evaluation.coverage --calibrate``).
     """

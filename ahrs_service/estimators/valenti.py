@@ -56,11 +56,11 @@ from dataclasses import dataclass
 
 from numba import njit
 
+from ahrs_service.core.layout import Layout, param_index
+from ahrs_service.core.quaternion import quat_mul, quat_normalize, quat_rotate
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators.base import Estimator
 from ahrs_service.estimators.presets import SearchRange, tunable
-from ahrs_service.estimators.layout import Layout, param_index
-from ahrs_service.quaternion import quat_mul, quat_normalize, quat_rotate
 
 #: the threshold on the delta's scalar part above which LERP replaces SLERP (eq. 54–56)
 EPSILON = 0.9
@@ -80,7 +80,7 @@ class ValentiParams:
 
     alpha: accelerometer gain, the fraction of the tilt delta applied per sample at
         ``gain_rate_hz`` (eq. 54). The third paper's annex 3 (``preset="paper"``) uses 0.03,
-        which on BROAD follows linear acceleration far too closely (30° mean total RMSE).
+        which on BROAD follows linear acceleration far too closely (docs/estimators-paper1-3.md).
     beta: magnetometer gain, the same for the heading delta (eq. 60–61). The annex's 0.3
         makes heading as noisy as the magnetometer.
     gain_rate_hz: the sample rate at which alpha and beta are per-sample fractions, Hz.

@@ -39,10 +39,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ahrs_service import estimators
+from ahrs_service.core.quaternion import ned_to_enu_array
 from ahrs_service.estimators.base import stack_rows, time_steps
 from ahrs_service.evaluation import broad, dido
 from ahrs_service.evaluation.metrics import error_angles
-from ahrs_service.quaternion import ned_to_enu_array
 
 #: how often the variance is read, s (the ODOMETRY rate is 30–50 Hz; 10 Hz samples the same statistics)
 STEP_S = 0.1

@@ -20,7 +20,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from ahrs_service.quaternion import ned_to_enu_array, quat_conj_array, quat_mul_array, quat_to_rotvec_array
+from ahrs_service.core.quaternion import ned_to_enu_array, quat_conj_array, quat_mul_array, quat_to_rotvec_array
 
 KINDS = ("total", "heading", "inclination")
 

@@ -5,7 +5,8 @@ and returns (N, 4) q_earth←sensor [w, x, y, z] against **NED** with north = ma
 the same thing ``ahrs_service.estimators.run`` returns. Each library's earth frame and
 quaternion meaning were determined on BROAD recordings (trial 02, slow rotation): of the six
 candidates {NED, ENU, NWU} × {q_earth←sensor, its conjugate}, exactly one gives a small error,
-every other one is off by 50° or more. What was found:
+every other one is off by far more (figures: docs/evaluation.md, "Peers and their frames").
+What was found:
 
 ==============  ============================  ============================================
 peer            inputs given                  output, and how it becomes q_ned←sensor
@@ -45,7 +46,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ahrs_service.quaternion import Q_NED_TO_ENU, quat_conj_array, quat_mul_array
+from ahrs_service.core.quaternion import Q_NED_TO_ENU, quat_conj_array, quat_mul_array
 
 #: q_ned←nwu: 180° about the north axis (x); its own inverse.
 Q_NWU_TO_NED = np.array([0.0, 1.0, 0.0, 0.0])
@@ -125,8 +126,9 @@ def _vqf_offline(gyr, acc, mag, rate_hz, **params):
 
 #: Fusion's settings as its own README example uses them: gain 0.5, 2000 °/s gyro range,
 #: 10° acceleration and magnetic rejection, 5 s recovery (in samples). The bare constructor
-#: defaults switch rejection off, which leaves Fusion at 16° mean total RMSE on our 12
-#: recordings (44° on fast translation) — not a fair reference.
+#: defaults switch rejection off, which leaves Fusion several times worse on our recordings,
+#: worst on fast translation — not a fair reference (figures: docs/evaluation.md, "Peers and
+#: their frames").
 IMUFUSION_SETTINGS = {
     "gain": 0.5,
     "gyroscope_range": 2000.0,

@@ -27,9 +27,9 @@ from typing import Any, Callable
 import numpy as np
 
 from ahrs_service import estimators
-from ahrs_service.config import check_estimator_params
 from ahrs_service.estimators import offline as offline_mode
 from ahrs_service.estimators.base import stack_rows, time_steps
+from ahrs_service.estimators.settings import check_estimator_params
 from ahrs_service.evaluation import broad, dido, metrics, peers, stats
 from ahrs_service.execution import Runner, open_runner, worker_cache
 
@@ -49,7 +49,7 @@ def has_mag(trial: Any) -> bool:
 def stamps_of(trial: Any) -> np.ndarray | None:
     """The recording's own sample times (s) when it has them (DIDO), else None (BROAD: rate)."""
     return getattr(trial, "timestamps", None)
-from ahrs_service.quaternion import ned_to_enu_array
+from ahrs_service.core.quaternion import ned_to_enu_array
 from ahrs_service.estimators import SAMPLE_ROW
 
 _R = SAMPLE_ROW.slices
@@ -528,8 +528,8 @@ def with_presets(items: list[str], names: list[str], params: dict[str, dict[str,
     """``--preset`` items under the ``--param`` values: ``paper`` gives every selected estimator
     that declares paper values (``presets.paper_params``; not robust, triad, quest) its source
     paper's values; a preset file gives its own estimator (which must be selected) its params."""
+    from ahrs_service.core.paths import regular_file
     from ahrs_service.estimators.presets import PAPER, has_paper_preset, load_preset
-    from ahrs_service.paths import regular_file
 
     out = {k: dict(v) for k, v in params.items()}
     for item in items:

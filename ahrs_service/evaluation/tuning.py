@@ -38,8 +38,8 @@ from typing import Any
 import numpy as np
 
 from ahrs_service import estimators
-from ahrs_service.config import check_estimator_params
 from ahrs_service.estimators.presets import SearchRange
+from ahrs_service.estimators.settings import check_estimator_params
 from ahrs_service.evaluation import report
 from ahrs_service.execution import Runner, progress_bar
 

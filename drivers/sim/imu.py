@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ahrs_service.drivers.calibration import SensorCalibration
+from ahrs_service.core.calibration import SensorCalibration
 from ahrs_service.drivers.sim.clock import ManualClock, MonotonicClock
 from ahrs_service.drivers.sim.motion import MotionState, Trajectory
 from ahrs_service.drivers.sim.sensor_model import SensorErrorModel

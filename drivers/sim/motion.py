@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from ahrs_service.quaternion import (
+from ahrs_service.core.quaternion import (
     quat_conj,
     quat_from_euler,
     quat_from_rotvec,

@@ -5,7 +5,7 @@ sensor's own SI units (rad/s, m/s², µT). :data:`PART_MODELS` holds presets for
 the source papers' boards (GY-80, MinIMU-9 v2) and the common MPU-9250, built from datasheet
 figures; ``docs/simulator.md`` lists the numbers and where they come from.
 
-The order in which errors act (the calibration in ``ahrs_service.drivers.calibration``
+The order in which errors act (the calibration in ``ahrs_service.core.calibration``
 undoes the static part in reverse):
 
     x = soft_iron · true + hard_iron                     (magnetometers; identity/zero else)

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ahrs_service.drivers.base import (
+from ahrs_service.core.samples import (
     ACC_SATURATED,
     ACC_VALID,
     GYR_SATURATED,

@@ -1,4 +1,4 @@
-"""ATTITUDE (#30) and ATTITUDE_QUATERNION (#31) encoders.
+"""ATTITUDE (message 30) and ATTITUDE_QUATERNION (message 31) encoders.
 
 Both carry the attitude of the body (FRD) against the earth (NED) — MAVLink's "aeronautical
 frame". ATTITUDE holds ZYX Euler angles (rad); ATTITUDE_QUATERNION holds q1..q4 = w, x, y, z

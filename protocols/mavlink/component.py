@@ -6,8 +6,12 @@ Threading: a component is used from **one thread** (the service's loop). ``publi
 
 Typical drive (one loop iteration of the service)::
 
+    def calibrate_gyro(action: int) -> tuple[int, str]:   # a commands.CalibrationCallback
+        accepted, text = link.calibrate_gyro()             # mavlink_bridge.ServiceLink.calibrate_gyro
+        return (MAV_RESULT_ACCEPTED if accepted else MAV_RESULT_TEMPORARILY_REJECTED), text
+
     comp = MavlinkComponent(["udpout:127.0.0.1:14550"], Identity(), params=table,
-                            gyro_calibration=service.start_gyro_calibration)
+                            gyro_calibration=calibrate_gyro)
     while running:
         ...                                     # read IMU, step the estimator
         comp.publish(time.monotonic_ns(), telemetry)   # sends what is due

@@ -1,7 +1,7 @@
 """MAVLink 2 frames packed straight from a payload, for the streams sent many times a second.
 
 pymavlink builds a message object per send, then a header object, then the frame byte by
-byte in Python: about 10 µs a message here, most of a 100 Hz attitude stream's cost. A
+byte in Python, most of a 100 Hz attitude stream's cost. A
 :class:`PackedMessage` holds the payload already packed with the message class's own
 ``struct`` layout and frames it with one header ``struct`` call and one CRC call — the same
 bytes pymavlink sends (MAVLink 2, trailing zero bytes of the payload trimmed, CRC-16/MCRF4XX

@@ -1,4 +1,4 @@
-"""SYS_STATUS (#1) and STATUSTEXT (#253) encoders, and the heartbeat's MAV_STATE.
+"""SYS_STATUS (message 1) and STATUSTEXT (message 253) encoders, and the heartbeat's MAV_STATE.
 
 SYS_STATUS reports the gyroscope, accelerometer and magnetometer as
 MAV_SYS_STATUS_SENSOR_3D_GYRO/ACCEL/MAG present/enabled/health bits, and the estimator as

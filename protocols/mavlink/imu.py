@@ -1,4 +1,4 @@
-"""HIGHRES_IMU (#105) encoder: the calibrated IMU readings in the body frame (FRD).
+"""HIGHRES_IMU (message 105) encoder: the calibrated IMU readings in the body frame (FRD).
 
 MAVLink units: acceleration m/s² (specific force, as the service uses), angular rate rad/s,
 magnetic field **gauss** (1 G = 100 µT, so µT are divided by 100), temperature °C.

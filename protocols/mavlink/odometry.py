@@ -1,4 +1,4 @@
-"""ODOMETRY (#331) out: the attitude (and its variances) in the form an autopilot fuses.
+"""ODOMETRY (message 331) out: the attitude (and its variances) in the form an autopilot fuses.
 
 Neither PX4 nor ArduPilot fuses ATTITUDE / ATTITUDE_QUATERNION from a companion; both take
 ODOMETRY as external vision. What each handler reads (docs/autopilot.md, "ODOMETRY"):
@@ -34,9 +34,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
+from ahrs_service.core.quaternion import euler_of
 from ahrs_service.protocols.mavlink.dialect import mavlink
 from ahrs_service.protocols.mavlink.timesync import TimeSync
-from ahrs_service.quaternion import euler_of
 
 #: where each variance sits in pose_covariance (upper triangle of 6 × 6, row-major)
 COV_X, COV_Y, COV_Z, COV_ROLL, COV_PITCH, COV_YAW = 0, 6, 11, 15, 18, 20

@@ -11,9 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
-from ahrs_service.quaternion import euler_of
-from ahrs_service.vibration import VibrationLevels
-
+from ahrs_service.core.quaternion import euler_of
+from ahrs_service.core.vibration import VibrationLevels
 
 #: the streams an ``attitude_only`` :class:`Telemetry` can be published on
 ATTITUDE_STREAMS = frozenset({"ATTITUDE", "ATTITUDE_QUATERNION"})
@@ -57,7 +56,7 @@ class Telemetry:
     lost_samples: IMU samples that never reached the host since start (all causes),
         SYS_STATUS errors_count3.
     faults: other named fault counters (kept for logs; not all fit in SYS_STATUS).
-    vibration: VIBRATION's levels and clipping counts (``ahrs_service.vibration``) or None.
+    vibration: VIBRATION's levels and clipping counts (``ahrs_service.core.vibration``) or None.
     attitude_fresh: a sample was estimated recently; False (gyroscope gone, source silent)
         withholds ATTITUDE, ATTITUDE_QUATERNION, HIGHRES_IMU and VIBRATION — as PX4's streams, which send
         only on a new estimate — while HEARTBEAT (CRITICAL) and SYS_STATUS go on.

@@ -1,4 +1,4 @@
-"""TIMESYNC (#111): the offset and drift between our monotonic clock and an autopilot's.
+"""TIMESYNC (message 111): the offset and drift between our monotonic clock and an autopilot's.
 
 The protocol (MAVLink "Time Synchronization Protocol v2"): a request carries ``tc1 = 0`` and
 ``ts1`` = the requester's time (ns); the answer carries ``tc1`` = the answerer's time (ns) and

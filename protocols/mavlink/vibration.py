@@ -1,6 +1,6 @@
-"""VIBRATION (#241) encoder: vibration levels per body axis and accelerometer clipping counts.
+"""VIBRATION (message 241) encoder: vibration levels per body axis and accelerometer clipping counts.
 
-The values are ArduPilot's (``ahrs_service.vibration``, after
+The values are ArduPilot's (``ahrs_service.core.vibration``, after
 ``AP_InertialSensor::calc_vibration_and_clipping``; sent as ``GCS_MAVLINK::send_vibration``
 does): vibration_x/y/z the RMS specific force above ~5 Hz on body FRD x, y, z in m/s²,
 clipping_0 the clipped samples of the (only) accelerometer since start, clipping_1/2 zero.
