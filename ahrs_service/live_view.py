@@ -3,9 +3,10 @@
 Built on the ``foxglove-sdk`` package (extra ``live``), imported only when ``[live] enabled``.
 The SDK's server runs on its own (Rust) threads: the service loop only hands it already
 encoded messages, and only at IO rate. The per-sample channels (``/imu/raw``, ``/attitude``,
-``/tf``, ``/attitude/truth``) are *decimated before encoding*: every ``1/rate_hz`` the latest
-sample is encoded and published, nothing is done for the others (the MCAP log keeps every
-sample). The slow channels (``/loop``, ``/log``, ``/params``, ``/config``) are published as
+``/tf``, ``/attitude/truth``) are *decimated before encoding*: the latest sample is encoded and
+published when it is ``1/rate_hz`` of sample time after the last one published (sample time,
+not the loop's wall clock: a loop catching up after a stall still shows the viewer evenly
+spaced samples), nothing is done for the others (the MCAP log keeps every sample). The slow channels (``/loop``, ``/log``, ``/params``, ``/config``) are published as
 they are written to the log. Channel names and JSON schemas are the log's
 (:data:`ahrs_service.logs.schemas.CHANNELS`), so one Foxglove layout serves both.
 
@@ -83,7 +84,7 @@ class LiveView:
         self.estimates = estimates
         self.set_param = set_param
         self.period_ns = int(1e9 / rate_hz)
-        self._next_ns = 0
+        self._published_t_ns: int | None = None  # sample time of the last sample published, ns
         self._requests: collections.deque[_SetRequest] = collections.deque()
         self._params = self._current_params()
         self.published = 0  # messages handed to the server
@@ -124,16 +125,13 @@ class LiveView:
         self.estimates = pipeline
 
     def tick(self, now_ns: int) -> None:
-        """Called by the loop at IO rate: applies queued parameter sets, then (every
-        ``1/rate_hz``) publishes the latest sample's /imu/raw, /attitude, /tf and truth."""
+        """Called by the loop at IO rate: applies queued parameter sets, then publishes the
+        latest sample's /imu/raw, /attitude, /tf and truth when it is due (:meth:`_due`)."""
         while self._requests:
             self._apply(self._requests.popleft())
-        if now_ns < self._next_ns:
-            return
-        self._next_ns = now_ns + self.period_ns
         pipeline = self.estimates
         sample = pipeline.last_sample
-        if sample is None:
+        if sample is None or not self._due(sample.t_ns):
             return
         est = pipeline.estimator
         t_ns = sample.t_ns
@@ -146,6 +144,15 @@ class LiveView:
             self.publish("/tf", t_ns, schemas.tf_message(t_ns, q))
         if sample.truth_q is not None:
             self.publish("/attitude/truth", t_ns, schemas.truth_message(t_ns, list(sample.truth_q)))
+
+    def _due(self, t_ns: int) -> bool:
+        """Whether a sample at ``t_ns`` (ns) is ``1/rate_hz`` of sample time after the last one
+        published, or before it (a new timeline after a reload); marks it published if so."""
+        last = self._published_t_ns
+        if last is not None and 0 <= t_ns - last < self.period_ns:
+            return False
+        self._published_t_ns = t_ns
+        return True
 
     def publish(self, topic: str, t_ns: int, message: Mapping[str, Any]) -> None:
         """Encodes and publishes one message (nothing when no client subscribes to ``topic``)."""
