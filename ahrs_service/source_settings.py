@@ -89,7 +89,7 @@ def check_source_section(section: dict[str, Any]) -> None:
     its options and bus rate (by building its drivers on no bus or a simulated one), the
     watermark line, the autopilot's raw scale, the recorded log for ``recorded``, the python-can
     interface for ``can``. Raises :class:`ConfigError` naming the key."""
-    from ahrs_service.drivers.boards import TRANSPORT_BOARDS, buses_of
+    from ahrs_service.drivers.boards import BOARDS, buses_of
 
     bus = section["type"].removeprefix("simulated_")
     if bus in ("i2c", "spi") and bus not in buses_of(section["board"]):
@@ -98,14 +98,15 @@ def check_source_section(section: dict[str, Any]) -> None:
     if section["drdy_gpio"]:
         from ahrs_service.drivers.buses.drdy import parse_line_spec
 
-        if section["board"] not in TRANSPORT_BOARDS or not TRANSPORT_BOARDS[section["board"]][0].HAS_WATERMARK_LINE:
+        if section["board"] not in BOARDS or not BOARDS[section["board"]].on_transport \
+                or not BOARDS[section["board"]].cls.HAS_WATERMARK_LINE:
             raise ConfigError(f"source.drdy_gpio: board {section['board']!r} has no FIFO watermark "
                               f"line; leave drdy_gpio empty (timer polling)")
         try:
             parse_line_spec(section["drdy_gpio"])
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
-    if section["board"] in TRANSPORT_BOARDS and bus in ("i2c", "spi"):
+    if section["board"] in BOARDS and BOARDS[section["board"]].on_transport and bus in ("i2c", "spi"):
         _check_fifo_board(section, bus)
     elif section["board_options"] and section["type"] in ("i2c", "simulated_i2c"):
         _check_board_options(section["board"], dict(section["board_options"]), section["i2c_speed_hz"])

@@ -13,33 +13,36 @@ Two kinds of board, one registry:
   :func:`make_transport_board` on a real bus (``spi``: ``/dev/spidevB.C``; ``i2c``:
   ``/dev/i2c-N``) or on the simulated bus of that kind with the part's twin attached.
 
-The parts themselves are in ``drivers/parts/``, their twins in ``drivers/sim/``.
+The parts themselves are in ``drivers/parts/``, their twins in ``drivers/sim/``. A board's
+module is imported when its class is first asked for (:attr:`BoardSpec.cls`), so reading the
+names (config validation at start-up) does not import every part and twin.
 """
 
 from __future__ import annotations
 
+import importlib
 import inspect
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from ahrs_service.drivers.boards.i2c import GY80, I2CBoard, MinIMU9v2, MPU9250Board
-from ahrs_service.drivers.boards.transport import BMI088Board, FifoBoard, ICM20948Board, ICM42688PBoard
-from ahrs_service.drivers.buses.i2c import SMBusI2C
-from ahrs_service.drivers.sim.bmi088 import SimulatedBMI088Accel, SimulatedBMI088Gyro
-from ahrs_service.drivers.sim.bus import SimulatedI2CBus
-from ahrs_service.drivers.sim.icm20948 import SimulatedICM20948
-from ahrs_service.drivers.sim.icm42688p import SimulatedICM42688P
+if TYPE_CHECKING:
+    from ahrs_service.drivers.boards.i2c import I2CBoard
+    from ahrs_service.drivers.boards.transport import FifoBoard
+
+_I2C = "ahrs_service.drivers.boards.i2c"
+_TRANSPORT = "ahrs_service.drivers.boards.transport"
 
 
 @dataclass(frozen=True)
 class BoardSpec:
-    """One board name: its class, the buses it can be wired on ("i2c", "spi"), the
-    simulator's error models of its gyroscope, accelerometer and magnetometer (names in
-    :data:`~ahrs_service.drivers.sim.sensor_model.PART_MODELS`; "ideal" where the board has
-    none), and the I2C address of its part when it is wired on a transport (the I2C boards
-    take their parts' addresses as options)."""
+    """One board name: where its class is (``module``, ``class_name``), the buses it can be
+    wired on ("i2c", "spi"), the simulator's error models of its gyroscope, accelerometer and
+    magnetometer (names in :data:`~ahrs_service.drivers.sim.sensor_model.PART_MODELS`;
+    "ideal" where the board has none), and the I2C address of its part when it is wired on a
+    transport (the I2C boards take their parts' addresses as options)."""
 
-    cls: type[I2CBoard] | type[FifoBoard]
+    module: str
+    class_name: str
     buses: tuple[str, ...]
     sensor_models: tuple[str, str, str]
     default_address: int | None = None
@@ -47,26 +50,39 @@ class BoardSpec:
     @property
     def on_transport(self) -> bool:
         """True for a board of one part behind a register transport (SPI or I2C)."""
-        return issubclass(self.cls, FifoBoard)
+        return self.module == _TRANSPORT
+
+    @property
+    def cls(self) -> type[I2CBoard] | type[FifoBoard]:
+        """The board's class (its module imported on first use)."""
+        return getattr(importlib.import_module(self.module), self.class_name)
 
 
 #: every board name → its :class:`BoardSpec`, in the order the documentation lists them
 BOARDS: dict[str, BoardSpec] = {
-    "gy80": BoardSpec(GY80, ("i2c",), ("L3G4200D", "ADXL345", "HMC5883L")),
-    "minimu9v2": BoardSpec(MinIMU9v2, ("i2c",), ("L3GD20", "LSM303DLHC_ACC", "LSM303DLHC_MAG")),
-    "mpu9250": BoardSpec(MPU9250Board, ("i2c",), ("MPU9250_GYRO", "MPU9250_ACC", "AK8963")),
-    "icm42688p": BoardSpec(ICM42688PBoard, ("spi", "i2c"), ("ICM42688P_GYRO", "ICM42688P_ACC", "ideal"),
+    "gy80": BoardSpec(_I2C, "GY80", ("i2c",), ("L3G4200D", "ADXL345", "HMC5883L")),
+    "minimu9v2": BoardSpec(_I2C, "MinIMU9v2", ("i2c",), ("L3GD20", "LSM303DLHC_ACC", "LSM303DLHC_MAG")),
+    "mpu9250": BoardSpec(_I2C, "MPU9250Board", ("i2c",), ("MPU9250_GYRO", "MPU9250_ACC", "AK8963")),
+    "icm42688p": BoardSpec(_TRANSPORT, "ICM42688PBoard", ("spi", "i2c"), ("ICM42688P_GYRO", "ICM42688P_ACC", "ideal"),
                            default_address=0x68),
-    "icm20948": BoardSpec(ICM20948Board, ("spi", "i2c"), ("ICM20948_GYRO", "ICM20948_ACC", "AK09916"),
+    "icm20948": BoardSpec(_TRANSPORT, "ICM20948Board", ("spi", "i2c"), ("ICM20948_GYRO", "ICM20948_ACC", "AK09916"),
                           default_address=0x68),
-    "bmi088": BoardSpec(BMI088Board, ("spi",), ("BMI088_GYRO", "BMI088_ACC", "ideal"), default_address=0x00),
+    "bmi088": BoardSpec(_TRANSPORT, "BMI088Board", ("spi",), ("BMI088_GYRO", "BMI088_ACC", "ideal"),
+                        default_address=0x00),
 }
 
-#: the boards of one part behind a register transport: name → (class, buses, default I2C address)
-TRANSPORT_BOARDS: dict[str, tuple[type[FifoBoard], tuple[str, ...], int]] = {
-    name: (spec.cls, spec.buses, spec.default_address)  # type: ignore[misc]
-    for name, spec in BOARDS.items() if spec.on_transport
-}
+
+def transport_boards() -> dict[str, tuple[type[FifoBoard], tuple[str, ...], int]]:
+    """The boards of one part behind a register transport: name → (class, buses, default I2C address)."""
+    return {name: (spec.cls, spec.buses, spec.default_address)  # type: ignore[misc]
+            for name, spec in BOARDS.items() if spec.on_transport}
+
+
+def __getattr__(name: str) -> Any:
+    # TRANSPORT_BOARDS names the classes, so it is built on first use, not at import
+    if name == "TRANSPORT_BOARDS":
+        return transport_boards()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def board_names() -> list[str]:
@@ -93,6 +109,8 @@ def board_class(name: str, options: dict[str, Any]) -> type[I2CBoard]:
     names = i2c_board_names()
     if name not in names:
         raise ValueError(f"unknown I2C board {name!r}; available: {', '.join(names)}")
+    from ahrs_service.drivers.boards.i2c import I2CBoard
+
     cls = BOARDS[name].cls
     allowed = {p for c in (cls, I2CBoard) for p in inspect.signature(c.__init__).parameters
                if p not in ("self", "bus", "kw", "own_bus", "i2c_speed_hz")}
@@ -109,6 +127,8 @@ def make_board(name: str, bus_number: int = 1, i2c_speed_hz: float = 400_000, **
     options: the board's addresses, ranges and rates (e.g. ``gyro_rate_hz=400``); an unknown
     option raises ValueError listing the valid ones.
     """
+    from ahrs_service.drivers.buses.i2c import SMBusI2C
+
     cls = board_class(name, options)
     return cls(SMBusI2C(bus_number), own_bus=True, i2c_speed_hz=i2c_speed_hz, **options)
 
@@ -121,6 +141,8 @@ def make_simulated_board(name: str, simulated_imu: Any, i2c_speed_hz: float = 40
     as ``ahrs_service.drivers.sim.SimulatedImu``. The board (not opened yet) has its
     :class:`~ahrs_service.drivers.sim.bus.SimulatedI2CBus` as ``board.bus``, for fault injection.
     """
+    from ahrs_service.drivers.sim.bus import SimulatedI2CBus
+
     cls = board_class(name, options)
     bus = SimulatedI2CBus(simulated_imu.clock, name=f"sim-i2c[{name}]")
     cls.attach_simulated(bus, simulated_imu, **options)
@@ -129,6 +151,8 @@ def make_simulated_board(name: str, simulated_imu: Any, i2c_speed_hz: float = 40
 
 def transport_board_class(name: str, options: dict[str, Any]) -> type[FifoBoard]:
     """The FIFO board class for ``name``; ValueError naming unknown options."""
+    from ahrs_service.drivers.boards.transport import FifoBoard
+
     cls = BOARDS[name].cls
     allowed = {p for c in (cls, FifoBoard) for p in inspect.signature(c.__init__).parameters
                if p not in ("self", "transport", "kw", "own_bus", "acc_transport")}
@@ -194,6 +218,7 @@ def make_transport_board(name: str, bus_kind: str, *, simulated_imu: Any = None,
 def _make_bmi088(simulated_imu: Any, spi_bus: int, spi_device: int, spi_mode: int, spi_speed_hz: int,
                  options: dict[str, Any], sim_bus_name: str | None = None) -> FifoBoard:
     """The BMI088's two dies on two chip selects: accelerometer (dummy byte) and gyroscope."""
+    from ahrs_service.drivers.boards.transport import BMI088Board
     from ahrs_service.drivers.transport import SPITransport
 
     gyro_cs = int(options.pop("gyro_spi_device", spi_device + 1))
@@ -201,6 +226,7 @@ def _make_bmi088(simulated_imu: Any, spi_bus: int, spi_device: int, spi_mode: in
         raise ValueError(f"bmi088: gyro_spi_device must differ from source.spi_device ({spi_device}): "
                          f"each die has its own chip select")
     if simulated_imu is not None:
+        from ahrs_service.drivers.sim.bmi088 import SimulatedBMI088Accel, SimulatedBMI088Gyro
         from ahrs_service.drivers.sim.bus import SimulatedSPIBus
 
         bus = SimulatedSPIBus(simulated_imu.clock, name=sim_bus_name or f"sim-spi{spi_bus}",
@@ -221,6 +247,9 @@ def _make_bmi088(simulated_imu: Any, spi_bus: int, spi_device: int, spi_mode: in
 
 
 def _twin_for(name: str, simulated_imu: Any, address: int | None = None) -> Any:
+    from ahrs_service.drivers.sim.icm20948 import SimulatedICM20948
+    from ahrs_service.drivers.sim.icm42688p import SimulatedICM42688P
+
     if name == "icm20948":  # its aux I2C bus runs on the same clock
         return SimulatedICM20948(simulated_imu, address, clock=simulated_imu.clock)
     return SimulatedICM42688P(simulated_imu, address)
