@@ -306,3 +306,20 @@ def test_checker_accepts_real_references() -> None:
 `EKF2_EV_CTRL = 8`, [design](design.md), [vqf](https://github.com/dlaidig/vqf).
 """
     assert problems_in(real, ROOT / "docs") == []
+
+
+def test_the_docs_name_every_board_of_the_registry_and_no_other() -> None:
+    """The configuration reference lists the board registry's names with their buses, and each
+    board has its row in the drivers' pages (``ahrs_service.drivers.boards.BOARDS``)."""
+    from ahrs_service.drivers.boards import BOARDS
+
+    reference = (ROOT / "docs" / "configuration.md").read_text(encoding="utf-8")
+    listed = re.search(r'^board = "\w+"\s+#\s*(.+)$', reference, re.M)
+    assert listed, "docs/configuration.md: no board = … line"
+    named = re.findall(r"[a-z0-9]+", re.sub(r"\([^)]*\)", "", listed.group(1)))
+    assert named == list(BOARDS)
+    for group in re.findall(r"((?:[a-z0-9]+ \| )*[a-z0-9]+) \(([^)]*)\)", listed.group(1)):
+        boards, buses = group[0].split(" | "), {b.strip().lower() for b in group[1].split(" or ")}
+        assert all(set(BOARDS[b].buses) == buses for b in boards), (boards, buses)
+    pages = (ROOT / "docs" / "drivers.md").read_text(encoding="utf-8") + (ROOT / "docs" / "drivers-spi.md").read_text(encoding="utf-8")
+    assert [b for b in BOARDS if not re.search(rf"^\| `{b}` \|", pages, re.M)] == []
