@@ -54,8 +54,10 @@ for _part, _bus in (("adxl345", "i2c"), ("ak8963", "i2c"), ("hmc5883l", "i2c"), 
                                                     f"ahrs_service.drivers.sim.{_part}")
 
 
-#: names that left a module that still exists: module → {old name: "new.module:new_name"}.
-#: Such a module ends with ``def __getattr__(name): return _moved.moved_name(__name__, name)``.
+#: names that left a module that still exists: module → {old name: "new.module:new_name"};
+#: the key ``"*"`` forwards every other name the new module has (a module that became a
+#: package of the same name). Such a module ends with
+#: ``def __getattr__(name): return _moved.moved_name(__name__, name)``.
 MOVED_NAMES: dict[str, dict[str, str]] = {
     "ahrs_service.config": {
         "Checker": "ahrs_service.core.settings:Checker",
@@ -72,6 +74,9 @@ MOVED_NAMES: dict[str, dict[str, str]] = {
         "TransportError": "ahrs_service.drivers.device:TransportError",
         "PartIdentityError": "ahrs_service.drivers.device:PartIdentityError",
     },
+    "ahrs_service.protocols.dronecan": {  # the codec module became the DroneCAN package
+        "*": "ahrs_service.protocols.dronecan.messages",
+    },
     "ahrs_service.drivers.i2c.boards": {  # a moved module whose name means something narrower now
         "board_names": "ahrs_service.drivers.boards:i2c_board_names",
     },
@@ -85,7 +90,12 @@ MOVED_NAMES: dict[str, dict[str, str]] = {
 
 def moved_name(module: str, name: str):
     """The object ``module.name`` became (a DeprecationWarning says where); AttributeError if none."""
-    new = MOVED_NAMES.get(module, {}).get(name)
+    table = MOVED_NAMES.get(module, {})
+    new = table.get(name)
+    if new is None and "*" in table and not name.startswith("_"):
+        everything = table["*"]
+        if name != everything.rpartition(".")[2] and hasattr(importlib.import_module(everything), name):
+            new = f"{everything}:{name}"
     if new is None:
         raise AttributeError(f"module {module!r} has no attribute {name!r}")
     new_module, _, new_name = new.partition(":")

@@ -346,7 +346,7 @@ class Service:
         self.log_writer.write_config(time.monotonic_ns(), self.effective_config())
         self.log_sink = FlightLogSink(self.log_writer, log_truth=cfg.log["truth"],
                                       on_diagnostics=self._report_mag_rejection)
-        if earlier is not None and earlier._diagnostics_due:  # a record due goes to the new file
+        if earlier is not None and earlier.diagnostics_pending:  # a record due goes to the new file
             self.log_sink.diagnostics_due()
 
     def effective_config(self) -> dict[str, Any]:

@@ -52,6 +52,11 @@ class FlightLogSink:
         """The next block written carries the estimator's diagnostics."""
         self._diagnostics_due = True
 
+    @property
+    def diagnostics_pending(self) -> bool:
+        """A diagnostics record is due and not written yet (a reload hands it to the next sink)."""
+        return self._diagnostics_due
+
     def receive(self, estimated: EstimatedBlock) -> None:
         pipeline = estimated.pipeline
         diagnostics = None

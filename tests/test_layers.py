@@ -32,11 +32,6 @@ def test_the_import_graph_has_no_circle(project_imports):
     assert floors.cycles(project_imports) == []
 
 
-def test_the_ground_floor_imports_nothing_of_the_project_above_it(project_imports):
-    assert not [imp for imp in project_imports
-                if floors.floor_of(imp.importer)[0] == floors.GROUND and floors.floor_of(imp.imported)[0] != floors.GROUND]
-
-
 def _tree(tmp_path: Path, files: dict[str, str]) -> list[floors.Import]:
     for name, text in files.items():
         path = tmp_path / name

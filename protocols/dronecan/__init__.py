@@ -4,17 +4,8 @@
 See docs/drivers-can.md.
 """
 
+from ahrs_service import _moved
 
-def __getattr__(name: str):
-    # the codec was the module ahrs_service.protocols.dronecan before it became this package
-    import importlib
-    import warnings
 
-    if name.startswith("_") or name in ("messages", "imu_source", "sim_node"):
-        raise AttributeError(name)
-    messages = importlib.import_module(f"{__name__}.messages")
-    if not hasattr(messages, name):
-        raise AttributeError(name)
-    warnings.warn(f"{__name__}.{name} moved to {__name__}.messages.{name}; "
-                  "the old path will be removed in the next release", DeprecationWarning, stacklevel=2)
-    return getattr(messages, name)
+def __getattr__(name: str):  # the codec's names, from when it was this module, for one release
+    return _moved.moved_name(__name__, name)
