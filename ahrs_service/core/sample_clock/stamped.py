@@ -158,6 +158,7 @@ class _Recovery:
         self.scale = 0.0  # running mean |residual|
         self.scale_n = 0
         self.last = 0.0  # newest recovered time
+        self.last_stamp = 0.0  # newest stamp as given
         self.lost = 0
         self.pending: list[tuple[float, float, float]] = []  # held stamps: index, time, offset
         self.pending_sign = 0
@@ -179,11 +180,14 @@ class _Recovery:
             self.k = 0.0
             self.fit.add(0.0, y)
             self.last = y
+            self.last_stamp = y
             return y
+        silence = y - self.last_stamp
+        self.last_stamp = y
         self.k += dk
         advance = float(dk)
         if detect_gaps and self.fit.n >= 8:
-            advance += self._watch_gaps(y)
+            advance += self._watch_gaps(y, silence)
         else:
             self._flush()
             self._absorb(self.k, y)
@@ -230,13 +234,32 @@ class _Recovery:
         self.pending.clear()
         self.pending_sign = 0
 
-    def _watch_gaps(self, y: float) -> float:
+    #: a stamp that comes after a silence of more than this many periods and lies as many
+    #: periods late is a gap at once (lost samples), not a late run to confirm
+    GAP_AT_ONCE = 4.0
+
+    def _watch_gaps(self, y: float, silence: float) -> float:
         """Stamps more than half a period off the line are held out of the fit; when
         ``confirm`` of them follow one another on the same side, the index moves by their
-        median offset in whole periods (a gap) and they join the fit. Returns the index shift."""
+        median offset in whole periods (a gap) and they join the fit. A stamp that ends a
+        silence of more than GAP_AT_ONCE periods (and GAP_AT_ONCE times the stamps' usual
+        scatter) and lies as late moves the index at once: its
+        samples were lost, and the step across the gap must carry the gap's time now, where
+        the estimators integrate it (a stall that a catch-up burst follows is undone as a
+        run of early stamps). Returns the index shift."""
         slope = self._slope()
         period = self.period if slope is None else slope
         e = y - self.fit.at(self.k, period)
+        # stamps that arrive in bursts (a FIFO block stamped with its read time) scatter by
+        # half a block around the line: a gap at once must stand out of that scatter too
+        at_once = self.GAP_AT_ONCE * max(period, self.scale)
+        if self.scale_n >= self.fit.size // 2 and e > at_once and silence > at_once:
+            self._flush()
+            m = whole_periods(e, period)
+            self.k += m
+            self.lost += m
+            self._absorb(self.k, y)
+            return float(m)
         side = 1 if e > 0.5 * period else (-1 if e < -0.5 * period else 0)
         if side == 0 or (self.pending and side != self.pending_sign):
             self._flush()
