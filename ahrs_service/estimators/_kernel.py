@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 
 from ahrs_service.core.layout import Layout, Slot
@@ -37,9 +38,18 @@ STATE_HEADER = Layout(
         Slot("bias", 3, "gyro-bias estimate, rad/s, body frame (zero where not estimated)"),
         Slot("acc_age", 1, "time since the last usable accelerometer sample, s (NO_SAMPLE_YET: none yet)"),
         Slot("mag_age", 1, "time since the last usable magnetometer sample, s (NO_SAMPLE_YET: none yet)"),
+        Slot("gyr_last", 3, "the last usable gyroscope sample, rad/s (the start of a gap's bridge)"),
+        Slot("step_typical", 1, "the typical time step, s, learned from steps that are not gaps (0: none yet)"),
+        Slot("gap_run", 1, "count of consecutive gap steps (a lasting change of rate ends a run)"),
+        Slot("gaps", 1, "count of gaps bridged"),
+        Slot("gap_error", 1, "1σ of the rotation the gaps left unobserved and the corrections have not yet removed, rad"),
+        Slot("gap_new", 1, "variance of the rotation the latest gap left unobserved, rad² (0 after a step that is no gap)"),
+        Slot("gyr_lp", 3, "the gyroscope rate low-passed with RATE_SPREAD_TIME, rad/s"),
+        Slot("gyr_spread", 1, "mean square of the rate about gyr_lp, (rad/s)²: how much the rate wanders"),
     ],
 )
-Q, INITIALISED, ACC_SKIPPED, MAG_SKIPPED, GYR_SKIPPED, BIAS, ACC_AGE, MAG_AGE = STATE_HEADER.index
+(Q, INITIALISED, ACC_SKIPPED, MAG_SKIPPED, GYR_SKIPPED, BIAS, ACC_AGE, MAG_AGE,
+ GYR_LAST, STEP_TYPICAL, GAP_RUN, GAPS, GAP_ERROR, GAP_NEW, GYR_LP, GYR_SPREAD) = STATE_HEADER.index  # fmt: skip
 HEADER = STATE_HEADER.end  # where an estimator's own slots start
 #: acc_age / mag_age before the first usable sample (a state stays finite: logs, checks)
 NO_SAMPLE_YET = -1.0
@@ -77,7 +87,160 @@ def check_sample(s, x, uses_mag):
         s[MAG_AGE] = 0.0
     elif gyro_ok and s[MAG_AGE] >= 0.0:
         s[MAG_AGE] += dt
+    if gyro_ok:
+        s[GYR_LAST], s[GYR_LAST + 1], s[GYR_LAST + 2] = x[0], x[1], x[2]
+        _track_rate_spread(s, x, dt)
+        if acc_ok and s[GAP_ERROR] > 0.0:
+            # the accelerometer observes the tilt again: the corrections remove the gap's error
+            s[GAP_ERROR] *= math.exp(-dt / GAP_RECOVERY_TIME)
     return gyro_ok, acc_ok, mag_ok
+
+
+# ------------------------------------------------------------------------------- sample gaps
+# A gap is a time step several typical steps long: samples were lost (FIFO overflow, a host
+# stall, a dropped link). What every estimator does across one (docs/gaps.md):
+#
+# * the rotation during the gap is unobserved; the gyroscope rate is carried across it,
+#   interpolated linearly from the last sample before the gap to the first after, in
+#   sub-steps no longer than the typical step (at most GAP_MAX_SUBSTEPS), each integrated by
+#   the estimator's own step with no accelerometer or magnetometer sample — a prediction
+#   without correction, never one huge integration step and nothing learned across the gap;
+# * the interpolation's error is at most about half the change of rate times the gap's
+#   length (the rate may have changed anywhere in it): gap_error, the 1σ of the rotation
+#   the gap left unobserved, grows by that (root sum square) and the variances the
+#   estimators report grow with it;
+# * while gap_error is large the estimators correct faster (``recovery_gain``) and learn no
+#   gyro bias and no rest (``recovering``): an error the gap made is a step, not a drift, and
+#   taken for a bias it would turn into one. gap_error decays with GAP_RECOVERY_TIME while
+#   the accelerometer is usable.
+
+#: a step longer than this many typical steps is a gap
+GAP_STEPS = 4.0
+#: the weight with which a step that is not a gap moves the typical step
+STEP_TYPICAL_WEIGHT = 0.01
+#: this many gap steps in a row are a new rate, not lost samples: the typical step follows
+GAP_RUN_NEW_RATE = 8
+#: the most sub-steps a gap is bridged with (a long outage is bridged with longer sub-steps)
+GAP_MAX_SUBSTEPS = 400
+#: time constant with which the corrections are taken to remove a gap's error, s
+GAP_RECOVERY_TIME = 1.0
+#: gap_error above which the correction gain is raised in proportion, rad (2°: about the
+#: estimators' own error in motion, which their usual gain is made for)
+GAP_ERROR_BOOST = 2.0 * math.pi / 180.0
+#: time constant of the rate's low-pass whose spread measures how the rate wanders, s
+RATE_SPREAD_TIME = 0.5
+#: the largest factor on a correction gain after a gap (x-io Fusion's start-up gain is 10×
+#: its default: the same idea, an error of unknown size corrected fast, then the usual gain)
+GAP_GAIN_MAX = 10.0
+#: below this gap_error the estimator learns bias and rest again, rad (2°, GAP_ERROR_BOOST:
+#: an error below the estimators' own error in motion is noise to them; above it, a step that
+#: a bias learned meanwhile would keep)
+GAP_ERROR_LEARN = GAP_ERROR_BOOST
+
+
+@_jit
+def _track_rate_spread(s, x, dt):
+    """Keeps gyr_lp and gyr_spread: how far the rate wanders within RATE_SPREAD_TIME (what a
+    gap cannot observe). Until the attitude is initialised the low-pass follows the rate."""
+    if s[INITIALISED] == 0.0:
+        s[GYR_LP], s[GYR_LP + 1], s[GYR_LP + 2] = x[0], x[1], x[2]
+        return
+    k = min(1.0, dt / RATE_SPREAD_TIME)
+    spread = 0.0
+    for i in range(3):
+        d = x[i] - s[GYR_LP + i]
+        spread += d * d
+        s[GYR_LP + i] += k * d
+    s[GYR_SPREAD] += k * (spread - s[GYR_SPREAD])
+
+
+@_jit
+def gap_substeps(s, x):
+    """How many sub-steps bridge the gap before row ``x`` (0: no gap); keeps the typical step.
+
+    A gap's bridge needs a rate before it, so the first steps of a run are never gaps. Returns
+    n ≥ 2 for a gap: n − 1 bridging rows (``bridge_row``) and the row itself, each covering
+    dt / n; adds the gap's unobserved rotation to ``gap_error``.
+    """
+    dt = x[DT]
+    s[GAP_NEW] = 0.0
+    if not (dt > 0.0 and dt < 1e3 and math.isfinite(x[0] + x[1] + x[2])):
+        return 0
+    typical = s[STEP_TYPICAL]
+    if typical <= 0.0:
+        s[STEP_TYPICAL] = dt
+        return 0
+    if dt <= GAP_STEPS * typical or s[INITIALISED] == 0.0:
+        s[GAP_RUN] = 0.0
+        s[STEP_TYPICAL] += STEP_TYPICAL_WEIGHT * (dt - typical)
+        return 0
+    s[GAP_RUN] += 1.0
+    if s[GAP_RUN] >= GAP_RUN_NEW_RATE:
+        s[STEP_TYPICAL] = dt  # the rate changed: these steps are the sensor's new period
+        s[GAP_RUN] = 0.0
+        return 0
+    s[GAPS] += 1.0
+    s[GAP_NEW] = gap_variance(s, x, dt)
+    s[GAP_ERROR] = math.sqrt(s[GAP_ERROR] ** 2 + s[GAP_NEW])
+    return max(2, min(GAP_MAX_SUBSTEPS, int(dt / typical + 0.5)))
+
+
+@_jit
+def gap_variance(s, x, gap):
+    """Variance (rad²) of the rotation a gap of ``gap`` s before row ``x`` leaves unobserved.
+
+    Two parts, root sum square: the rate interpolated across the gap may be wrong by up to
+    half its change (0.5·|Δω|·gap: the change may have happened anywhere in it), and the rate
+    wanders within the gap as it did before it: its spread σ about its low-pass, over a gap
+    shorter than RATE_SPREAD_TIME mostly a smooth change the interpolation follows
+    (σ·gap²/(2·RATE_SPREAD_TIME)), over a longer one up to σ·gap/2.
+    """
+    d0, d1, d2 = x[0] - s[GYR_LAST], x[1] - s[GYR_LAST + 1], x[2] - s[GYR_LAST + 2]
+    step_change = 0.5 * math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) * gap
+    wander = 0.5 * math.sqrt(s[GYR_SPREAD]) * gap * min(1.0, gap / RATE_SPREAD_TIME)
+    return step_change * step_change + wander * wander
+
+
+@_jit
+def begin_bridge(s):
+    """(rate before the gap, the counters to restore, a scratch row) for ``bridge_row``."""
+    return (s[GYR_LAST], s[GYR_LAST + 1], s[GYR_LAST + 2]), (s[ACC_SKIPPED], s[MAG_SKIPPED]), np.empty(ROW)
+
+
+@_jit
+def bridge_row(sub, w0, x, j, n):
+    """The j-th of the n − 1 rows that bridge a gap before ``x``: the rate interpolated from
+    ``w0`` (the last sample's) to ``x``'s, no accelerometer or magnetometer, dt = x's dt / n."""
+    f = j / n
+    for k in range(3):
+        sub[k] = w0[k] + f * (x[k] - w0[k])
+        sub[ACC + k] = math.nan
+        sub[MAG + k] = math.nan
+    sub[DT] = x[DT] / n
+    return sub
+
+
+@_jit
+def end_bridge(s, saved, x, n):
+    """The row after its gap's bridge: ``x`` covering the last sub-step. The bridging rows'
+    missing accelerometer and magnetometer samples were not the sensor's: they are not counted
+    as skipped corrections."""
+    s[ACC_SKIPPED], s[MAG_SKIPPED] = saved
+    last = x.copy()
+    last[DT] = x[DT] / n
+    return last
+
+
+@_jit
+def recovery_gain(s):
+    """The factor (≥ 1) on a correction gain while a gap's error is being corrected."""
+    return min(GAP_GAIN_MAX, max(1.0, s[GAP_ERROR] / GAP_ERROR_BOOST))
+
+
+@_jit
+def recovering(s):
+    """Whether a gap's error is still large: bias and rest are not learned meanwhile."""
+    return s[GAP_ERROR] > GAP_ERROR_LEARN
 
 
 GRAVITY = 9.81  # m/s², the nominal specific force at rest of the accelerometer gates
@@ -216,7 +379,7 @@ def rest_bias_update(s, prev, x, gain):
 
     ``prev`` is the index of REST_BIAS_SLOTS in ``s``; ``gain`` the fraction per sample.
     """
-    if steady_state(s, prev, x):
+    if steady_state(s, prev, x) and not recovering(s):
         for i in range(3):
             s[BIAS + i] += gain * (x[i] - s[BIAS + i])
 
@@ -244,6 +407,6 @@ def rest_share_bias_update(s, prev, share, x, gain, tau, dt):
         s[share] += (1.0 - math.exp(-dt / tau)) * ((1.0 if steady else 0.0) - s[share])
         if s[share] < REST_SHARE_MIN:
             steady = False
-    if steady:
+    if steady and not recovering(s):
         for i in range(3):
             s[BIAS + i] += gain * (x[i] - s[BIAS + i])

@@ -104,7 +104,15 @@ class Estimator:
     def attitude_variance(self) -> AttitudeVariance:
         """Variances of the current roll, pitch and yaw (ZYX Euler angles), rad²; NaN where
         unknown (before initialisation; yaw of the estimators that do not observe heading, or
-        before the first usable field sample). This default is the ``error_model`` over the
+        before the first usable field sample): the estimator's own model
+        (``_model_variance``) plus, in each angle, the variance of the rotation sample gaps
+        left unobserved that the corrections have not yet removed (the header's
+        ``gap_error``, docs/gaps.md)."""
+        gap = float(self.state[K.GAP_ERROR])
+        return self._model_variance().plus(gap * gap)
+
+    def _model_variance(self) -> AttitudeVariance:
+        """The estimator's own variance model. This default is the ``error_model`` over the
         ages of the newest usable accelerometer and magnetometer samples; estimators with a
         covariance override it."""
         s = self.state
@@ -122,6 +130,9 @@ class Estimator:
             "acc_skipped": int(s[K.ACC_SKIPPED]),
             "mag_skipped": int(s[K.MAG_SKIPPED]),
             "gyr_skipped": int(s[K.GYR_SKIPPED]),
+            # sample gaps bridged, and the 1σ of the rotation they left uncorrected (docs/gaps.md)
+            "gaps": int(s[K.GAPS]),
+            "gap_error_deg": math.degrees(float(s[K.GAP_ERROR])),
             # logged with the attitude at log.diagnostics_hz (logs/schemas.py ATTITUDE)
             "attitude_variance": self.attitude_variance().as_dict(),
         }

@@ -233,6 +233,9 @@ def _complementary_update(s, x, omega0, declination, acc_gate, acc_lowpass, acc_
         _store_euler(s, phi, theta, psi)
     if phase or not gyro_ok:
         return
+    # after a gap: cut-off raised and gate widened while its error is corrected (_kernel)
+    omega0 *= K.recovery_gain(s)
+    acc_gate *= K.recovery_gain(s)
     phi, theta, psi = s[PHI], s[THETA], s[PSI]
     dt = x[K.DT]
     if bias_rate > 0.0:  # not in the paper: the steady-state bias estimate (imu_tools)
@@ -287,6 +290,13 @@ _PR = param_index(ComplementaryReducedParams)  # indices of the packed parameter
 
 @njit(cache=True)
 def complementary_reduced_step(s, p, x):
+    """One sample row; a gap before it is bridged first (``_kernel``, "sample gaps")."""
+    n = K.gap_substeps(s, x)
+    if n:
+        w0, saved, sub = K.begin_bridge(s)
+        for j in range(1, n):
+            _complementary_update(s, K.bridge_row(sub, w0, x, j, n), p[_PR.omega0], 0.0, p[_PR.acc_gate], p[_PR.acc_lowpass], p[_PR.acc_soft] != 0.0, 1e9, False, p[_PR.bias_rate], p[_PR.rest_time])
+        x = K.end_bridge(s, saved, x, n)
     _complementary_update(s, x, p[_PR.omega0], 0.0, p[_PR.acc_gate], p[_PR.acc_lowpass], p[_PR.acc_soft] != 0.0, 1e9, False, p[_PR.bias_rate], p[_PR.rest_time])
 
 
@@ -295,6 +305,13 @@ _PF = param_index(ComplementaryFullParams)  # indices of the packed parameter ve
 
 @njit(cache=True)
 def complementary_full_step(s, p, x):
+    """One sample row; a gap before it is bridged first (``_kernel``, "sample gaps")."""
+    n = K.gap_substeps(s, x)
+    if n:
+        w0, saved, sub = K.begin_bridge(s)
+        for j in range(1, n):
+            _complementary_update(s, K.bridge_row(sub, w0, x, j, n), p[_PF.omega0], p[_PF.declination], p[_PF.acc_gate], p[_PF.acc_lowpass], p[_PF.acc_soft] != 0.0, p[_PF.mag_gate], True, 0.0, 0.0)
+        x = K.end_bridge(s, saved, x, n)
     _complementary_update(s, x, p[_PF.omega0], p[_PF.declination], p[_PF.acc_gate], p[_PF.acc_lowpass], p[_PF.acc_soft] != 0.0, p[_PF.mag_gate], True, 0.0, 0.0)
 
 

@@ -229,6 +229,17 @@ def _gain(s, r):
 
 
 @_inline
+def _hold_bias_after_gap(s):
+    """While a gap's error is corrected (``_kernel.recovering``) the bias rows of K are 0: the
+    bias is a consider state (Schmidt), its estimate and covariance stay as they are and the
+    update's P formulas keep the cross-covariance right. The gap's error is a step, not a
+    drift: the innovation it makes must not become a bias."""
+    if K.recovering(s):
+        for i in range(4 * 3, N * 3):
+            s[KG + i] = 0.0
+
+
+@_inline
 def _apply(s, y0, y1, y2):
     """x ← x + K y (eq. 25), then unit quaternion."""
     kg = s[KG : KG + N * 3]
@@ -272,6 +283,7 @@ def _accelerometer_update(s, x, acc_noise, gyro_noise):
     ok, _ = _gain(s, acc_noise * acc_noise)
     if not ok:
         return
+    _hold_bias_after_gap(s)
     # eq. 26: P ← (I − K H) P = P − K (P Hᵀ)ᵀ, symmetric for the optimal gain
     p = s[P0 : P0 + N * N]
     kg = s[KG : KG + N * 3]
@@ -323,6 +335,7 @@ def _magnetometer_update(s, x, mag_noise, mag_gate, dt):
         c = d[0] * kg[12 + j] + d[1] * kg[15 + j] + d[2] * kg[18 + j]
         for i in range(3):
             kg[(4 + i) * 3 + j] = d[i] * c
+    _hold_bias_after_gap(s)
     # Joseph form for a non-optimal gain: P ← P − K (PHᵀ)ᵀ − (PHᵀ) Kᵀ + K S Kᵀ
     p = s[P0 : P0 + N * N]
     pht = s[PHT : PHT + N * 3]
@@ -348,6 +361,18 @@ _P = param_index(QuaternionEKFParams)  # indices of the packed parameter vector,
 
 @njit(cache=True)
 def ekf_step(s, p, x):
+    """One sample row; a gap before it is bridged first (``_kernel``, "sample gaps")."""
+    n = K.gap_substeps(s, x)
+    if n:
+        w0, saved, sub = K.begin_bridge(s)
+        for j in range(1, n):
+            _ekf_update(s, p, K.bridge_row(sub, w0, x, j, n))
+        x = K.end_bridge(s, saved, x, n)
+    _ekf_update(s, p, x)
+
+
+@njit(cache=True)
+def _ekf_update(s, p, x):
     gyro_noise, bias_noise, acc_noise, mag_noise = p[_P.gyro_noise], p[_P.bias_noise], p[_P.acc_noise], p[_P.mag_noise]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
@@ -390,7 +415,7 @@ class QuaternionEKF(Estimator):
     #: docs/autopilot.md "Attitude covariance"
     observed_error_model: ClassVar[CovarianceErrorModel] = CovarianceErrorModel(tilt_scale=0.21, heading_scale=0.067)
 
-    def attitude_variance(self) -> AttitudeVariance:
+    def _model_variance(self) -> AttitudeVariance:
         """Roll, pitch, yaw variances (rad²) from the quaternion block of P (J P_qq Jᵀ), plus
         what the model leaves out, scaled (``uncertainty.CovarianceErrorModel``); yaw NaN
         until the first usable field sample."""

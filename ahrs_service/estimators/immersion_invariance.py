@@ -104,7 +104,25 @@ _P = param_index(ImmersionInvarianceParams)  # indices of the packed parameter v
 
 @njit(cache=True)
 def immersion_invariance_step(s, p, x):
+    """One sample row; a gap before it is bridged first (``_kernel``, "sample gaps")."""
+    n = K.gap_substeps(s, x)
+    if n:
+        w0, saved, sub = K.begin_bridge(s)
+        for j in range(1, n):
+            _immersion_invariance_update(s, p, K.bridge_row(sub, w0, x, j, n))
+        x = K.end_bridge(s, saved, x, n)
+    _immersion_invariance_update(s, p, x)
+
+
+@njit(cache=True)
+def _immersion_invariance_update(s, p, x):
     g1, g2, g3 = p[_P.gamma1], p[_P.gamma2], p[_P.gamma3]
+    # after a gap: the output-error gain raised, the drift and bias estimates held while
+    # its error is corrected (_kernel, "sample gaps"); γ₁ dt stays below 1
+    g1 = min(g1 * K.recovery_gain(s), 0.5 / max(x[K.DT], 1e-6))
+    if K.recovering(s):
+        g2 = 0.0
+        g3 = 0.0
     xi_bar, mu_bar = p[_P.xi_bar], p[_P.mu_bar]
     gyro_ok, acc_ok, _ = K.check_sample(s, x, False)
     phase = K.initialise_from_sample(s, x, acc_ok, False)

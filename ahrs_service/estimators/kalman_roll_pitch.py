@@ -132,6 +132,18 @@ _P = param_index(KalmanRollPitchParams)  # indices of the packed parameter vecto
 
 @njit(cache=True)
 def kalman_roll_pitch_step(s, p, x):
+    """One sample row; a gap before it is bridged first (``_kernel``, "sample gaps")."""
+    n = K.gap_substeps(s, x)
+    if n:
+        w0, saved, sub = K.begin_bridge(s)
+        for j in range(1, n):
+            _kalman_roll_pitch_update(s, p, K.bridge_row(sub, w0, x, j, n))
+        x = K.end_bridge(s, saved, x, n)
+    _kalman_roll_pitch_update(s, p, x)
+
+
+@njit(cache=True)
+def _kalman_roll_pitch_update(s, p, x):
     sigma_zeta, sigma_xi = p[_P.sigma_zeta], p[_P.sigma_xi]
     r_meas = sigma_xi * sigma_xi
     gyro_ok, acc_ok, _ = K.check_sample(s, x, False)
@@ -215,7 +227,7 @@ class KalmanRollPitch(Estimator):
     step = staticmethod(kalman_roll_pitch_step)
     batch = staticmethod(kalman_roll_pitch_batch)
 
-    def attitude_variance(self) -> AttitudeVariance:
+    def _model_variance(self) -> AttitudeVariance:
         """The two filters' own variances of roll and pitch (rad²); yaw NaN (not observed)."""
         s = self.state
         if not s[K.INITIALISED]:

@@ -48,7 +48,20 @@ _P = param_index(MadgwickParams)  # indices of the packed parameter vector, by f
 
 @njit(cache=True)
 def madgwick_step(s, p, x):
-    beta = p[_P.beta]
+    """One sample row; a gap before it is bridged first (``_kernel``, "sample gaps")."""
+    n = K.gap_substeps(s, x)
+    if n:
+        w0, saved, sub = K.begin_bridge(s)
+        for j in range(1, n):
+            _madgwick_update(s, p, K.bridge_row(sub, w0, x, j, n))
+        x = K.end_bridge(s, saved, x, n)
+    _madgwick_update(s, p, x)
+
+
+@njit(cache=True)
+def _madgwick_update(s, p, x):
+    # β raised while a gap's error is corrected (_kernel.recovery_gain)
+    beta = p[_P.beta] * K.recovery_gain(s)
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
         return

@@ -138,8 +138,13 @@ STATE_SIZE = STATE.end
 @njit(cache=True, inline="always")
 def _mahony_step(s, p, x, direct):
     kp, ki, w_acc, w_mag = p[_P.kp], p[_P.ki], p[_P.w_acc], p[_P.w_mag]
-    heading_only = p[_P.mag_heading_only] != 0.0
     acc_gate, mag_gate = p[_P.acc_gate], p[_P.mag_gate]
+    # after a gap: k_p raised and the bias integral held while its error is corrected (_kernel)
+    kp *= K.recovery_gain(s)
+    acc_gate *= K.recovery_gain(s)
+    if K.recovering(s):
+        ki = 0.0
+    heading_only = p[_P.mag_heading_only] != 0.0
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
         return
@@ -182,11 +187,25 @@ def _mahony_step(s, p, x, direct):
 
 @njit(cache=True)
 def mahony_direct_step(s, p, x):
+    """One sample row; a gap before it is bridged first (``_kernel``, "sample gaps")."""
+    n = K.gap_substeps(s, x)
+    if n:
+        w0, saved, sub = K.begin_bridge(s)
+        for j in range(1, n):
+            _mahony_step(s, p, K.bridge_row(sub, w0, x, j, n), True)
+        x = K.end_bridge(s, saved, x, n)
     _mahony_step(s, p, x, True)
 
 
 @njit(cache=True)
 def mahony_passive_step(s, p, x):
+    """One sample row; a gap before it is bridged first (``_kernel``, "sample gaps")."""
+    n = K.gap_substeps(s, x)
+    if n:
+        w0, saved, sub = K.begin_bridge(s)
+        for j in range(1, n):
+            _mahony_step(s, p, K.bridge_row(sub, w0, x, j, n), False)
+        x = K.end_bridge(s, saved, x, n)
     _mahony_step(s, p, x, False)
 
 

@@ -132,6 +132,18 @@ _P = param_index(QuaternionKFParams)  # indices of the packed parameter vector, 
 
 @njit(cache=True)
 def quaternion_kf_step(s, p, x):
+    """One sample row; a gap before it is bridged first (``_kernel``, "sample gaps")."""
+    n = K.gap_substeps(s, x)
+    if n:
+        w0, saved, sub = K.begin_bridge(s)
+        for j in range(1, n):
+            _quaternion_kf_update(s, p, K.bridge_row(sub, w0, x, j, n))
+        x = K.end_bridge(s, saved, x, n)
+    _quaternion_kf_update(s, p, x)
+
+
+@njit(cache=True)
+def _quaternion_kf_update(s, p, x):
     sigma_zeta, sigma_xi, w_acc, w_mag = p[_P.sigma_zeta], p[_P.sigma_xi], p[_P.w_acc], p[_P.w_mag]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if s[DIP] == 0.0 and s[DIP + 1] == 0.0 and acc_ok and mag_ok:
@@ -258,7 +270,7 @@ class QuaternionKF(Estimator):
         s[P : P + 16] = (self.params.p0 * np.eye(4)).ravel()
         return s
 
-    def attitude_variance(self) -> AttitudeVariance:
+    def _model_variance(self) -> AttitudeVariance:
         """Roll, pitch, yaw variances (rad²) from the filter's 4 × 4 P (J P Jᵀ) plus the floors
         of what the model leaves out (``uncertainty.with_unmodelled_floor``); yaw NaN until
         the first usable field sample (before it the measurement is gravity only)."""

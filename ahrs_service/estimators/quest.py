@@ -218,7 +218,7 @@ class Quest(Estimator):
     #: either data set needs (inclination: BROAD or DIDO; heading: BROAD), docs/autopilot.md
     observed_error_model: ClassVar[SnapshotErrorModel] = SnapshotErrorModel(tilt_scale=0.41, heading_scale=0.64)
 
-    def attitude_variance(self) -> AttitudeVariance:
+    def _model_variance(self) -> AttitudeVariance:
         """Variances from the disturbance the newest samples show (``SnapshotErrorModel``)."""
         if not self.state[K.INITIALISED]:
             return AttitudeVariance.unknown()

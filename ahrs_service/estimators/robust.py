@@ -246,7 +246,9 @@ def _inclination_and_bias(s, p, x, dt, qg, rg):
     for k in range(3):
         if s[ST.bias_p + 4 * k] < p0:
             s[ST.bias_p + 4 * k] += v
-    if s[ST.rest] != 0.0 and p[P.bias_sigma_rest] > 0.0:
+    if K.recovering(s):
+        pass  # a gap's error is a step, not a bias: nothing learned until it is corrected
+    elif s[ST.rest] != 0.0 and p[P.bias_sigma_rest] > 0.0:
         # at rest the low-passed gyro is the bias itself: H = I
         pr = (p[P.bias_sigma_rest] * 100.0) ** 2
         w = pr * pr / v + pr
@@ -369,6 +371,27 @@ def _update(s, params, x, acc_ok, mag_ok):
 
 
 @_step_jit
+def _bridge_gap(s, params, x, n):
+    """Carries the rate across a gap before row ``x`` in n − 1 sub-steps without
+    accelerometer or field (``_kernel``, "sample gaps"); no rest is carried across it.
+    Returns ``x`` covering the last sub-step."""
+    w0 = (s[K.GYR_LAST], s[K.GYR_LAST + 1], s[K.GYR_LAST + 2])
+    skipped = (s[K.ACC_SKIPPED], s[K.MAG_SKIPPED])
+    dt = x[K.DT] / n
+    nan = math.nan
+    for j in range(1, n):
+        f = j / n
+        sub = (w0[0] + f * (x[0] - w0[0]), w0[1] + f * (x[1] - w0[1]), w0[2] + f * (x[2] - w0[2]),
+               nan, nan, nan, nan, nan, nan, dt)  # fmt: skip
+        K.check_sample(s, sub, True)
+        _update(s, params, sub, False, False)
+    s[K.ACC_SKIPPED], s[K.MAG_SKIPPED] = skipped
+    s[ST.rest_t] = 0.0
+    s[ST.rest] = 0.0
+    return (x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7], x[8], dt)
+
+
+@_step_jit
 def robust_batch(s, params, rows, out):
     """Advances over the sample rows (N, 10); each row's published q goes to ``out`` (N, 4),
     unless ``out`` is None (``robust_step``)."""
@@ -376,6 +399,9 @@ def robust_batch(s, params, rows, out):
         # the row's values, not the view rows[i], which would cost a reference-count pair
         x = (rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3], rows[i, 4],
              rows[i, 5], rows[i, 6], rows[i, 7], rows[i, 8], rows[i, K.DT])  # fmt: skip
+        n = K.gap_substeps(s, x)
+        if n:
+            x = _bridge_gap(s, params, x, n)
         gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
         if s[K.INITIALISED] == 0.0:
             _first_sample(s, params, x, gyro_ok, acc_ok, mag_ok)
@@ -419,6 +445,9 @@ class RobustEstimator(Estimator):
             **super().diagnostics,
             "rest": bool(s[ST.rest]),
             "mag_disturbed": bool(s[ST.mag_dist]),
+            # False until the start-up field stayed steady while turning (mag_new_first_time):
+            # mag_disturbed meanwhile is that confirmation, not a field found disturbed
+            "mag_confirmed": bool(s[ST.mag_confirmed]),
             "mag_used": int(s[ST.mag_used]),
             "mag_ref_norm_ut": float(s[ST.mag_ref_norm]),
             "mag_ref_dip_deg": float(np.degrees(s[ST.mag_ref_dip])),
@@ -435,7 +464,7 @@ class RobustEstimator(Estimator):
     #: the filter follows only part of the sustained acceleration
     observed_error_model: ClassVar[ObservedErrorModel] = ObservedErrorModel(tilt_scale=0.089, heading_scale=0.12)
 
-    def attitude_variance(self) -> AttitudeVariance:
+    def _model_variance(self) -> AttitudeVariance:
         """Roll, pitch, yaw variances, rad²: ``ObservedErrorModel`` over the filter's own record
         of what it has not corrected (``_drift_of_the_error_model``, docs/autopilot.md)."""
         s = self.state

@@ -63,6 +63,12 @@ class AttitudeVariance:
     def unknown(cls) -> "AttitudeVariance":
         return cls(math.nan, math.nan, math.nan)
 
+    def plus(self, variance: float) -> "AttitudeVariance":
+        """These variances with ``variance`` (rad²) added to each angle; NaN stays unknown."""
+        if variance <= 0.0:
+            return self
+        return AttitudeVariance(self.roll + variance, self.pitch + variance, self.yaw + variance)
+
     def as_dict(self) -> dict[str, float]:
         """{"roll", "pitch", "yaw"} in rad² (the log writes NaN as null)."""
         return {"roll": self.roll, "pitch": self.pitch, "yaw": self.yaw}

@@ -177,12 +177,29 @@ def _per_sample(gain, dt, rate):
     return 1.0 - (1.0 - gain) ** (dt * rate)
 
 
+#: the largest accelerometer gain per reference period a gap's recovery may raise α to
+ALPHA_MAX = 0.5
+
 _P = param_index(ValentiParams)  # indices of the packed parameter vector, by field name
 
 
 @njit(cache=True)
 def valenti_step(s, p, x):
+    """One sample row; a gap before it is bridged first (``_kernel``, "sample gaps")."""
+    n = K.gap_substeps(s, x)
+    if n:
+        w0, saved, sub = K.begin_bridge(s)
+        for j in range(1, n):
+            _valenti_update(s, p, K.bridge_row(sub, w0, x, j, n))
+        x = K.end_bridge(s, saved, x, n)
+    _valenti_update(s, p, x)
+
+
+@njit(cache=True)
+def _valenti_update(s, p, x):
     alpha, beta, rate = p[_P.alpha], p[_P.beta], p[_P.gain_rate_hz]
+    # after a gap: the accelerometer's gain raised while its error is corrected (_kernel)
+    alpha = min(ALPHA_MAX, alpha * K.recovery_gain(s))
     t_low, t_high = p[_P.adaptive_low], p[_P.adaptive_high]
     gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
     if K.initialise_from_sample(s, x, acc_ok, mag_ok) or not gyro_ok:
