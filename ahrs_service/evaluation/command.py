@@ -60,6 +60,22 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         "FILE: a preset file (ahrs-service tune) for its estimator (repeatable; --param overrides)",
     )
     add_offline_options(p, "also score the offline (forward-backward, non-causal) mode of every column, as '<name>+offline'")
+    p.add_argument(
+        "--drop-pattern",
+        action="append",
+        default=[],
+        metavar="PATTERN",
+        help="also score every estimator column with samples dropped: bursts:LO-HIms:PCT%% (e.g. bursts:20-100ms:10%%), "
+        "outage:Ss (e.g. outage:2s) or standard (the gap benchmark's seven); comma-separated or repeatable; "
+        "gap-free against gapped RMSE on the kept rows, and their ratio, in results.md/json (docs/gaps.md)",
+    )
+    p.add_argument(
+        "--drop-seed",
+        type=int,
+        default=None,
+        metavar="N",
+        help="seed of the places where --drop-pattern drops samples (default 0)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     execution.add_arguments(p)
     p.set_defaults(func=lazy_command("ahrs_service.evaluation.report:main"))

@@ -10,6 +10,10 @@ each carrying the BROAD citation.
 With ``--offline`` every selected column X gets a twin column "X+offline": the same estimator
 (or peer) run forward and backward over the recording and fused
 (``ahrs_service.estimators.offline``), scored alike, beside the causal X.
+
+With ``--drop-pattern`` every estimator column (causal or offline; not the peers, which take a
+constant rate) is also run on the rows each pattern keeps, and the gapped and gap-free runs are
+scored on the same rows (``ahrs_service.evaluation.gaps``, docs/gaps.md): ``results["gaps"]``.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -30,7 +34,7 @@ from ahrs_service import estimators
 from ahrs_service.estimators import offline as offline_mode
 from ahrs_service.estimators.base import stack_rows, time_steps
 from ahrs_service.estimators.settings import check_estimator_params
-from ahrs_service.evaluation import broad, dido, metrics, peers, stats
+from ahrs_service.evaluation import broad, dido, gaps, metrics, peers, stats
 from ahrs_service.execution import Runner, open_runner, worker_cache
 
 #: ``--dataset`` name → the module that reads it (same functions: default_dir, check_dir,
@@ -238,6 +242,8 @@ class TrialJob:
     column: Column
     with_errors: bool  # also return the per-sample errors (the plots want them)
     dataset: str = "broad"  # a key of DATASETS
+    drop_patterns: tuple[str, ...] = ()  # also scored with these drop patterns (gaps.parse)
+    drop_seed: int = 0
 
 
 @dataclass
@@ -249,6 +255,7 @@ class TrialResult:
     row: dict
     imu_delay: dict[str, float]  # {"samples", "ms"}: how late the trial's IMU samples are
     errors: dict[str, np.ndarray] | None = None
+    gap_scores: dict[str, gaps.GapScore] | None = None  # drop pattern -> score (estimator columns)
 
 
 def recording_of(job: TrialJob) -> tuple[str, str, str]:
@@ -290,7 +297,30 @@ def run_trial_job(job: TrialJob) -> TrialResult:
         tot, head, inc = (np.degrees(a) for a in metrics.error_angles(ned_to_enu_array(q), trial.ref))
         errors = {"total": tot, "heading": head, "inclination": inc}
     imu_delay = {"samples": float(delay), "ms": float(delay) / trial.rate_hz * 1e3}
-    return TrialResult(job.trial, col.name, row, imu_delay, errors)
+    gap_scores = None
+    if job.drop_patterns and col.kind == "estimator":
+        with_heading = col.scores_heading and has_mag(trial)
+        t = gaps.sample_times(trial)
+        gap_scores = {}
+        for label in job.drop_patterns:
+            keep = gaps.kept_rows(t, label, seed=job.drop_seed, scored=trial.movement)
+            gap_scores[label] = gaps.compare(
+                trial, q, _run_gapped(col, trial, keep), keep, pattern=label, with_heading=with_heading,
+                estimator=col.name, seed=job.drop_seed,
+            )
+    return TrialResult(job.trial, col.name, row, imu_delay, errors, gap_scores)
+
+
+def _run_gapped(col: Column, trial: broad.Trial, keep: np.ndarray) -> np.ndarray:
+    """(K, 4) NED estimate of an estimator column over the K rows ``keep`` marks, each with its
+    own time (``gaps.gapped_steps``: what ``estimators.run(..., timestamps=t[keep])`` integrates)."""
+    steps = gaps.gapped_steps(trial, keep)
+    mag = trial.mag[keep] if col.uses_mag else None
+    if col.offline:
+        return offline_mode.smooth(
+            col.base, trial.gyr[keep], trial.acc[keep], mag, dt=steps, params=col.params, blend_time_s=col.blend_time_s
+        )
+    return estimators.create(col.name, **col.params).run(trial.gyr[keep], trial.acc[keep], mag, dt=steps)
 
 
 def evaluate(
@@ -302,6 +332,8 @@ def evaluate(
     on_trial: Callable[[broad.Trial, dict[str, dict[str, np.ndarray]]], None] | None = None,
     dataset: str = "broad",
     runner: Runner | None = None,
+    drop_patterns: Sequence[str | gaps.DropPattern] = (),
+    drop_seed: int = 0,
 ) -> dict:
     """Runs every column over every trial and returns the results dict.
 
@@ -315,6 +347,10 @@ def evaluate(
 
     ``on_trial(trial, errors)`` is called after each trial with per-column per-sample errors in
     degrees ({"total", "heading", "inclination"} → (N,) arrays) — the plots use it.
+
+    ``drop_patterns`` (``gaps.parse``): every estimator column is also run on the rows each
+    pattern keeps (places drawn with ``drop_seed``) and scored against its gap-free run on the
+    same rows; the results get a ``gaps`` entry (:func:`gap_results`).
     """
     source = DATASETS[dataset]
     if not trial_names:
@@ -322,7 +358,12 @@ def evaluate(
     if not columns:
         raise ValueError("nothing to evaluate: no estimator and no peer selected")
     data_dir = str(Path(data_dir).resolve())
-    jobs = [TrialJob(data_dir, t, c, on_trial is not None, dataset) for t in trial_names for c in columns]
+    labels = tuple(p.label for p in gaps.parse_list(list(map(str, drop_patterns)))) if drop_patterns else ()
+    jobs = [
+        TrialJob(data_dir, t, c, on_trial is not None, dataset, labels, int(drop_seed))
+        for t in trial_names
+        for c in columns
+    ]
     runner = runner or Runner()
     results = runner.map(
         run_trial_job, jobs, progress=progress, desc="evaluate", place_by=recording_of, prepare=prepare_recording
@@ -380,6 +421,55 @@ def evaluate(
             c.name: float(np.mean([per_trial[c.name][t]["us_per_sample"] for t in trial_names])) for c in columns
         },
         "stats": tests,
+    } | ({"gaps": gap_results(results, columns, trial_names, labels, int(drop_seed))} if labels else {})
+
+
+def gap_results(
+    results: list[TrialResult], columns: list[Column], trial_names: list[str], labels: tuple[str, ...], seed: int
+) -> dict:
+    """``results["gaps"]``: the patterns and seed, the columns run with gaps, and per pattern
+    ``per_trial[pattern][column][trial]`` (``GapScore.as_dict``) and ``summary[pattern][column]``
+    (``gaps.summarize`` over the trials: mean gap-free and gapped RMSE, mean and worst ratio,
+    worst gapped RMSE and its trial, the trials above 10° gapped at most 5° gap-free, the worst
+    recovery after an outage in seconds, null when not back by the end of a recording)."""
+    scores = [s for r in results if r.gap_scores for s in r.gap_scores.values()]
+    gapped_columns = [c.name for c in columns if c.kind == "estimator"]
+    per_trial = {
+        label: {c: {t: None for t in trial_names} for c in gapped_columns} for label in labels
+    }
+    for s in scores:
+        per_trial[s.pattern][s.estimator][s.trial] = s.as_dict()
+    summaries = gaps.summarize(scores)
+    dropped = {
+        label: float(np.mean([s.dropped_fraction for s in scores if s.pattern == label])) if scores else math.nan
+        for label in labels
+    }
+    summary = {
+        label: {
+            c: {
+                "recordings": m.recordings,
+                "mean_gap_free": m.mean_gap_free,
+                "mean_gapped": m.mean_gapped,
+                "mean_ratio": m.mean_ratio,
+                "worst_ratio": m.worst_ratio,
+                "worst_gapped": m.worst_gapped,
+                "worst_trial": m.worst_recording,
+                "bounded_misses": m.bounded_misses,
+                "worst_recovery_s": m.worst_recovery_s,
+            }
+            for c in gapped_columns
+            if (m := summaries.get((c, label))) is not None
+        }
+        for label in labels
+    }
+    return {
+        "patterns": list(labels),
+        "seed": seed,
+        "columns": gapped_columns,
+        "not_run": [c.name for c in columns if c.kind != "estimator"],
+        "dropped_fraction": dropped,
+        "per_trial": per_trial,
+        "summary": summary,
     }
 
 
@@ -515,10 +605,70 @@ def to_markdown(results: dict, plots: list[str] | None = None) -> str:
         out.append(stats.friedman_markdown(test, title))
         out.append(stats.nemenyi_markdown(test, title))
 
+    if results.get("gaps"):
+        out += gaps_markdown(results["gaps"], trials)
+
     if plots:
         out += ["## Plots", ""] + [f"- [{p}]({p})" for p in plots] + [""]
     out += ["---", "", f"Data: {citation}", ""]
     return "\n".join(out)
+
+
+def _ratio(x: float | None) -> str:
+    return "n/a" if x is None or not math.isfinite(x) else f"{x:.2f}×"
+
+
+def _recovery(d: dict) -> str:
+    """An outage's recovery of one trial: seconds, or "not back" within the recording."""
+    if d.get("recovered") is None:
+        return ""
+    if d["recovered"]:
+        return f", back in {d['recovery_s']:.1f} s"
+    return f", not back in {_fmt(d.get('observed_after_s'), 0)} s"
+
+
+def gaps_markdown(g: dict, trials: list[str]) -> list[str]:
+    """The report's "Sample gaps" section (``--drop-pattern``): lines of Markdown."""
+    cols = g["columns"]
+    out = [
+        f"## Sample gaps (`--drop-pattern`, seed {g['seed']})", "",
+        "Each pattern drops rows as docs/gaps.md describes; every estimator column runs on the kept rows, "
+        "each with its own time, and its gapped and gap-free runs are both scored on the same rows — the "
+        "scored rows the pattern keeps — so the gap-free figures here differ a little from the tables above. "
+        "RMSE of the scored error (total where heading is scored, else inclination), degrees; ratio: gapped "
+        f"over gap-free. Recovery after an outage: until the gapped estimate stays within "
+        f"{gaps.RECOVERY_TOLERANCE_DEG:g}° of the gap-free one."
+        + (f" Not run with gaps (peers take a constant rate): {', '.join(g['not_run'])}." if g.get("not_run") else ""),
+        "",
+        "| column | pattern | dropped | gap-free RMSE | with gaps | ratio (mean) | worst ratio | worst with gaps | worst recovery |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for label in g["patterns"]:
+        outage = gaps.parse(label).kind == "outage"
+        for c in cols:
+            m = g["summary"].get(label, {}).get(c)
+            if m is None:
+                continue
+            rec = m.get("worst_recovery_s")
+            recovery = "" if not outage else ("not back" if rec is None or not math.isfinite(rec) else f"{rec:.1f} s")
+            out.append(
+                f"| {c} | {label} | {100 * g['dropped_fraction'][label]:.1f} % | {_fmt(m['mean_gap_free'])} | "
+                f"{_fmt(m['mean_gapped'])} | {_ratio(m['mean_ratio'])} | {_ratio(m['worst_ratio'])} | "
+                f"{_fmt(m['worst_gapped'])} ({m['worst_trial']}) | {recovery} |"
+            )
+    out.append("")
+    for label in g["patterns"]:
+        out += [f"### {label} per trial: gap-free → with gaps (ratio)", "",
+                "| trial | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
+        for t in trials:
+            cells = []
+            for c in cols:
+                d = g["per_trial"][label][c].get(t)
+                cells.append("n/a" if d is None else
+                             f"{_fmt(d['rmse_gap_free'])} → {_fmt(d['rmse_gapped'])} ({_ratio(d['ratio'])}{_recovery(d)})")
+            out.append(f"| {t} | " + " | ".join(cells) + " |")
+        out.append("")
+    return out
 
 
 # ------------------------------------------------------------------------------ command
@@ -551,10 +701,30 @@ def with_presets(items: list[str], names: list[str], params: dict[str, dict[str,
     return out
 
 
+def drop_options(args: Any) -> tuple[list[str], int]:
+    """``--drop-pattern`` (comma-separated, repeatable, ``standard``) and ``--drop-seed``:
+    the patterns' labels and the seed; ValueError naming the option."""
+    items = getattr(args, "drop_pattern", None) or []
+    seed = getattr(args, "drop_seed", None)
+    if not items:
+        if seed is not None:
+            raise ValueError(f"--drop-seed {seed}: only with --drop-pattern")
+        return [], 0
+    try:
+        labels = [p.label for p in gaps.parse_list(items)]
+    except ValueError as exc:
+        raise ValueError(f"--drop-pattern: {exc}") from None
+    seed = 0 if seed is None else int(seed)
+    if seed < 0:
+        raise ValueError(f"--drop-seed {seed}: must be 0 or more")
+    return labels, seed
+
+
 def main(args: Any) -> int:
     """Entry of ``ahrs-service evaluate`` (arguments from ``command.add_subcommands``)."""
     dataset = getattr(args, "dataset", "broad") or "broad"
     try:
+        drop_patterns, drop_seed = drop_options(args)  # before the data: a typo needs no recordings
         if dataset not in DATASETS:
             raise ValueError(f"--dataset {dataset!r}: choose from {', '.join(DATASETS)}")
         source = DATASETS[dataset]
@@ -581,6 +751,10 @@ def main(args: Any) -> int:
         return 2
     for s in skipped:
         print(f"ahrs-service evaluate: skipping estimator {s}", file=sys.stderr)
+    not_gapped = [c.name for c in columns if c.kind != "estimator"]
+    if drop_patterns and not_gapped:
+        print(f"ahrs-service evaluate: --drop-pattern: peers take a constant rate and are scored without gaps only: "
+              f"{', '.join(not_gapped)}", file=sys.stderr)
 
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -595,7 +769,8 @@ def main(args: Any) -> int:
     # a RunnerError (scheduler out of reach, bad --workers) is cli.main's one line
     with open_runner(getattr(args, "workers", 1), getattr(args, "scheduler", None)) as runner:
         results = evaluate(
-            data_dir, columns, trial_names, progress=progress, on_trial=on_trial, dataset=dataset, runner=runner
+            data_dir, columns, trial_names, progress=progress, on_trial=on_trial, dataset=dataset, runner=runner,
+            drop_patterns=drop_patterns, drop_seed=drop_seed,
         )
     plot_files += plots.group_bars(results, out_dir)
     results["plots"] = plot_files
