@@ -24,6 +24,7 @@ beside the code that reads it:
 ``[location]``      :mod:`ahrs_service.calibration.declination`
 ``[log]``           :mod:`ahrs_service.logs.settings`
 ``[monitor]``       :mod:`ahrs_service.attitude_monitor`
+``[divergence]``    :mod:`ahrs_service.core.divergence`
 ``[live]``          :mod:`ahrs_service.live_settings`
 ==================  ==========================================================================
 
@@ -58,6 +59,7 @@ from ahrs_service.core.calibration import (
     MOUNTING,
     check_calibration_section,
 )
+from ahrs_service.core.divergence import DIVERGENCE
 from ahrs_service.core.paths import regular_file
 from ahrs_service.core.settings import ConfigError, Section, check_keys, defaults_of, number, render, unreadable
 from ahrs_service.estimators.settings import ESTIMATOR, check_estimator_params, check_estimator_section
@@ -90,6 +92,7 @@ SCHEMA: dict[str, Section] = {
     "location": LOCATION,
     "log": LOG,
     "monitor": MONITOR,
+    "divergence": DIVERGENCE,
     "live": LIVE,
 }
 

@@ -2,9 +2,10 @@
 faults starting and ending, and the flight log's part of the final summary.
 
 :class:`ServiceHealth` keeps the previous state of every condition it reports (overruns, lost
-samples, a lost sensor, the flight log's status, the estimator's form), so that each change is
-reported once — STATUSTEXT, journal and ``/log`` through the service's ``report`` — and not at
-every housekeeping run. It reads the parts it is handed and holds none of them: a reload may
+samples, a lost sensor, the flight log's status, the estimator's form; the divergence monitor
+keeps its own flag and hands over its changes), so that each change is reported once —
+STATUSTEXT, journal and ``/log`` through the service's ``report`` — and not at every
+housekeeping run. It reads the parts it is handed and holds none of them: a reload may
 replace the pipeline or the log writer at any time.
 """
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 from typing import Any, Callable, Protocol
 
+from ahrs_service.core.divergence import DivergenceEvent
 from ahrs_service.core.samples import ACC_VALID, GYR_VALID, MAG_VALID, ImuSource, LossCounts
 from ahrs_service.mavlink_bridge import LinkHealth
 from ahrs_service.pipeline import EstimationPipeline
@@ -117,6 +119,11 @@ class ServiceHealth:
             self.was_reduced = reduced
             self.report("magnetometer lost: estimating in reduced form" if reduced else "magnetometer back: full form",
                         4 if reduced else 6)
+
+    def report_divergence(self, event: DivergenceEvent) -> None:
+        """The divergence monitor flagged the attitude (STATUSTEXT CRITICAL: not to be trusted)
+        or cleared it (INFO); the monitor hands over each change of its flag once."""
+        self.report(event.text(), 2 if event.diverged else 6)
 
     def report_log_status(self, writer: Any) -> None:
         """STATUSTEXT + journal + /log when logging stops (the path and the system's error

@@ -278,6 +278,12 @@ def _replay(args: argparse.Namespace) -> int:
                 f"  {label} vs truth (RMSE, {t['samples']} samples): total {t['total']:.3f}°, "
                 f"heading {t['heading']:.3f}°, inclination {t['inclination']:.3f}°"
             )
+    for key, label in (("divergence", "new estimate"), ("recorded_divergence", "recorded estimate")):
+        d = result.get(key)
+        if d:
+            first = next((e["t_s"] for e in d["events"] if e["diverged"]), None)
+            at = f", first at {first:.2f} s" if first is not None else ""
+            print(f"  divergence monitor, {label}: {d['summary'].removeprefix('attitude: ')}{at}")
     if log.damage:
         print(f"  damage: {log.damage}")
     if args.out:

@@ -73,7 +73,9 @@ class ServiceLink:
     (``vibration.VibrationLevels``). odometry_send, odometry_clock: beside an autopilot,
     where ODOMETRY goes (the autopilot link's ``send``) and the clock it is stamped in
     (``AutopilotLink.clock``: TIMESYNC under the link's lock); None: the bridge's own
-    endpoints, our clock (docs/autopilot.md).
+    endpoints, our clock (docs/autopilot.md). attitude_diverged: the divergence monitor
+    flags the attitude as not trustworthy now (SYS_STATUS AHRS unhealthy, ODOMETRY failed);
+    None: never.
 
     For a bridge with no pipeline to follow (driven by hand, as in tests): latest,
     latest_attitude: the newest estimate and its attitude, None before the first;
@@ -95,6 +97,7 @@ class ServiceLink:
     vibration: Callable[[], Any]
     odometry_send: Callable[[Any], Any] | None = None
     odometry_clock: Any = None
+    attitude_diverged: Callable[[], bool] | None = None
     latest: Callable[[], LatestEstimate | None] | None = None
     latest_attitude: Callable[[], LatestAttitude | LatestEstimate | None] | None = None
     attitude_variance: Callable[[], Any] | None = None
@@ -244,6 +247,7 @@ class MavlinkBridge:
             self._odometry_epoch += 1
         self._odometry_ref = ref
         var = self._attitude_variance()
+        diverged = self._diverged()
         return AttitudeEstimate(
             t_ns=int(est.t_ns),
             q=est.q,
@@ -253,7 +257,12 @@ class MavlinkBridge:
             yaw_var=var.yaw if est.mag_used else float("nan"),
             healthy=est.initialised and fresh,
             epoch=self._odometry_epoch,
+            diverged=diverged,
         )
+
+    def _diverged(self) -> bool:
+        check = self.link.attitude_diverged
+        return bool(check()) if check is not None else False
 
     # ------------------------------------------------------------------ parameters
     def _parameter_table(self) -> ParameterTable:
@@ -327,7 +336,9 @@ class MavlinkBridge:
             estimator=link.estimator,
             # a stale estimate is an unhealthy AHRS, as ArduPilot's GCS::update_sensor_status_flags
             # clears MAV_SYS_STATUS_AHRS when ahrs.healthy() fails (docs/mavlink.md, "Health per sensor")
-            ahrs_healthy=est.initialised and fresh,
+            # the divergence monitor's flag too: an estimate the accelerometer contradicts is
+            # no healthy AHRS (docs/autopilot.md, "Divergence monitor")
+            ahrs_healthy=est.initialised and fresh and not self._diverged(),
             reduced_mode=est.reduced,
             overruns=h.overruns,
             load_percent=h.load_percent,

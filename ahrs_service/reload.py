@@ -59,6 +59,7 @@ class ReloadHost(Protocol):
     def open_log(self, cfg: config_mod.Config) -> None: ...
     def open_mavlink(self, cfg: config_mod.Config) -> None: ...
     def open_monitor(self, cfg: config_mod.Config) -> None: ...
+    def open_divergence(self, cfg: config_mod.Config) -> None: ...
     def open_live(self, cfg: config_mod.Config) -> None: ...
     def connect_sinks(self) -> None: ...
 
@@ -161,7 +162,7 @@ class ConfigReload:
             svc.log_writer.new_file()  # a fresh estimator: its own file replays exactly
 
     def _reopen_parts(self, new: config_mod.Config, old_cfg: config_mod.Config, same_filter: bool) -> None:
-        """The flight log, MAVLink, the monitor and the live view, each reopened only when its
+        """The flight log, MAVLink, the monitors and the live view, each reopened only when its
         own settings changed."""
         svc = self.host
         if new.log != old_cfg.log:
@@ -182,6 +183,8 @@ class ConfigReload:
                 svc.report(f"reload: mavlink.endpoints: {exc}; the running endpoints kept", 3)
         if new.monitor != old_cfg.monitor:
             svc.open_monitor(new)
+        if new.divergence != old_cfg.divergence:
+            svc.open_divergence(new)
         if new.live != old_cfg.live:  # a new address, rate, or switched on or off
             if svc.live is not None:
                 svc.live.close()

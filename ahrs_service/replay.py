@@ -23,11 +23,12 @@ from typing import Any, Mapping
 import numpy as np
 
 from ahrs_service import estimators
-from ahrs_service.estimators import offline
+from ahrs_service.core.divergence import DivergenceEvent, scan
+from ahrs_service.estimators import SAMPLE_ROW, offline
 from ahrs_service.evaluation.metrics import error_angles, rmse
 from ahrs_service.logs.mcap_file import McapLogFile
 from ahrs_service.logs.reader import MessageSource, RecordedLog
-from ahrs_service.logs.schemas import attitude_block_message, attitude_message, jsonable, tf_message
+from ahrs_service.logs.schemas import attitude_block_message, attitude_message, jsonable, log_message, tf_message
 
 #: where a replayed log keeps the estimate that was recorded
 _ORIGINAL = {"/attitude": "/attitude/original", "/attitude_block": "/attitude/original_block"}
@@ -170,6 +171,22 @@ def _run_with_cuts(est: Any, rows: np.ndarray, cuts: list[tuple[int, str, Any]],
     return out
 
 
+def divergence_events(log: RecordedLog, q: np.ndarray) -> tuple[str, list[DivergenceEvent]]:
+    """The divergence monitor (``core/divergence.py``) run over the log's rows and the estimate
+    ``q`` (N, 4), as the running service runs it: its summary line and every change of its flag
+    (event times in s of the log's sample clock). The field goes in where the rows have one."""
+    rows = log.rows
+    monitor, events = scan(log.t_ns * 1e-9, rows[:, SAMPLE_ROW.slices.acc], q, rows[:, SAMPLE_ROW.slices.mag])
+    return monitor.summary(), events
+
+
+def _divergence(log: RecordedLog, q: np.ndarray) -> dict[str, Any]:
+    summary, events = divergence_events(log, q)
+    t0 = float(log.t_ns[0]) * 1e-9 if len(log) else 0.0
+    return {"summary": summary, "flags": sum(e.diverged for e in events),
+            "events": [{"t_s": round(e.t_s - t0, 3), "diverged": e.diverged} for e in events]}
+
+
 def _rms_deg(values: np.ndarray, mask: np.ndarray) -> float | None:
     r = rmse(values, mask)
     return None if np.isnan(r) else float(np.degrees(r))
@@ -181,10 +198,16 @@ def compare(log: RecordedLog, q: np.ndarray) -> dict[str, Any]:
     Returns degrees: ``vs_recorded`` {rms_deg, max_deg, max_abs_diff (largest quaternion
     component difference), identical (bit-exact), samples} (None without a recorded estimate), and when truth exists ``vs_truth`` {total, heading, inclination} RMSE over the
     samples with truth (and in the movement mask when the log has one), plus the same for the
-    recorded estimate as ``recorded_vs_truth``.
+    recorded estimate as ``recorded_vs_truth``. ``divergence`` (and ``recorded_divergence``):
+    the divergence monitor over ``q`` (over the recorded estimate) — its summary line, the
+    number of flags and each change of the flag (``t_s`` after the first sample).
     """
     out: dict[str, Any] = {"samples": int(q.shape[0]), "vs_recorded": None, "vs_truth": None}
     rec = log.attitudes if log.attitudes is not None else log.original
+    if len(log):
+        out["divergence"] = _divergence(log, q)
+        if rec is not None:
+            out["recorded_divergence"] = _divergence(log, rec)
     if rec is not None:
         ok = np.all(np.isfinite(rec), axis=1) & np.all(np.isfinite(q), axis=1)
         # q and −q are the same attitude: compare against the nearer sign. The chord between
@@ -254,12 +277,18 @@ def write_replay(
     source = MessageSource(log.path, stream_only=not log.indexed)
     remaining = sum(log.counts.values()) if log.damage is not None else -1
     t0 = int(log.t_ns[0]) if len(log) else 0
+    # the divergence monitor's flags of the new estimate, on /log at their sample times (the
+    # recorded /log keeps the live run's own)
+    flag_logs = [(int(round(e.t_s * 1e9)), e) for e in divergence_events(log, q)[1]] if len(log) else []
     with McapLogFile(out_path, metadata={"replay_of": Path(log.path).name, "estimator": label}) as f:
         f.write("/config", t0, {"t_ns": t0, "reason": "replay", "config": config})
         for topic, log_time, publish_time, data in source:
             if remaining == 0:
                 break
             remaining -= 1
+            while flag_logs and flag_logs[0][0] <= log_time:
+                t_flag, event = flag_logs.pop(0)
+                f.write("/log", t_flag, log_message(t_flag, 2 if event.diverged else 6, f"replay: {event.text()}"))
             if topic in ("/config", "/tf", "/attitude/original", "/attitude/original_block") or (
                     topic == "/estimator/state" and not same):
                 continue
@@ -294,6 +323,8 @@ def write_replay(
                 if last_tf is None or log_time - last_tf >= tf_period:
                     last_tf = log_time
                     f.write("/tf", log_time, tf_message(log_time, qi))
+        for t_flag, event in flag_logs:  # after the last message copied
+            f.write("/log", t_flag, log_message(t_flag, 2 if event.diverged else 6, f"replay: {event.text()}"))
         # citation, provenance …: kept; the source's own writer record under another name
         for name, data in source.metadata.items():
             f.add_metadata(name if name != "ahrs-service" else "source:ahrs-service", data)

@@ -33,6 +33,7 @@ from ahrs_service import config as config_mod
 from ahrs_service import estimators, kernels
 from ahrs_service.calibration.storage import calibration_from_config_dict
 from ahrs_service.core.calibration import SensorCalibration
+from ahrs_service.core.divergence import DivergenceSettings
 from ahrs_service.core.samples import ImuSource, LossCounts, SampleBlock
 from ahrs_service.core.vibration import VibrationMonitor
 from ahrs_service.health import ServiceHealth
@@ -45,7 +46,7 @@ from ahrs_service.mavlink_bridge import ServiceLink
 from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline
 from ahrs_service.reload import RELOAD_MAX_WAIT_NS, RELOAD_SETTLE_NS, ConfigReload  # noqa: F401 (their old home)
 from ahrs_service.scheduler import DataReadyScheduler, FixedRateScheduler, LoopStats
-from ahrs_service.sinks import FlightLogSink, Sink
+from ahrs_service.sinks import DivergenceSink, FlightLogSink, Sink
 from ahrs_service.sources import make_source
 from ahrs_service.systemd import Notifier
 
@@ -135,12 +136,15 @@ class Service:
         self.log_sink: FlightLogSink | None = None  # the flight log as a sink, when [log] enabled
         self.live = None  # the Foxglove live view (live_view.LiveView) when [live] enabled
         self.monitor = None  # the autopilot attitude monitor (attitude_monitor.py) beside an autopilot
+        self.divergence: DivergenceSink | None = None  # the divergence monitor, when [divergence] enabled
         #: what receives each estimated block, in this order (connect_sinks)
         self.sinks: tuple[Sink, ...] = ()
         self.calibration_session = LiveCalibration(self, max_rate_hz=cfg.rates["estimation_hz"])
         self.live_calibration = self.calibration_session.collector  # the running collection, if any
         self.vibration = VibrationMonitor()  # VIBRATION's levels and clipping, from every sample row
-        self._mag_rejected = False  # the last diagnostics record showed the field rejected
+        #: the field's use in the last diagnostics record: "accepted", "confirming" (the
+        #: start-up field not confirmed yet) or "rejected" (_report_mag_rejection)
+        self._mag_state = "accepted"
         self.compiler = kernels.ReloadCompiler()  # a reload to an estimator not yet compiled
         # beside an autopilot (source.type = "mavlink"): the source's link, which carries
         # ODOMETRY (open_mavlink), the monitor's attitudes and TIMESYNC; set once the source
@@ -188,6 +192,7 @@ class Service:
             self.scheduler = FixedRateScheduler(self.loop_rate_hz(cfg), spin_ns=spin_ns)
         self._ticks_missed_counted = 0  # the scheduler's missed ticks already counted as lost
         self.use_source_calibration()
+        self.open_divergence(cfg)
         self.open_log(cfg)
         self.open_mavlink(cfg)
         self.open_live(cfg)
@@ -197,10 +202,36 @@ class Service:
     def connect_sinks(self) -> None:
         """The sinks of each estimated block, in the order they get it; the publishers follow
         the pipeline now in force (at the start, and after a reload replaced parts)."""
-        self.sinks = tuple(sink for sink in (self.monitor, self.log_sink, self.mavlink, self.live) if sink is not None)
+        self.sinks = tuple(sink for sink in (self.monitor, self.divergence, self.log_sink, self.mavlink, self.live)
+                           if sink is not None)
         for publisher in (self.mavlink, self.live):
             if publisher is not None:
                 publisher.follow(self.pipeline)
+
+    def open_divergence(self, cfg: config_mod.Config) -> None:
+        """The divergence monitor (``[divergence]``): the accelerometer against the estimate;
+        its flag's changes are reported once each (``ServiceHealth.report_divergence``). A reload
+        with other settings starts a new monitor; a flag that was up is reported cleared."""
+        earlier = self.divergence
+        if earlier is not None and earlier.diverged:
+            self.report("divergence monitor restarted with new settings: flag cleared", 6)
+        self.divergence = None
+        section = cfg.divergence
+        if section["enabled"]:
+            self.divergence = DivergenceSink(DivergenceSettings.from_config(section),
+                                             on_change=self.health_report.report_divergence)
+
+    def attitude_diverged(self) -> bool:
+        """The divergence monitor says the attitude is not to be trusted (SYS_STATUS, ODOMETRY)."""
+        return self.divergence is not None and self.divergence.diverged
+
+    def _divergence_diagnostics(self) -> dict[str, Any]:
+        """The divergence monitor's verdict for the log's /attitude diagnostics ({} when off)."""
+        return self.divergence.diagnostics() if self.divergence is not None else {}
+
+    def divergence_summary(self) -> str:
+        """The final summary's part about the attitude's consistency."""
+        return self.divergence.summary() if self.divergence is not None else "attitude: not monitored"
 
     def _timesync_tick(self) -> None:
         """Beside an autopilot: the link's TIMESYNC estimate, logged on /timesync once per new
@@ -345,7 +376,8 @@ class Service:
         )
         self.log_writer.write_config(time.monotonic_ns(), self.effective_config())
         self.log_sink = FlightLogSink(self.log_writer, log_truth=cfg.log["truth"],
-                                      on_diagnostics=self._report_mag_rejection)
+                                      on_diagnostics=self._report_mag_rejection,
+                                      more_diagnostics=self._divergence_diagnostics)
         if earlier is not None and earlier.diagnostics_pending:  # a record due goes to the new file
             self.log_sink.diagnostics_due()
 
@@ -382,6 +414,7 @@ class Service:
             # beside an autopilot ODOMETRY goes on its link, stamped in its clock (docs/autopilot.md)
             odometry_send=None if link is None else link.send,
             odometry_clock=None if link is None else link.clock,
+            attitude_diverged=self.attitude_diverged,
         )
 
     def link_health(self):
@@ -447,13 +480,33 @@ class Service:
         return self.pipeline.diagnostics()
 
     def _report_mag_rejection(self, diag: dict[str, Any]) -> None:
-        """Each diagnostics record the flight log writes: reports a magnetometer rejection
-        starting or ending."""
-        rejected = bool(diag.get("mag_disturbed", False))
-        if rejected != self._mag_rejected:
-            self._mag_rejected = rejected
-            self.log_event("magnetometer rejected: disturbed field" if rejected else "magnetometer accepted again",
-                           4 if rejected else 6)
+        """Each diagnostics record the flight log writes: reports the field's use changing.
+
+        ``mag_disturbed`` says the estimator does not use its field for the heading. While it
+        has not confirmed its start-up field yet (``mag_confirmed`` False: robust's start-up
+        confirmation, VQF's magNewFirstTime, docs/robust-estimator.md) that is the
+        confirmation under way — the first field set the heading, and steers it once it has
+        stayed steady while turning — which has found no disturbance: information. A field
+        rejected after it was confirmed (or by an estimator without that flag) failed the
+        estimator's disturbance tests: a warning."""
+        if not diag.get("mag_disturbed", False):
+            state = "accepted"
+        elif diag.get("mag_confirmed", True):
+            state = "rejected"
+        else:
+            state = "confirming"
+        previous, self._mag_state = self._mag_state, state
+        if state == previous:
+            return
+        if state == "rejected":
+            self.log_event("magnetometer rejected: disturbed field", 4)
+        elif state == "confirming":
+            self.log_event("magnetometer not confirmed yet: the start-up field set the heading, and "
+                           "corrects it once it has stayed steady while turning", 6)
+        elif previous == "confirming":
+            self.log_event("magnetometer confirmed: the start-up field corrects the heading", 6)
+        else:
+            self.log_event("magnetometer accepted again", 6)
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> int:

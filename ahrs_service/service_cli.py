@@ -145,5 +145,5 @@ def cmd_run(args: argparse.Namespace) -> int:
         service.run()
     finally:
         service.close()
-    logger.info("stopped: %s; %s", service.status_line(), service.log_summary())
+    logger.info("stopped: %s; %s; %s", service.status_line(), service.divergence_summary(), service.log_summary())
     return 0

@@ -46,6 +46,9 @@ POSITION_VARIANCE_UNKNOWN = 1e6
 YAW_VARIANCE_UNINFORMATIVE = 1e4
 #: a heading change between two messages that the gyro does not explain, rad: a jump
 HEADING_JUMP_RAD = math.radians(10.0)
+#: every attitude variance of a diverged estimate is at least this, rad² (σ = 100 rad: no
+#: information, finite so that both autopilots read it; its quality is −1 as well)
+DIVERGED_VARIANCE = 1e4
 #: the σ that maps to quality 100 (rad); quality falls as 1/σ above it, floor 1
 QUALITY_REF_SIGMA = math.radians(2.0)
 #: rates accepted for [mavlink.odometry] rate_hz, Hz (PX4 asks for 30–50 Hz external vision)
@@ -103,6 +106,8 @@ class AttitudeEstimate:
     healthy: the estimator is initialised and its estimate fresh; False sends quality −1.
     epoch: bumped by the caller when the estimator restarted (reset, re-initialisation,
         a reference change such as the declination): the ODOMETRY reset_counter goes up.
+    diverged: the service's divergence monitor flags the attitude as not trustworthy: quality
+        −1 and every attitude variance raised to at least ``DIVERGED_VARIANCE``.
     """
 
     t_ns: int
@@ -113,6 +118,7 @@ class AttitudeEstimate:
     yaw_var: float
     healthy: bool = True
     epoch: int = 0
+    diverged: bool = False
 
 
 def _wrap(a: float) -> float:
@@ -127,9 +133,10 @@ def _euler_yaw_rate(q: Sequence[float], rate: Sequence[float]) -> float:
 
 
 def quality_of(estimate: AttitudeEstimate) -> int:
-    """ODOMETRY.quality: −1 failed (not healthy), else 1..100 from the worst σ that matters
-    (yaw when known, else roll/pitch): 100 at ≤ QUALITY_REF_SIGMA, falling as 1/σ."""
-    if not estimate.healthy:
+    """ODOMETRY.quality: −1 failed (not healthy, or flagged diverged), else 1..100 from the
+    worst σ that matters (yaw when known, else roll/pitch): 100 at ≤ QUALITY_REF_SIGMA,
+    falling as 1/σ."""
+    if not estimate.healthy or estimate.diverged:
         return -1
     var = estimate.yaw_var if math.isfinite(estimate.yaw_var) else max(estimate.roll_var, estimate.pitch_var)
     if not math.isfinite(var) or var < 0:
@@ -233,6 +240,9 @@ class OdometrySender:
         pose_cov = [0.0] * 21
         pose_cov[COV_X] = pose_cov[COV_Y] = pose_cov[COV_Z] = POSITION_VARIANCE_UNKNOWN
         pose_cov[COV_ROLL], pose_cov[COV_PITCH], pose_cov[COV_YAW] = est.roll_var, est.pitch_var, yaw_var
+        if est.diverged:  # no information: nothing an autopilot would lean on (NaN, too, becomes huge)
+            for i in (COV_ROLL, COV_PITCH, COV_YAW):
+                pose_cov[i] = DIVERGED_VARIANCE if not pose_cov[i] >= DIVERGED_VARIANCE else pose_cov[i]
         rates = tuple(float(v) for v in est.body_rate) if r.body_rates else (nan, nan, nan)
 
         ts = self.timesync
