@@ -43,13 +43,12 @@ STATE_HEADER = Layout(
         Slot("gap_run", 1, "count of consecutive gap steps (a lasting change of rate ends a run)"),
         Slot("gaps", 1, "count of gaps bridged"),
         Slot("gap_error", 1, "1σ of the rotation the gaps left unobserved and the corrections have not yet removed, rad"),
-        Slot("gap_new", 1, "variance of the rotation the latest gap left unobserved, rad² (0 after a step that is no gap)"),
         Slot("gyr_lp", 3, "the gyroscope rate low-passed with RATE_SPREAD_TIME, rad/s"),
         Slot("gyr_spread", 1, "mean square of the rate about gyr_lp, (rad/s)²: how much the rate wanders"),
     ],
 )
 (Q, INITIALISED, ACC_SKIPPED, MAG_SKIPPED, GYR_SKIPPED, BIAS, ACC_AGE, MAG_AGE,
- GYR_LAST, STEP_TYPICAL, GAP_RUN, GAPS, GAP_ERROR, GAP_NEW, GYR_LP, GYR_SPREAD) = STATE_HEADER.index  # fmt: skip
+ GYR_LAST, STEP_TYPICAL, GAP_RUN, GAPS, GAP_ERROR, GYR_LP, GYR_SPREAD) = STATE_HEADER.index  # fmt: skip
 HEADER = STATE_HEADER.end  # where an estimator's own slots start
 #: acc_age / mag_age before the first usable sample (a state stays finite: logs, checks)
 NO_SAMPLE_YET = -1.0
@@ -105,10 +104,10 @@ def check_sample(s, x, uses_mag):
 #   sub-steps no longer than the typical step (at most GAP_MAX_SUBSTEPS), each integrated by
 #   the estimator's own step with no accelerometer or magnetometer sample — a prediction
 #   without correction, never one huge integration step and nothing learned across the gap;
-# * the interpolation's error is at most about half the change of rate times the gap's
-#   length (the rate may have changed anywhere in it): gap_error, the 1σ of the rotation
-#   the gap left unobserved, grows by that (root sum square) and the variances the
-#   estimators report grow with it;
+# * the interpolation's error is about half the change of rate times the gap's length (the
+#   rate may have changed anywhere in it), with how much the rate wandered before the gap
+#   (``gap_variance``): gap_error, the 1σ of the rotation the gaps left unobserved, grows
+#   by it (root sum square) and the variances the estimators report grow with it;
 # * while gap_error is large the estimators correct faster (``recovery_gain``) and learn no
 #   gyro bias and no rest (``recovering``): an error the gap made is a step, not a drift, and
 #   taken for a bias it would turn into one. gap_error decays with GAP_RECOVERY_TIME while
@@ -163,7 +162,6 @@ def gap_substeps(s, x):
     dt / n; adds the gap's unobserved rotation to ``gap_error``.
     """
     dt = x[DT]
-    s[GAP_NEW] = 0.0
     if not (dt > 0.0 and dt < 1e3 and math.isfinite(x[0] + x[1] + x[2])):
         return 0
     typical = s[STEP_TYPICAL]
@@ -180,8 +178,7 @@ def gap_substeps(s, x):
         s[GAP_RUN] = 0.0
         return 0
     s[GAPS] += 1.0
-    s[GAP_NEW] = gap_variance(s, x, dt)
-    s[GAP_ERROR] = math.sqrt(s[GAP_ERROR] ** 2 + s[GAP_NEW])
+    s[GAP_ERROR] = math.sqrt(s[GAP_ERROR] ** 2 + gap_variance(s, x, dt))
     return max(2, min(GAP_MAX_SUBSTEPS, int(dt / typical + 0.5)))
 
 
