@@ -100,7 +100,7 @@ def recovery_table(scores: list[gaps.GapScore], names: list[str], pattern: str, 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="only the patterns the targets name: " + ", ".join(QUICK_PATTERNS))
+    ap.add_argument("--quick", action="store_true", help="only the patterns the targets name: " + ", ".join(QUICK_PATTERNS).replace("%", "%%"))
     ap.add_argument("--estimators", default="all", help="comma-separated names or all (default)")
     ap.add_argument("--patterns", default=None, help="comma-separated drop patterns, or standard (default: standard; "
                     "--quick: the targets' patterns)")
