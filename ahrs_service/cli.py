@@ -12,6 +12,7 @@ import importlib
 import signal
 import sys
 import threading
+import types
 from pathlib import Path
 from typing import Callable
 
@@ -98,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     _received = None
     handlers = threading.current_thread() is threading.main_thread()  # main thread only
     previous_term = signal.signal(signal.SIGTERM, _interrupt) if handlers else None
+    previous_alarm = signal.signal(signal.SIGALRM, _interrupt) if handlers else None  # a deferred one
     # SIGINT is left alone where it is ignored (a shell's background job) or handled by the caller
     own_int = handlers and signal.getsignal(signal.SIGINT) is signal.default_int_handler
     if own_int:
@@ -108,7 +110,9 @@ def main(argv: list[str] | None = None) -> int:
         return _interrupted("SIGTERM" if isinstance(exc, Terminated) else "SIGINT")
     finally:
         if handlers:
+            signal.setitimer(signal.ITIMER_REAL, 0.0)
             signal.signal(signal.SIGTERM, previous_term)
+            signal.signal(signal.SIGALRM, previous_alarm)
         if own_int:
             signal.signal(signal.SIGINT, signal.default_int_handler)
     if _received is not None:  # the interrupt was swallowed on its way up
@@ -172,13 +176,36 @@ class Terminated(KeyboardInterrupt):
 _received: str | None = None
 
 
-def _interrupt(signum: int, frame: object) -> None:
+#: functions Python calls from C through ctypes while numba compiles (llvmlite's object-cache
+#: hooks): an exception cannot leave them, Python prints it as "ignored" with its traceback
+_NATIVE_CALLBACKS = frozenset({"_raw_object_cache_notify", "_raw_object_cache_getbuffer"})
+#: how soon an interrupt that came inside one of them is raised again, s
+_CALLBACK_RETRY_S = 0.02
+
+
+def _interrupt(signum: int, frame: types.FrameType | None) -> None:
+    """SIGINT, SIGTERM (and SIGALRM, their deferred delivery): notes the signal and raises it
+    as KeyboardInterrupt (Terminated for SIGTERM), unless Python code called from C is running,
+    where it is raised again a moment later."""
     global _received
     if signum == signal.SIGTERM:
         _received = "SIGTERM"
-        raise Terminated()
-    _received = "SIGINT"
-    raise KeyboardInterrupt
+    elif signum == signal.SIGINT:
+        _received = "SIGINT"
+    if _received is None:
+        return  # a SIGALRM of someone else's
+    if _in_native_callback(frame):
+        signal.setitimer(signal.ITIMER_REAL, _CALLBACK_RETRY_S)
+        return
+    raise Terminated() if _received == "SIGTERM" else KeyboardInterrupt
+
+
+def _in_native_callback(frame: types.FrameType | None) -> bool:
+    while frame is not None:
+        if frame.f_code.co_name in _NATIVE_CALLBACKS and "llvmlite" in frame.f_code.co_filename:
+            return True
+        frame = frame.f_back
+    return False
 
 
 def numba_cache_error(exc: RuntimeError) -> str:

@@ -319,3 +319,29 @@ def test_evaluate_with_no_estimator_named_is_one_line_not_every_estimator(tmp_pa
     assert rc == 2 and "\n" not in err and "Traceback" not in err, err
     assert f"--estimators {spec.strip()!r}: no estimator named" in err, err
     assert not (tmp_path / "ev").exists()
+
+
+def test_an_interrupt_inside_a_native_callback_is_raised_a_moment_later(monkeypatch):
+    """Ctrl-C while numba compiles can land in llvmlite's object-cache hook, Python code that C
+    calls through ctypes: an exception raised there cannot leave it, and Python printed it as
+    "Exception ignored" with its traceback. The handler notes the signal and raises it again
+    from SIGALRM a moment later, back in ordinary code."""
+    import signal
+    import sys
+
+    from ahrs_service import cli
+
+    namespace: dict = {"sys": sys}
+    hook = "def _raw_object_cache_notify(handler, signum):\n    handler(signum, sys._getframe())\n"
+    exec(compile(hook, "/site-packages/llvmlite/binding/executionengine.py", "exec"), namespace)
+    monkeypatch.setattr(cli, "_received", None)
+    previous = signal.signal(signal.SIGALRM, signal.SIG_IGN)
+    try:
+        namespace["_raw_object_cache_notify"](cli._interrupt, signal.SIGINT)  # does not raise
+        assert cli._received == "SIGINT"
+        assert 0.0 < signal.getitimer(signal.ITIMER_REAL)[0] <= cli._CALLBACK_RETRY_S
+        with pytest.raises(KeyboardInterrupt):
+            cli._interrupt(signal.SIGALRM, sys._getframe())  # the deferred delivery
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        signal.signal(signal.SIGALRM, previous)
