@@ -125,6 +125,8 @@ ATTITUDE = {
                 "gaps": {"type": "integer", "description": "sample gaps the estimator bridged since its start"},
                 "gap_error_deg": {"type": "number",
                                   "description": "1σ of the rotation the gaps left uncorrected, deg (in attitude_variance)"},
+                "realignments": {"type": "integer",
+                                 "description": "tilt realignments from the averaged specific force after gaps"},
                 # the service's divergence monitor (core/divergence.py), when [divergence] enabled
                 "diverged": {"type": "boolean", "description": "the attitude is flagged as not trustworthy"},
                 "innovation_test_ratio": {"type": ["number", "null"],

@@ -20,7 +20,15 @@ import numpy as np
 from numba import njit
 
 from ahrs_service.core.layout import Layout, Slot
-from ahrs_service.core.quaternion import quat_from_gravity_and_field, quat_from_rotvec, quat_rotate_inv, vec_is_usable
+from ahrs_service.core.quaternion import (
+    quat_from_gravity_and_field,
+    quat_from_rotvec,
+    quat_mul,
+    quat_normalize,
+    quat_rotate,
+    quat_rotate_inv,
+    vec_is_usable,
+)
 from ahrs_service.core.samples import SAMPLE_ROW
 
 GYR, ACC, MAG, DT = SAMPLE_ROW.index  # first columns, constants in compiled code
@@ -45,10 +53,18 @@ STATE_HEADER = Layout(
         Slot("gap_error", 1, "1σ of the rotation the gaps left unobserved and the corrections have not yet removed, rad"),
         Slot("gyr_lp", 3, "the gyroscope rate low-passed with RATE_SPREAD_TIME, rad/s"),
         Slot("gyr_spread", 1, "mean square of the rate about gyr_lp, (rad/s)²: how much the rate wanders"),
+        Slot("force_lp", 3, "the specific force in the estimated earth frame low-passed over REALIGN_WINDOW, m/s²"),
+        Slot("tilt_disagreement", 1, "mean square sine of force_lp's angle from the vertical over DISAGREEMENT_TIME"),
+        Slot("realign_force", 3, "sum of the specific force in the estimated earth frame over the realignment window, m/s²"),
+        Slot("realign_square", 1, "sum of its squared magnitude, (m/s²)²"),
+        Slot("realign_count", 1, "count of samples in the realignment window"),
+        Slot("realign_time", 1, "length of the realignment window so far, s"),
+        Slot("realignments", 1, "count of tilt realignments after gaps"),
     ],
 )
 (Q, INITIALISED, ACC_SKIPPED, MAG_SKIPPED, GYR_SKIPPED, BIAS, ACC_AGE, MAG_AGE,
- GYR_LAST, STEP_TYPICAL, GAP_RUN, GAPS, GAP_ERROR, GYR_LP, GYR_SPREAD) = STATE_HEADER.index  # fmt: skip
+ GYR_LAST, STEP_TYPICAL, GAP_RUN, GAPS, GAP_ERROR, GYR_LP, GYR_SPREAD, FORCE_LP, TILT_DISAGREEMENT,
+ REALIGN_FORCE, REALIGN_SQUARE, REALIGN_COUNT, REALIGN_TIME, REALIGNMENTS) = STATE_HEADER.index  # fmt: skip
 HEADER = STATE_HEADER.end  # where an estimator's own slots start
 #: acc_age / mag_age before the first usable sample (a state stays finite: logs, checks)
 NO_SAMPLE_YET = -1.0
@@ -92,6 +108,13 @@ def check_sample(s, x, uses_mag):
         if acc_ok and s[GAP_ERROR] > 0.0:
             # the accelerometer observes the tilt again: the corrections remove the gap's error
             s[GAP_ERROR] *= math.exp(-dt / GAP_RECOVERY_TIME)
+        if acc_ok and s[INITIALISED] != 0.0:
+            if s[GAP_ERROR] > GAP_ERROR_REALIGN:
+                realign_tilt(s, x)
+            else:
+                if s[REALIGN_COUNT] != 0.0:
+                    _restart_realign_window(s)  # the error shrank below it meanwhile
+                _track_tilt_disagreement(s, x, dt)
     return gyro_ok, acc_ok, mag_ok
 
 
@@ -111,7 +134,13 @@ def check_sample(s, x, uses_mag):
 # * while gap_error is large the estimators correct faster (``recovery_gain``) and learn no
 #   gyro bias and no rest (``recovering``): an error the gap made is a step, not a drift, and
 #   taken for a bias it would turn into one. gap_error decays with GAP_RECOVERY_TIME while
-#   the accelerometer is usable.
+#   the accelerometer is usable;
+# * while gap_error is above GAP_ERROR_REALIGN the tilt is realigned (``realign_tilt``): the
+#   specific force, averaged in the estimated earth frame over REALIGN_WINDOW, is one tilt
+#   measurement, weighed against gap_error as a Kalman update weighs a measurement against
+#   its prior (gain P / (P + R)). A gap that hid a large rotation (a shock, an outage) is
+#   then corrected in a fraction of a second, not with the estimator's own gain, which is
+#   made for errors of a degree; in motion R is large and the realignment does little.
 
 #: a step longer than this many typical steps is a gap
 GAP_STEPS = 4.0
@@ -135,6 +164,16 @@ GAP_GAIN_MAX = 10.0
 #: an error below the estimators' own error in motion is noise to them; above it, a step that
 #: a bias learned meanwhile would keep)
 GAP_ERROR_LEARN = GAP_ERROR_BOOST
+#: above this gap_error the tilt is realigned from the averaged specific force, rad
+GAP_ERROR_REALIGN = GAP_ERROR_BOOST
+#: length of the window whose mean specific force is one tilt measurement, s
+REALIGN_WINDOW = 0.25
+#: the least 1σ of that measurement's tilt before its own spread is counted, rad: the
+#: horizontal acceleration it cannot tell from a tilt (5°: about 0.9 m/s² held over the window)
+REALIGN_TILT_NOISE = 5.0 * math.pi / 180.0
+#: time over which the window mean's disagreement with the estimated vertical before a gap is
+#: averaged (the motion's sustained accelerations: a turn, a circle), s
+DISAGREEMENT_TIME = 5.0
 
 
 @_jit
@@ -232,6 +271,69 @@ def end_bridge(s, saved, x, n):
 def recovery_gain(s):
     """The factor (≥ 1) on a correction gain while a gap's error is being corrected."""
     return min(GAP_GAIN_MAX, max(1.0, s[GAP_ERROR] / GAP_ERROR_BOOST))
+
+
+@_jit
+def _track_tilt_disagreement(s, x, dt):
+    """Keeps force_lp and tilt_disagreement while no gap's error is being corrected: how far
+    the specific force averaged as the realignment averages it lies from the vertical the
+    estimator holds. In motion that is the horizontal acceleration a realignment would take
+    for a tilt (a circle, a coordinated turn): its measurement noise in this motion."""
+    fe = quat_rotate(load_quat(s), (x[3], x[4], x[5]))
+    k = min(1.0, dt / REALIGN_WINDOW)
+    for i in range(3):
+        s[FORCE_LP + i] += k * (fe[i] - s[FORCE_LP + i])
+    hx, hy, vz = s[FORCE_LP], s[FORCE_LP + 1], s[FORCE_LP + 2]
+    n2 = hx * hx + hy * hy + vz * vz
+    if n2 > 0.0:
+        s[TILT_DISAGREEMENT] += min(1.0, dt / DISAGREEMENT_TIME) * ((hx * hx + hy * hy) / n2 - s[TILT_DISAGREEMENT])
+
+
+@_jit
+def _restart_realign_window(s):
+    for i in range(REALIGN_FORCE, REALIGN_TIME + 1):
+        s[i] = 0.0
+
+
+@_jit
+def realign_tilt(s, x):
+    """Adds a usable accelerometer sample to the realignment window; at the window's end
+    turns the estimate towards the tilt it measured, by the Kalman gain P / (P + R).
+
+    P = gap_error²; R = the larger of REALIGN_TILT_NOISE² and tilt_disagreement (how far such
+    a mean lay from the estimated vertical before the gap) + the window's spread about its
+    mean over n g² (vibration) + |‖f̄‖²/g² − 1| (an acceleration it did not average out). The
+    turn is about a horizontal axis in the earth frame, so the heading stays; gap_error
+    becomes the update's posterior √(P R / (P + R)).
+    """
+    fe = quat_rotate(load_quat(s), (x[3], x[4], x[5]))
+    for i in range(3):
+        s[REALIGN_FORCE + i] += fe[i]
+    s[REALIGN_SQUARE] += fe[0] * fe[0] + fe[1] * fe[1] + fe[2] * fe[2]
+    s[REALIGN_COUNT] += 1.0
+    s[REALIGN_TIME] += x[DT]
+    if s[REALIGN_TIME] < REALIGN_WINDOW:
+        return
+    n = s[REALIGN_COUNT]
+    mx, my, mz = s[REALIGN_FORCE] / n, s[REALIGN_FORCE + 1] / n, s[REALIGN_FORCE + 2] / n
+    norm = math.sqrt(mx * mx + my * my + mz * mz)
+    spread = max(0.0, s[REALIGN_SQUARE] / n - norm * norm)
+    _restart_realign_window(s)
+    if not norm > 0.0:
+        return
+    r = (max(REALIGN_TILT_NOISE**2, s[TILT_DISAGREEMENT]) + spread / (n * GRAVITY * GRAVITY)
+         + abs(norm * norm / (GRAVITY * GRAVITY) - 1.0))
+    p = s[GAP_ERROR] ** 2
+    gain = p / (p + r)
+    # the specific force at rest points up, -z in NED: turn its measured direction onto it
+    ux, uy, uz = mx / norm, my / norm, mz / norm
+    ax, ay = -uy, ux  # u × (0, 0, -1)
+    sine = math.sqrt(ax * ax + ay * ay)
+    if sine > 1e-12:
+        angle = gain * math.atan2(sine, -uz) / sine
+        store_quat(s, quat_normalize(quat_mul(quat_from_rotvec(ax * angle, ay * angle, 0.0), load_quat(s))))
+    s[GAP_ERROR] = math.sqrt(p * r / (p + r))
+    s[REALIGNMENTS] += 1.0
 
 
 @_jit

@@ -133,6 +133,7 @@ class Estimator:
             # sample gaps bridged, and the 1σ of the rotation they left uncorrected (docs/gaps.md)
             "gaps": int(s[K.GAPS]),
             "gap_error_deg": math.degrees(float(s[K.GAP_ERROR])),
+            "realignments": int(s[K.REALIGNMENTS]),
             # logged with the attitude at log.diagnostics_hz (logs/schemas.py ATTITUDE)
             "attitude_variance": self.attitude_variance().as_dict(),
         }

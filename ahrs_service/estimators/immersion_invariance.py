@@ -124,7 +124,11 @@ def _immersion_invariance_update(s, p, x):
         g2 = 0.0
         g3 = 0.0
     xi_bar, mu_bar = p[_P.xi_bar], p[_P.mu_bar]
+    realignments = s[K.REALIGNMENTS]
     gyro_ok, acc_ok, _ = K.check_sample(s, x, False)
+    if s[K.REALIGNMENTS] != realignments:
+        # the tilt was realigned after a gap (_kernel.realign_tilt): the observer's r̂₃ with it
+        s[Z], s[Z + 1], s[Z + 2] = quat_rotate_inv(K.load_quat(s), (0.0, 0.0, 1.0))
     phase = K.initialise_from_sample(s, x, acc_ok, False)
     if phase == K.STARTED:
         s[Z], s[Z + 1], s[Z + 2] = down_direction(x)

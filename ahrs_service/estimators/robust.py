@@ -74,7 +74,7 @@ from typing import ClassVar
 import numpy as np
 from numba import njit
 
-from ahrs_service.core.quaternion import quat_integrate, quat_mul, quat_normalize, quat_rotate
+from ahrs_service.core.quaternion import quat_conj, quat_integrate, quat_mul, quat_normalize, quat_rotate
 from ahrs_service.estimators import _kernel as K
 from ahrs_service.estimators import robust_blocks as B
 from ahrs_service.estimators.base import Estimator, sample_age
@@ -392,6 +392,24 @@ def _bridge_gap(s, params, x, n):
 
 
 @_step_jit
+def _take_realignment(s, q_before):
+    """Moves a tilt realignment after a gap (``_kernel.realign_tilt``, which turned the
+    header's q by r in the earth frame) into q_a: r ⊗ q_δ ⊗ q_a ⊗ q_g = q_δ ⊗ q_a' ⊗ q_g with
+    q_a' = q_δ⁻¹ ⊗ r ⊗ q_δ ⊗ q_a. q_a is made each sample from the accelerometer's low-pass
+    in I (VQF eq. 9–10), so the low-pass's states turn with it, by q_a'⁻¹ ⊗ q_a: the
+    filtered specific force stays as vertical under q_a' as it was under q_a."""
+    r = quat_mul(K.load_quat(s), quat_conj(q_before))
+    d = (s[ST.delta_c], 0.0, 0.0, s[ST.delta_s])
+    qa = (s[ST.aq], s[ST.aq + 1], s[ST.aq + 2], s[ST.aq + 3])
+    qa_new = quat_normalize(quat_mul(quat_conj(d), quat_mul(r, quat_mul(d, qa))))
+    c = quat_mul(quat_conj(qa_new), qa)
+    for j in range(2):  # the two delay states of the three channels (butter2_step)
+        i = ST.acc_lp + 3 * j
+        s[i], s[i + 1], s[i + 2] = quat_rotate(c, (s[i], s[i + 1], s[i + 2]))
+    s[ST.aq], s[ST.aq + 1], s[ST.aq + 2], s[ST.aq + 3] = qa_new
+
+
+@_step_jit
 def robust_batch(s, params, rows, out):
     """Advances over the sample rows (N, 10); each row's published q goes to ``out`` (N, 4),
     unless ``out`` is None (``robust_step``)."""
@@ -402,7 +420,10 @@ def robust_batch(s, params, rows, out):
         n = K.gap_substeps(s, x)
         if n:
             x = _bridge_gap(s, params, x, n)
+        q_before, realignments = K.load_quat(s), s[K.REALIGNMENTS]
         gyro_ok, acc_ok, mag_ok = K.check_sample(s, x, True)
+        if s[K.REALIGNMENTS] != realignments:
+            _take_realignment(s, q_before)
         if s[K.INITIALISED] == 0.0:
             _first_sample(s, params, x, gyro_ok, acc_ok, mag_ok)
         elif gyro_ok:
