@@ -124,7 +124,7 @@ ATTITUDE = {
                 },
                 "gaps": {"type": "integer", "description": "sample gaps the estimator bridged since its start"},
                 "gap_error_deg": {"type": "number",
-                                  "description": "1σ of the rotation the gaps left uncorrected, deg (in attitude_variance)"},
+                                  "description": "1σ (roll, pitch) of the rotation the gaps may have left uncorrected, deg, as attitude_variance adds it"},
                 "realignments": {"type": "integer",
                                  "description": "tilt realignments from the averaged specific force after gaps"},
                 # the service's divergence monitor (core/divergence.py), when [divergence] enabled

@@ -51,6 +51,8 @@ STATE_HEADER = Layout(
         Slot("gap_run", 1, "count of consecutive gap steps (a lasting change of rate ends a run)"),
         Slot("gaps", 1, "count of gaps bridged"),
         Slot("gap_error", 1, "1σ of the rotation the gaps left unobserved and the corrections have not yet removed, rad"),
+        Slot("gap_sigma", 1, "the 1σ attitude_variance reports for it in roll and pitch: it decays with GAP_SIGMA_TIME, rad"),
+        Slot("gap_sigma_heading", 1, "the same in heading: it decays with GAP_HEADING_SIGMA_TIME while the field is usable, rad"),
         Slot("gyr_lp", 3, "the gyroscope rate low-passed with RATE_SPREAD_TIME, rad/s"),
         Slot("gyr_spread", 1, "mean square of the rate about gyr_lp, (rad/s)²: how much the rate wanders"),
         Slot("force_lp", 3, "the specific force in the estimated earth frame low-passed over REALIGN_WINDOW, m/s²"),
@@ -63,7 +65,7 @@ STATE_HEADER = Layout(
     ],
 )
 (Q, INITIALISED, ACC_SKIPPED, MAG_SKIPPED, GYR_SKIPPED, BIAS, ACC_AGE, MAG_AGE,
- GYR_LAST, STEP_TYPICAL, GAP_RUN, GAPS, GAP_ERROR, GYR_LP, GYR_SPREAD, FORCE_LP, TILT_DISAGREEMENT,
+ GYR_LAST, STEP_TYPICAL, GAP_RUN, GAPS, GAP_ERROR, GAP_SIGMA, GAP_SIGMA_HEADING, GYR_LP, GYR_SPREAD, FORCE_LP, TILT_DISAGREEMENT,
  REALIGN_FORCE, REALIGN_SQUARE, REALIGN_COUNT, REALIGN_TIME, REALIGNMENTS) = STATE_HEADER.index  # fmt: skip
 HEADER = STATE_HEADER.end  # where an estimator's own slots start
 #: acc_age / mag_age before the first usable sample (a state stays finite: logs, checks)
@@ -105,9 +107,12 @@ def check_sample(s, x, uses_mag):
     if gyro_ok:
         s[GYR_LAST], s[GYR_LAST + 1], s[GYR_LAST + 2] = x[0], x[1], x[2]
         _track_rate_spread(s, x, dt)
-        if acc_ok and s[GAP_ERROR] > 0.0:
+        if acc_ok and s[GAP_SIGMA] > 0.0:
             # the accelerometer observes the tilt again: the corrections remove the gap's error
             s[GAP_ERROR] *= math.exp(-dt / GAP_RECOVERY_TIME)
+            s[GAP_SIGMA] *= math.exp(-dt / GAP_SIGMA_TIME)
+        if mag_ok and s[GAP_SIGMA_HEADING] > 0.0:
+            s[GAP_SIGMA_HEADING] *= math.exp(-dt / GAP_HEADING_SIGMA_TIME)
         if acc_ok and s[INITIALISED] != 0.0:
             if s[GAP_ERROR] > GAP_ERROR_REALIGN:
                 realign_tilt(s, x)
@@ -130,7 +135,9 @@ def check_sample(s, x, uses_mag):
 # * the interpolation's error is about half the change of rate times the gap's length (the
 #   rate may have changed anywhere in it), with how much the rate wandered before the gap
 #   (``gap_variance``): gap_error, the 1σ of the rotation the gaps left unobserved, grows
-#   by it (root sum square) and the variances the estimators report grow with it;
+#   by it (root sum square), and so do gap_sigma and gap_sigma_heading, which the variances
+#   the estimators report add and which decay more slowly (GAP_SIGMA_TIME, and for the
+#   heading GAP_HEADING_SIGMA_TIME while the field is usable);
 # * while gap_error is large the estimators correct faster (``recovery_gain``) and learn no
 #   gyro bias and no rest (``recovering``): an error the gap made is a step, not a drift, and
 #   taken for a bias it would turn into one. gap_error decays with GAP_RECOVERY_TIME while
@@ -152,6 +159,14 @@ GAP_RUN_NEW_RATE = 8
 GAP_MAX_SUBSTEPS = 400
 #: time constant with which the corrections are taken to remove a gap's error, s
 GAP_RECOVERY_TIME = 1.0
+#: time constant with which the reported 1σ of a gap's error decays, s: slower than
+#: GAP_RECOVERY_TIME, because a filter tuned to trust its gyro corrects a step over seconds and
+#: a realignment in motion leaves part of it; an overconfident σ is the dangerous direction
+#: for an autopilot fusing it (docs/autopilot.md)
+GAP_SIGMA_TIME = 3.0
+#: the same for the heading, which only the magnetometer corrects, slowly and gated (the tilt
+#: realignment leaves it), s
+GAP_HEADING_SIGMA_TIME = 15.0
 #: gap_error above which the correction gain is raised in proportion, rad (2°: about the
 #: estimators' own error in motion, which their usual gain is made for)
 GAP_ERROR_BOOST = 2.0 * math.pi / 180.0
@@ -217,7 +232,10 @@ def gap_substeps(s, x):
         s[GAP_RUN] = 0.0
         return 0
     s[GAPS] += 1.0
-    s[GAP_ERROR] = math.sqrt(s[GAP_ERROR] ** 2 + gap_variance(s, x, dt))
+    variance = gap_variance(s, x, dt)
+    s[GAP_ERROR] = math.sqrt(s[GAP_ERROR] ** 2 + variance)
+    s[GAP_SIGMA] = math.sqrt(s[GAP_SIGMA] ** 2 + variance)
+    s[GAP_SIGMA_HEADING] = math.sqrt(s[GAP_SIGMA_HEADING] ** 2 + variance)
     return max(2, min(GAP_MAX_SUBSTEPS, int(dt / typical + 0.5)))
 
 

@@ -106,10 +106,10 @@ class Estimator:
         unknown (before initialisation; yaw of the estimators that do not observe heading, or
         before the first usable field sample): the estimator's own model
         (``_model_variance``) plus, in each angle, the variance of the rotation sample gaps
-        left unobserved that the corrections have not yet removed (the header's
-        ``gap_error``, docs/gaps.md)."""
-        gap = float(self.state[K.GAP_ERROR])
-        return self._model_variance().plus(gap * gap)
+        left unobserved that the corrections may not yet have removed (the header's
+        ``gap_sigma`` and ``gap_sigma_heading``, docs/gaps.md)."""
+        tilt, heading = float(self.state[K.GAP_SIGMA]), float(self.state[K.GAP_SIGMA_HEADING])
+        return self._model_variance().plus(tilt * tilt, heading * heading)
 
     def _model_variance(self) -> AttitudeVariance:
         """The estimator's own variance model. This default is the ``error_model`` over the
@@ -130,9 +130,10 @@ class Estimator:
             "acc_skipped": int(s[K.ACC_SKIPPED]),
             "mag_skipped": int(s[K.MAG_SKIPPED]),
             "gyr_skipped": int(s[K.GYR_SKIPPED]),
-            # sample gaps bridged, and the 1σ of the rotation they left uncorrected (docs/gaps.md)
+            # sample gaps bridged, and the 1σ of the rotation they may have left uncorrected, as
+            # attitude_variance() adds it (docs/gaps.md)
             "gaps": int(s[K.GAPS]),
-            "gap_error_deg": math.degrees(float(s[K.GAP_ERROR])),
+            "gap_error_deg": math.degrees(float(s[K.GAP_SIGMA])),
             "realignments": int(s[K.REALIGNMENTS]),
             # logged with the attitude at log.diagnostics_hz (logs/schemas.py ATTITUDE)
             "attitude_variance": self.attitude_variance().as_dict(),

@@ -63,11 +63,13 @@ class AttitudeVariance:
     def unknown(cls) -> "AttitudeVariance":
         return cls(math.nan, math.nan, math.nan)
 
-    def plus(self, variance: float) -> "AttitudeVariance":
-        """These variances with ``variance`` (rad²) added to each angle; NaN stays unknown."""
-        if variance <= 0.0:
+    def plus(self, variance: float, yaw_variance: float | None = None) -> "AttitudeVariance":
+        """These variances with ``variance`` (rad²) added to roll and pitch, and to yaw
+        ``yaw_variance`` (default: ``variance``); NaN stays unknown."""
+        yaw_variance = variance if yaw_variance is None else yaw_variance
+        if variance <= 0.0 and yaw_variance <= 0.0:
             return self
-        return AttitudeVariance(self.roll + variance, self.pitch + variance, self.yaw + variance)
+        return AttitudeVariance(self.roll + variance, self.pitch + variance, self.yaw + yaw_variance)
 
     def as_dict(self) -> dict[str, float]:
         """{"roll", "pitch", "yaw"} in rad² (the log writes NaN as null)."""

@@ -25,8 +25,9 @@ re-chosen on the other recordings, the other data sets' needs from all of theirs
 prints each data set alone (leave-one-recording-out), as before.
 
 Run: ``python -m ahrs_service.evaluation.coverage [--dataset broad|dido] [--data DIR]
-[--estimators a,b] [--trials PATTERN] [--calibrate]`` (prints the tables docs/autopilot.md
-quotes). Data: BROAD (see ``broad.CITATION``), DIDO (``dido.CITATION``).
+[--estimators a,b] [--trials PATTERN] [--calibrate] [--drop-pattern P [--drop-seed N]]``
+(prints the tables docs/autopilot.md quotes; with ``--drop-pattern`` the samples are lost as
+the gap benchmark loses them, docs/gaps.md). Data: BROAD (see ``broad.CITATION``), DIDO (``dido.CITATION``).
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ import numpy as np
 from ahrs_service import estimators
 from ahrs_service.core.quaternion import ned_to_enu_array
 from ahrs_service.estimators.base import stack_rows, time_steps
-from ahrs_service.evaluation import broad, dido
+from ahrs_service.evaluation import broad, dido, gaps
 from ahrs_service.evaluation.metrics import error_angles
 
 #: how often the variance is read, s (the ODOMETRY rate is 30–50 Hz; 10 Hz samples the same statistics)
@@ -117,20 +118,39 @@ def model_scales(est: estimators.Estimator) -> dict[str, float]:
     return {"heading": float(model.heading_scale), "inclination": float(model.tilt_scale)}
 
 
-def trial_coverage(name: str, trial: broad.Trial, into: Coverage | None = None, step_s: float = STEP_S) -> Coverage:
+def trial_coverage(
+    name: str,
+    trial: broad.Trial,
+    into: Coverage | None = None,
+    step_s: float = STEP_S,
+    drop_pattern: gaps.DropPattern | str | None = None,
+    seed: int = 0,
+) -> Coverage:
     """Runs estimator ``name`` (defaults) over ``trial`` (a BROAD trial or a DIDO flight: its
-    recorded stamps are used when it has them) and adds its reads to ``into``."""
+    recorded stamps are used when it has them) and adds its reads to ``into``.
+
+    ``drop_pattern`` (``gaps.parse``): the rows the pattern drops with ``seed`` are lost, as
+    the gap benchmark loses them (docs/gaps.md); the reads are then the kept rows' and the
+    variance is what the estimator reports across and after the gaps."""
     cov = into if into is not None else Coverage(name)
     est = estimators.create(name)
-    stamps = getattr(trial, "timestamps", None)
-    dt = time_steps(len(trial), None, stamps) if stamps is not None else 1.0 / trial.rate_hz
-    rows = stack_rows(trial.gyr, trial.acc, trial.mag if est.uses_mag else None, dt)
+    mag = trial.mag if est.uses_mag else None
+    if drop_pattern is None:
+        stamps = getattr(trial, "timestamps", None)
+        dt = time_steps(len(trial), None, stamps) if stamps is not None else 1.0 / trial.rate_hz
+        rows = stack_rows(trial.gyr, trial.acc, mag, dt)
+        row_index = np.arange(len(trial))
+    else:
+        keep = gaps.kept_rows(gaps.sample_times(trial), drop_pattern, seed=seed, scored=trial.movement)
+        rows = stack_rows(trial.gyr[keep], trial.acc[keep], None if mag is None else mag[keep],
+                          gaps.gapped_steps(trial, keep))
+        row_index = np.flatnonzero(keep)
     block = max(1, int(round(step_s * trial.rate_hz)))
     ends, q_est, var = [], [], []
     for start in range(0, len(rows) - block + 1, block):
         q = est.run_rows(rows[start : start + block])
         v = est.attitude_variance()
-        ends.append(start + block - 1)
+        ends.append(row_index[start + block - 1])
         q_est.append(q[-1])
         var.append((v.roll, v.pitch, v.yaw))
     idx = np.array(ends)
@@ -154,12 +174,20 @@ def trial_coverage(name: str, trial: broad.Trial, into: Coverage | None = None, 
     return cov
 
 
-def broad_coverage(name: str, data_dir, trials: list[str] | None = None, dataset: str = "broad") -> Coverage:
-    """Coverage of estimator ``name`` over the recordings of ``dataset`` (all, or ``trials``)."""
+def broad_coverage(
+    name: str,
+    data_dir,
+    trials: list[str] | None = None,
+    dataset: str = "broad",
+    drop_pattern: gaps.DropPattern | str | None = None,
+    seed: int = 0,
+) -> Coverage:
+    """Coverage of estimator ``name`` over the recordings of ``dataset`` (all, or ``trials``),
+    with the rows ``drop_pattern`` drops lost (``trial_coverage``)."""
     source = DATASETS[dataset]
     cov = Coverage(name)
     for t in trials if trials is not None else source.list_trials(data_dir):
-        trial_coverage(name, source.load_trial(data_dir, t), cov)
+        trial_coverage(name, source.load_trial(data_dir, t), cov, drop_pattern=drop_pattern, seed=seed)
     return cov
 
 
@@ -334,7 +362,18 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also print each σ's scale: what each data set present needs (leave-one-recording-out) and the chosen, largest one",
     )
+    ap.add_argument("--drop-pattern", default=None, metavar="PATTERN",
+                    help="lose samples as the gap benchmark does (docs/gaps.md), e.g. bursts:20-100ms:10%%, outage:2s")
+    ap.add_argument("--drop-seed", type=int, default=0, help="seed of the dropped places (default 0)")
     args = ap.parse_args(argv)
+    try:
+        drop = gaps.parse(args.drop_pattern) if args.drop_pattern else None
+    except ValueError as exc:
+        print(f"error: --drop-pattern: {exc}", file=sys.stderr)
+        return 2
+    if args.calibrate and drop is not None:
+        print("error: --calibrate chooses the scales on gap-free runs; leave out --drop-pattern", file=sys.stderr)
+        return 2
     source = DATASETS[args.dataset]
     data = args.data or source.default_dir()
     names = [n.strip() for n in args.estimators.split(",") if n.strip()]
@@ -349,7 +388,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rows = []
     for name in names:
-        rows.append(broad_coverage(name, data, trials, args.dataset))
+        rows.append(broad_coverage(name, data, trials, args.dataset, drop, args.drop_seed))
         print("\n".join(format_table(rows[-1:]).splitlines()[2:]), flush=True)  # progress
     print()
     for angle, (one, two) in EXPECTED.items():
