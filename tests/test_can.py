@@ -396,8 +396,9 @@ def test_duplicate_and_stale_transfers_not_delivered_twice(buses):
     send_all(tx, dc.encode_message(raw_imu_msg(1_999_000, (0.1, 0, 0), (0, 0, -9.81)), 42, 3))
     assert src.read() is None
     assert src.diagnostics.extra["stale_samples"] == 2
-    # a node reboot (clock far back) is accepted and restarts the time mapping
-    clock.t += 10_000_000
+    # a node reboot (silent longer than stream_silence_s, then its clock far back) is accepted
+    # and restarts the time mapping
+    clock.t += 1_500_000_000
     send_all(tx, dc.encode_message(raw_imu_msg(1_000, (0.1, 0, 0), (0, 0, -9.81)), 42, 4))
     s = src.read()
     assert s is not None and s.raw["sensor_time_us"] == 1_000

@@ -10,6 +10,12 @@ reading, i.e. specific force: ArduPilot's AP_Periph copies its INS accelerometer
 (0, 0, −9.81) level at rest — the project's convention. ``negate_acc`` exists for a node that
 publishes the opposite sign. Magnetometer messages are in Gauss and are converted to µT.
 
+Identity: the IMU node is the configured ``node_id``, else the first node whose RawIMU
+transfer arrives complete — a node sending only a magnetometer or anything else never takes
+that place. Transfers of that node id that do not continue its stream (a second sender with
+the same id, duplicates, a reboot) are sorted out by
+:class:`ahrs_service.protocols.dronecan.node_stream.NodeStreamGuard`.
+
 Time: each sample is stamped with the node's own acquisition time (``RawIMU.timestamp``, µs),
 mapped onto the host monotonic clock by an offset estimate (see :class:`SensorClockMap`), so
 bus and scheduling latency do not jitter the time steps the estimator sees.
@@ -17,6 +23,7 @@ bus and scheduling latency do not jitter the time steps the estimator sees.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import deque
@@ -51,8 +58,11 @@ from ahrs_service.protocols.dronecan.messages import (
     unpack_mag2,
     unpack_raw_imu,
 )
+from ahrs_service.protocols.dronecan.node_stream import NodeStreamGuard, Verdict
 
 _IMU_TYPES = (RAW_IMU_ID, MAG2_ID, MAG_ID)
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -61,8 +71,9 @@ class DroneCanConfig:
 
     interface, channel, bitrate: passed to ``can.Bus`` (e.g. "socketcan"/"can0", "slcan"/
         "/dev/ttyACM0" with bitrate 1_000_000, "virtual"/"sim").
-    node_id: the IMU node (1…127). None: the first node heard sending RawIMU or a
-        magnetometer message is taken, and the others count as foreign.
+    node_id: the IMU node (1…127). None: the first node whose RawIMU transfer arrives
+        complete is taken, and the others count as foreign; magnetometer messages never
+        choose it.
     mag_node_id: node sending the magnetometer messages when it is not the IMU node (e.g. a
         compass on a GPS node). None: the IMU node.
     mag_sensor_id: accept only this ``sensor_id`` of MagneticFieldStrength2 (None: any).
@@ -74,6 +85,9 @@ class DroneCanConfig:
     reopen_backoff_s, reopen_backoff_max_s: first and longest wait before reopening a bus
         that raised an error (doubles on each failure).
     negate_acc: flips the accelerometer sign for nodes that publish −specific force.
+    stream_silence_s: after this long (s) without a RawIMU transfer continuing the IMU node's
+        stream, the next one starts it again whatever its transfer id and timestamp (a
+        reboot; the second sender of a conflict once the first has fallen silent).
     bus_kwargs: further keyword arguments for ``can.Bus``.
     """
 
@@ -89,6 +103,7 @@ class DroneCanConfig:
     reopen_backoff_s: float = 0.05
     reopen_backoff_max_s: float = 2.0
     negate_acc: bool = False
+    stream_silence_s: float = 1.0
     bus_kwargs: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
@@ -166,10 +181,14 @@ class DroneCanImuSource(ImuSource):
         self.clock_map = SensorClockMap()
         self._imu_node = config.node_id
         self._mag_node = config.mag_node_id
-        self._last_usec = -1
+        self._stream: NodeStreamGuard | None = None if config.node_id is None else self._new_stream_guard()
+        self._conflicts_reported = 0
         self._last_t_ns = -1
         self._mag: tuple[float, float, float] | None = None
         self._mag_fresh = False
+        # before the IMU node is known: each node's latest field (Gauss), for when it turns
+        # out to be the IMU node and no other magnetometer node is configured
+        self._early_mag: dict[int, tuple[float, float, float]] = {}
         # received, not yet delivered: [t_ns, usec, gyr, acc, mag_new, mag, node], oldest first
         self._pending: deque[list] = deque(maxlen=config.max_pending_samples)
         self._reasm_dropped = 0
@@ -181,9 +200,18 @@ class DroneCanImuSource(ImuSource):
             malformed_transfers=0,
             error_frames=0,
             stale_samples=0,
+            out_of_sequence_samples=0,
+            conflict_samples=0,
+            conflict_samples_delivered=0,
+            node_id_conflicts=0,
+            node_restarts=0,
             superseded_samples=0,
             sensor_clock_resets=0,
         )
+
+    def _new_stream_guard(self) -> NodeStreamGuard:
+        return NodeStreamGuard(silence_s=self.config.stream_silence_s,
+                               time_slack_s=self.clock_map.reset_ns / 1e9)
 
     # ----------------------------------------------------------------------------- bus
 
@@ -247,6 +275,8 @@ class DroneCanImuSource(ImuSource):
                 return False
         self.diagnostics.reinitialisations += 1
         self.diagnostics.device_lost = False
+        if self._stream is not None:  # transfers were missed: the transfer ids jump
+            self._stream.resync()
         return True
 
     # ---------------------------------------------------------------------------- read
@@ -340,12 +370,34 @@ class DroneCanImuSource(ImuSource):
     def _accept_node(self, dtid: int, src: int) -> bool:
         if src == 0:
             return False  # anonymous nodes cannot be told apart
-        if dtid == RAW_IMU_ID or self._mag_node is None:
-            if self._imu_node is None:
-                self._imu_node = src  # lock onto the first IMU node heard
-                return True
-            return src == self._imu_node
-        return src == self._mag_node
+        if dtid != RAW_IMU_ID and self._mag_node is not None:
+            return src == self._mag_node
+        # until a RawIMU transfer names the IMU node, every node's frames are reassembled
+        return self._imu_node is None or src == self._imu_node
+
+    def _pin_imu_node(self, src: int) -> None:
+        """Takes ``src``, the first node whose RawIMU arrived, as the IMU node."""
+        self._imu_node = src
+        self._stream = self._new_stream_guard()
+        if self._mag_node is None and src in self._early_mag:
+            self._mag, self._mag_fresh = self._early_mag[src], True
+        self._early_mag.clear()
+        # the other nodes' transfers under way are foreign from now on
+        types = _IMU_TYPES if self._mag_node is None else (RAW_IMU_ID,)
+        frames = self.reassembler.discard(types, (src,) if self._mag_node is None else (src, self._mag_node))
+        self.diagnostics.extra["foreign_frames"] += frames
+        _log.info("DroneCAN IMU node %d: the first node sending RawIMU", src)
+
+    def _report_conflicts(self, stream: NodeStreamGuard) -> None:
+        """A second sender with the IMU node's id: said once per sender recognised."""
+        if stream.conflicts == self._conflicts_reported:
+            return
+        self._conflicts_reported = stream.conflicts
+        text = (f"DroneCAN node {self._imu_node}: a second sender uses this node id (RawIMU transfer ids "
+                "and timestamps of two sequences interleave); keeping the first sender's stream, "
+                "dropping the other's (conflict_samples)")
+        self.diagnostics.last_error = text
+        _log.warning(text)
 
     def _on_transfer(self, tr: Transfer) -> list | None:
         """Handles one transfer; a RawIMU one gives a new sample ``[t_ns, usec, gyr, acc, mag_new, mag, node]``."""
@@ -353,26 +405,31 @@ class DroneCanImuSource(ImuSource):
         try:
             if tr.data_type_id == RAW_IMU_ID:
                 usec, gyr, acc = unpack_raw_imu(tr.payload)
-            elif tr.data_type_id == MAG2_ID:
-                sid, mag = unpack_mag2(tr.payload)
-                if self.config.mag_sensor_id is not None and sid != self.config.mag_sensor_id:
-                    return None
-                self._mag, self._mag_fresh = mag, True
-                return None
             else:
-                self._mag, self._mag_fresh = unpack_mag(tr.payload), True
+                if tr.data_type_id == MAG2_ID:
+                    sid, mag = unpack_mag2(tr.payload)
+                    if self.config.mag_sensor_id is not None and sid != self.config.mag_sensor_id:
+                        return None
+                else:
+                    mag = unpack_mag(tr.payload)
+                if self._imu_node is None and self._mag_node is None:
+                    self._early_mag[tr.source_node_id] = mag  # whose field it is is not known yet
+                else:
+                    self._mag, self._mag_fresh = mag, True
                 return None
         except ValueError as exc:
             extra["malformed_frames"] += 1
             self.diagnostics.last_error = str(exc)
             return None
-        if usec != 0:
-            # A repeated or older timestamp is a duplicate (redundant interface, replay): the
-            # same reading must not be delivered twice. A large step back is a node reboot.
-            if usec <= self._last_usec and (self._last_usec - usec) * 1000 <= self.clock_map.reset_ns:
-                extra["stale_samples"] += 1
-                return None
-            self._last_usec = usec
+        if self._imu_node is None:
+            self._pin_imu_node(tr.source_node_id)
+        stream = self._stream
+        assert stream is not None  # set with the IMU node
+        # the same reading is never delivered twice, nor a second sender's merged in
+        verdict = stream.admit(tr.transfer_id, usec, tr.payload, tr.t_ns)
+        self._report_conflicts(stream)
+        if verdict is not Verdict.DELIVER:
+            return None
         if self.config.negate_acc:
             acc = (-acc[0], -acc[1], -acc[2])
         # t_ns is filled in by _stamp once the whole batch is known; until then the host time
@@ -415,10 +472,18 @@ class DroneCanImuSource(ImuSource):
         e["crc_errors"] = st.crc_errors
         e["malformed_transfers"] = st.malformed
         e["sensor_clock_resets"] = self.clock_map.resets
+        stream = self._stream
+        if stream is not None:
+            e["stale_samples"] = stream.duplicates + stream.stale
+            e["out_of_sequence_samples"] = stream.out_of_sequence
+            e["conflict_samples"] = stream.conflict_samples
+            e["conflict_samples_delivered"] = stream.conflict_delivered
+            e["node_id_conflicts"] = stream.conflicts
+            e["node_restarts"] = stream.restarts
 
     @property
     def node_id(self) -> int | None:
-        """The IMU node in use (configured, or the first one heard), None before any."""
+        """The IMU node in use (configured, or the first one heard sending RawIMU), None before any."""
         return self._imu_node
 
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import binascii
 import math
 import struct
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
@@ -396,6 +396,18 @@ class TransferReassembler:
         self._sessions.clear()
         self._broken.clear()
         return n
+
+    def discard(self, data_type_ids: Collection[int], keep_sources: Collection[int]) -> int:
+        """Forgets the open transfers of ``data_type_ids`` from every node not in ``keep_sources``
+        (nodes found not to be the ones listened to); returns their frames, counted as dropped
+        but not as incomplete transfers."""
+        gone = [k for k in self._sessions if (k >> 8) & 0xFFFF in data_type_ids and k & 0x7F not in keep_sources]
+        frames = 0
+        for k in gone:
+            frames += self._sessions.pop(k).frames
+            self._broken.pop(k, None)
+        self.stats.dropped_frames += frames
+        return frames
 
     @property
     def open_transfers(self) -> int:

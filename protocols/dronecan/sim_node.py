@@ -49,6 +49,8 @@ class SimulatedDroneCanImuNode:
         reading at t = k / rate_hz.
     sensor_epoch_us: the node clock's reading at simulation time 0 (µs).
     node_status: also publish NodeStatus (341) at 1 Hz.
+    publish_imu: False for a compass node: the magnetometer (and status) messages only, still
+        paced by ``rate_hz``.
     faults: periodic faults {kind: every_n_th RawIMU transfer}, kinds in :data:`FAULTS`:
         "corrupt" flips a payload bit (CRC error), "drop_middle" leaves out a middle frame,
         "swap_middle" sends two middle frames in swapped order (toggle error),
@@ -71,6 +73,7 @@ class SimulatedDroneCanImuNode:
         faults: Mapping[str, int] | None = None,
         foreign_node_id: int = 99,
         mag_sensor_id: int = 0,
+        publish_imu: bool = True,
     ) -> None:
         if not 1 <= node_id <= 127 or not 1 <= foreign_node_id <= 127:
             raise ValueError("node ids must be in 1..127")
@@ -90,6 +93,7 @@ class SimulatedDroneCanImuNode:
         self.priority = priority
         self.foreign_node_id = foreign_node_id
         self.mag_sensor_id = mag_sensor_id
+        self.publish_imu = publish_imu
         self._imu_id = build_message_id(RAW_IMU_ID, node_id, priority)
         self._mag_id = build_message_id(MAG2_ID, node_id, priority)
         self._imu_seed = transfer_crc_seed(RAW_IMU_ID)
@@ -130,7 +134,8 @@ class SimulatedDroneCanImuNode:
             if self.node_status and self._next_status <= ts + _EPS:
                 sent += self._publish_status(ts)
                 self._next_status = math.floor(ts + _EPS) + 1
-            sent += self._publish_imu(ts, self._next_imu)
+            if self.publish_imu:
+                sent += self._publish_imu(ts, self._next_imu)
             self._next_imu += 1
         return sent
 
