@@ -1,7 +1,8 @@
 """Fleet re-estimation: ``ahrs-service replay`` over many logs, one Dask task per log.
 
 Each log is replayed as the single-log ``replay`` does (``replay.replay`` / ``replay_offline``,
-``replay.compare``, ``replay.write_replay`` into ``--out DIR/<name>.mcap``), on whatever worker
+``replay.compare``, ``replay.write_replay`` into ``--out DIR``, at the log's path relative to
+the folder all the logs share: :func:`output_paths`), on whatever worker
 the execution layer (``ahrs_service.execution``) gives it; the log is read on that worker from
 its path. A log that cannot be read or replayed becomes a row naming its error, and a damaged
 (corrupt or truncated) log is replayed up to its damage and its row says what the damage is;
@@ -21,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from ahrs_service.logs.budget import DEFAULT_READ_BUDGET_BYTES, ReadBudgetExceeded
+
 
 @dataclass(frozen=True)
 class ReplayJob:
@@ -32,6 +35,8 @@ class ReplayJob:
     follow_param_changes: bool
     blend_time_s: float | None  # offline (forward-backward) when set
     out_path: str | None  # new log to write, or None
+    #: bytes reading the log may decompress (``logs/budget.py``); a log over it is a failed row
+    budget_bytes: int = DEFAULT_READ_BUDGET_BYTES
 
 
 @dataclass
@@ -75,6 +80,17 @@ def expand_logs(specs: list[str]) -> list[Path]:
     return out
 
 
+def output_paths(logs: list[Path], out_dir: str | os.PathLike) -> list[Path]:
+    """Where each log's replay goes: its path relative to the folder all ``logs`` share, under
+    ``out_dir``. Distinct logs get distinct outputs (``x/f.mcap`` and ``y/x/f.mcap`` become
+    ``OUT/x/f.mcap`` and ``OUT/y/x/f.mcap``), logs of one folder ``OUT/<name>.mcap``."""
+    resolved = [Path(os.path.abspath(p)) for p in logs]  # not realpath: two links keep two names
+    if not resolved:
+        return []
+    common = Path(os.path.commonpath([str(p.parent) for p in resolved]))
+    return [Path(out_dir) / p.relative_to(common) for p in resolved]
+
+
 def _lost_samples(index: np.ndarray) -> int:
     if index.size < 2:
         return 0
@@ -93,7 +109,7 @@ def replay_one(job: ReplayJob) -> FleetRow:
 
     empty = dict.fromkeys(COLUMNS)
     try:
-        log = read_log(job.path)
+        log = read_log(job.path, job.budget_bytes)
         name = job.estimator or log.estimator
         damage = str(log.damage) if log.damage else None
         if not name:
@@ -109,7 +125,7 @@ def replay_one(job: ReplayJob) -> FleetRow:
         output = None
         if job.out_path:
             output = str(write_replay(log, q, job.out_path, name, job.params, job.follow_param_changes,
-                                      offline_blend_s=job.blend_time_s))
+                                      offline_blend_s=job.blend_time_s, budget_bytes=job.budget_bytes))
         rec = cmp.get("vs_recorded") or {}
         truth = cmp.get("vs_truth") or {}
         return FleetRow(
@@ -119,6 +135,8 @@ def replay_one(job: ReplayJob) -> FleetRow:
             truth_heading_rmse_deg=_num(truth.get("heading")),
             truth_inclination_rmse_deg=_num(truth.get("inclination")), output=output, error=None,
         )
+    except ReadBudgetExceeded as exc:  # a bomb, or a log longer than the budget: nothing was read
+        return FleetRow(**empty | {"log": job.path, "error": str(exc)})
     except Exception as exc:  # noqa: BLE001 - one bad log is a row, not the end of the fleet
         return FleetRow(**empty | {"log": job.path, "error": f"{type(exc).__name__}: {exc}"})
 

@@ -22,6 +22,21 @@ def _param(text: str) -> tuple[str, float]:
         raise argparse.ArgumentTypeError(f"{name}: {value!r} is not a number") from None
 
 
+def _add_read_budget(p: argparse.ArgumentParser) -> None:
+    from ahrs_service.logs.budget import DEFAULT_READ_BUDGET_BYTES
+
+    p.add_argument("--read-budget-mb", type=float, default=DEFAULT_READ_BUDGET_BYTES / (1 << 20), metavar="MIB",
+                   help="refuse a log whose chunks decompress to more than this, MiB (default %(default)g; "
+                        "docs/logs.md, 'Decompression budget')")
+
+
+def _read_budget(args: argparse.Namespace) -> int:
+    """``--read-budget-mb`` in bytes; a bad value is cli.main's one-line error (ValueError)."""
+    from ahrs_service.logs.budget import budget_bytes_from_mb
+
+    return budget_bytes_from_mb(args.read_budget_mb)
+
+
 def add_subcommands(subparsers: Any) -> None:
     """Adds ``log`` (recover, info, import-broad) and ``replay`` to the ``ahrs-service`` parser."""
     log = subparsers.add_parser("log", help="inspect, recover and import flight logs (MCAP)")
@@ -36,6 +51,7 @@ def add_subcommands(subparsers: Any) -> None:
     p = sub.add_parser("info", help="channels, message counts, duration and damage of a log")
     p.add_argument("log", type=Path)
     p.add_argument("--json", action="store_true")
+    _add_read_budget(p)
     p.set_defaults(func=_info)
 
     p = sub.add_parser("import-broad", help="convert a BROAD HDF5 trial into an MCAP log with truth")
@@ -69,6 +85,7 @@ def add_subcommands(subparsers: Any) -> None:
     )
     add_offline_options(p, "non-causal estimate: the estimator run forward and backward over the log and fused")
     p.add_argument("--json", action="store_true", help="print the comparison as JSON")
+    _add_read_budget(p)
     execution.add_arguments(p)
     p.set_defaults(func=_replay)
 
@@ -101,8 +118,9 @@ def _info(args: argparse.Namespace) -> int:
     from ahrs_service.logs.loss import log_losses
     from ahrs_service.logs.reader import read_log
 
-    log = read_log(args.log)
-    losses = log_losses(args.log)
+    budget = _read_budget(args)
+    log = read_log(args.log, budget)
+    losses = log_losses(args.log, budget)
     info = {
         "path": str(log.path),
         "indexed": log.indexed,
@@ -193,16 +211,18 @@ def _replay_fleet(args: argparse.Namespace) -> int:
         from ahrs_service.estimators.settings import check_estimator_params
 
         check_estimator_params(args.estimator, dict(args.param))
+    budget = _read_budget(args)
     args.out.mkdir(parents=True, exist_ok=True)
-    names = [p.stem for p in paths]
+    outputs = fleet.output_paths(paths, args.out)  # the logs' own relative paths: no two alike
+    for out_path in outputs:
+        out_path.parent.mkdir(parents=True, exist_ok=True)
     jobs = [
         fleet.ReplayJob(
             path=str(p.resolve()), estimator=args.estimator, params=dict(args.param),
             follow_param_changes=not args.no_param_changes, blend_time_s=blend,
-            # two logs of the same name from different folders get the folder in the name
-            out_path=str(args.out / (f"{p.parent.name}_{p.stem}.mcap" if names.count(p.stem) > 1 else f"{p.stem}.mcap")),
+            out_path=str(out_path), budget_bytes=budget,
         )
-        for p in paths
+        for p, out_path in zip(paths, outputs)
     ]
     with open_runner(args.workers, args.scheduler) as runner:  # RunnerError: cli.main's one line
         rows = runner.map(fleet.replay_one, jobs, progress=sys.stderr.isatty() and not args.json, desc="replay")
@@ -225,7 +245,8 @@ def _replay(args: argparse.Namespace) -> int:
     from ahrs_service.logs.reader import read_log
     from ahrs_service.replay import compare, replay, replay_offline, write_replay
 
-    log = read_log(args.log[0])
+    budget = _read_budget(args)
+    log = read_log(args.log[0], budget)
     params = dict(args.param)
     name = args.estimator or log.estimator
     if not name:
@@ -256,7 +277,8 @@ def _replay(args: argparse.Namespace) -> int:
     if log.damage:
         result["damage"] = log.damage.as_dict()
     if args.out:
-        result["output"] = str(write_replay(log, q, args.out, name, params, follow, offline_blend_s=blend))
+        result["output"] = str(write_replay(log, q, args.out, name, params, follow, offline_blend_s=blend,
+                                            budget_bytes=budget))
     if args.json:
         print(json.dumps(result, indent=2))
         return 0

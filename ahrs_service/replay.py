@@ -26,8 +26,10 @@ from ahrs_service import estimators
 from ahrs_service.core.divergence import DivergenceEvent, scan
 from ahrs_service.estimators import SAMPLE_ROW, offline
 from ahrs_service.evaluation.metrics import error_angles, rmse
+from ahrs_service.logs.budget import DEFAULT_READ_BUDGET_BYTES
 from ahrs_service.logs.mcap_file import McapLogFile
 from ahrs_service.logs.reader import MessageSource, RecordedLog
+from ahrs_service.logs.redaction import redact_config
 from ahrs_service.logs.schemas import attitude_block_message, attitude_message, jsonable, log_message, tf_message
 
 #: where a replayed log keeps the estimate that was recorded
@@ -246,6 +248,7 @@ def write_replay(
     follow_param_changes: bool = True,
     tf_rate_hz: float = 50.0,
     offline_blend_s: float | None = None,
+    budget_bytes: int = DEFAULT_READ_BUDGET_BYTES,
 ) -> Path:
     """A new log: every channel of ``log`` copied, the new estimate on /attitude (and /tf),
     the recorded /attitude moved to /attitude/original, /config naming the new estimator.
@@ -255,12 +258,14 @@ def write_replay(
     estimate of :func:`replay_offline` with that blend time (s); /config then carries
     ``estimator.offline = {"blend_time_s": …}`` and each /attitude names "<estimator>+offline",
     so it is not taken for what the causal estimator published (a causal replay of the new log
-    does not reproduce it).
+    does not reproduce it). ``budget_bytes``: the read budget the log was read with
+    (``logs/budget.py``), for the second pass over its messages.
     """
     out_path = Path(out_path)
     if os.path.realpath(out_path) == os.path.realpath(log.path):  # no RuntimeError on a symlink loop
         raise ValueError("the replay must not overwrite its input")
-    config = json.loads(json.dumps(log.config)) if log.config else {}
+    # an older log may hold a secret in clear: the replay records it redacted, never copied
+    config = redact_config(json.loads(json.dumps(log.config))) if log.config else {}
     config["estimator"] = {"name": estimator, "params": _effective_start(log, estimator, params)}
     label = estimator if offline_blend_s is None else estimator + "+offline"
     same = estimator == log.estimator
@@ -274,7 +279,7 @@ def write_replay(
     last_tf: int | None = None
     # the messages the reader read, in its order, and no further: what follows a damaged
     # chunk or a message that is not valid was neither read nor replayed
-    source = MessageSource(log.path, stream_only=not log.indexed)
+    source = MessageSource(log.path, stream_only=not log.indexed, budget_bytes=budget_bytes)
     remaining = sum(log.counts.values()) if log.damage is not None else -1
     t0 = int(log.t_ns[0]) if len(log) else 0
     # the divergence monitor's flags of the new estimate, on /log at their sample times (the

@@ -19,6 +19,7 @@ import struct
 from dataclasses import dataclass
 from typing import Callable
 
+from ahrs_service.logs.budget import DEFAULT_READ_BUDGET_BYTES, check_read_budget
 from ahrs_service.logs.magic import MCAP_MAGIC
 from ahrs_service.logs.recover import chunk_bytes
 
@@ -42,9 +43,12 @@ def _channel(body: bytes, channels: dict[int, str]) -> None:
     channels[cid] = body[8 : 8 + n].decode()
 
 
-def scan_messages(path: str | os.PathLike, handlers: dict[str, Callable[[int, bytes], None]]) -> ScanResult:
+def scan_messages(path: str | os.PathLike, handlers: dict[str, Callable[[int, bytes], None]],
+                  budget_bytes: int = DEFAULT_READ_BUDGET_BYTES) -> ScanResult:
     """Calls ``handlers[topic](log_time_ns, data)`` for every message of a handled topic, in
-    file order, up to the first damage (see :class:`ScanResult`)."""
+    file order, up to the first damage (see :class:`ScanResult`). A log over the read budget
+    raises :class:`~ahrs_service.logs.budget.ReadBudgetExceeded` first (``logs/budget.py``)."""
+    check_read_budget(path, budget_bytes)
     result = ScanResult()
     channels: dict[int, str] = {}
     wanted: dict[int, Callable[[int, bytes], None] | None] = {}

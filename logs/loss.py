@@ -15,6 +15,7 @@ from typing import Any
 
 from ahrs_service.core.samples import LossCounts
 from ahrs_service.logs.fields import BadMessage, decoded, integer, number, obj
+from ahrs_service.logs.budget import DEFAULT_READ_BUDGET_BYTES
 from ahrs_service.logs.reader import MessageSource
 
 CAUSES = ("fifo_overflow", "bus_error", "gap", "host_stall")
@@ -57,10 +58,11 @@ class LogLosses:
         return self.last.since(self.first)
 
 
-def log_losses(path: str | os.PathLike) -> LogLosses:
-    """The loss counters of the log at ``path`` (read up to any damage)."""
+def log_losses(path: str | os.PathLike, budget_bytes: int = DEFAULT_READ_BUDGET_BYTES) -> LogLosses:
+    """The loss counters of the log at ``path`` (read up to any damage; ``budget_bytes``: the
+    read budget, ``logs/budget.py``)."""
     out = LogLosses()
-    for topic, log_time, _, data in MessageSource(path):
+    for topic, log_time, _, data in MessageSource(path, budget_bytes=budget_bytes):
         if topic != "/loop":
             continue
         try:

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from ahrs_service.core.quaternion import euler_of
+from ahrs_service.logs.budget import ReadBudgetExceeded
 from ahrs_service.logs.fast_scan import scan_messages
 from ahrs_service.logs.fields import BadMessage, decoded, integers, number, obj, scalar, vector, vectors
 from ahrs_service.logs.reader import MessageSource
@@ -170,6 +171,8 @@ def read_series(path: str | Path, progress: bool = True) -> LogSeries:
         try:
             scan = scan_messages(path, handlers)
             damage, n = scan.damage, scan.messages
+        except ReadBudgetExceeded:
+            raise  # refused before anything was read: the other way would refuse it too
         except ValueError:  # a chunk compression the fast scan does not read: the mcap library's way
             source = MessageSource(path)
             n = 0

@@ -19,6 +19,7 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata
 
 from ahrs_service.core.paths import regular_file
+from ahrs_service.logs.budget import DEFAULT_READ_BUDGET_BYTES, check_read_budget
 from ahrs_service.logs.fields import (
     BadMessage,
     decoded,
@@ -40,12 +41,16 @@ class MessageSource:
 
     Indexed reading (with chunk CRC checks) when the summary is readable, else stream reading
     up to the damage. After iteration: ``damage`` (None if sound), ``indexed`` and
-    ``metadata`` ({name: {key: value}}).
+    ``metadata`` ({name: {key: value}}). Before the first message, a log whose chunks state
+    more than ``budget_bytes`` decompressed (or a bomb's expansion) raises
+    :class:`~ahrs_service.logs.budget.ReadBudgetExceeded` (``logs/budget.py``).
     """
 
-    def __init__(self, path: str | os.PathLike, *, stream_only: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike, *, stream_only: bool = False,
+                 budget_bytes: int = DEFAULT_READ_BUDGET_BYTES) -> None:
         self.path = Path(path)
         self.stream_only = stream_only
+        self.budget_bytes = budget_bytes
         self.damage: Damage | None = None
         self.indexed = False
         self.metadata: dict[str, dict[str, str]] = {}
@@ -83,6 +88,7 @@ class MessageSource:
         return struct.unpack_from("<Q", head, 9 + 16)[0] == index.uncompressed_size
 
     def __iter__(self) -> Iterator[tuple[str, int, int, bytes]]:
+        check_read_budget(self.path, self.budget_bytes)
         with open(self.path, "rb") as f:
             reader = None if self.stream_only else self._summary_reader(f)
             if reader is not None:
@@ -175,14 +181,16 @@ def _align(t_ns: np.ndarray, times: list[int], values: list[list[float]]) -> np.
     return out
 
 
-def read_log(path: str | os.PathLike) -> RecordedLog:
+def read_log(path: str | os.PathLike, budget_bytes: int = DEFAULT_READ_BUDGET_BYTES) -> RecordedLog:
     """Reads a flight log (MCAP) into a :class:`RecordedLog`; damaged files up to the damage.
-    OSError naming the path when it is no regular file (missing, a directory, a FIFO …)."""
+    OSError naming the path when it is no regular file (missing, a directory, a FIFO …);
+    :class:`~ahrs_service.logs.budget.ReadBudgetExceeded` (a ValueError), before anything is
+    decompressed, when its chunks state more than ``budget_bytes`` or a bomb's expansion."""
     regular_file(path)  # a FIFO would block open() until some process writes to it
-    log = _read(MessageSource(path))
+    log = _read(MessageSource(path, budget_bytes=budget_bytes))
     if log.damage is not None and log.indexed:
         # a complete file with a damaged chunk: read it again in file order, up to the damage
-        log = _read(MessageSource(path, stream_only=True))
+        log = _read(MessageSource(path, stream_only=True, budget_bytes=budget_bytes))
     return log
 
 

@@ -58,6 +58,7 @@ import numpy as np
 
 from ahrs_service.logs.encoders import JOINED_BLOCK_MAX_ROWS, RecordEncoders
 from ahrs_service.logs.log_files import LogFiles, Losses, Outage, log_file_name
+from ahrs_service.logs.redaction import redact_config
 from ahrs_service.logs.records import (
     Attitude,
     AutopilotAttitude,
@@ -430,9 +431,10 @@ class FlightLogWriter:
         self._put(Loop(t_ns, dict(stats)))
 
     def write_config(self, t_ns: int, config: Mapping[str, Any], reason: str = "start") -> None:
-        """The effective configuration, with config['estimator'] = {'name': …, 'params': {…}}."""
+        """The effective configuration, with config['estimator'] = {'name': …, 'params': {…}};
+        secrets (``mavlink.signing_key`` …) are recorded as ``"<redacted>"`` (``logs/redaction.py``)."""
         # a deep copy the caller cannot change any more; unknown types (paths …) become strings
-        self._put(Config(t_ns, json.loads(json.dumps(jsonable(config), default=str)), reason))
+        self._put(Config(t_ns, json.loads(json.dumps(redact_config(jsonable(config)), default=str)), reason))
 
     def write_param_change(
         self, t_ns: int, sample_index: int | None, name: str, old: Any, new: Any, source: str = ""

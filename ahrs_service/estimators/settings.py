@@ -12,22 +12,14 @@ from typing import Any
 
 from ahrs_service import estimators
 from ahrs_service.core.settings import ConfigError, Section, finite_table, number, short, string
-from ahrs_service.estimators.presets import has_paper_preset, load_preset
-
-#: how far the configuration file's ``estimator.params`` may move a value from its default:
-#: wider than over the air, short of values no filter survives (``beta = 1e300``)
-CONFIG_RANGE_FACTOR = 1e6
-
-
-def param_bounds(default: float, factor: float) -> tuple[float, float]:
-    """[minimum, maximum] of an estimator parameter: from 0 to ``factor`` times its default
-    on the default's side (a gain, a time constant, a noise level); ±factor around a default
-    of 0."""
-    if default > 0:
-        return 0.0, default * factor
-    if default < 0:
-        return default * factor, 0.0
-    return -factor, factor
+# the ranges live beside the presets, which a preset file's values must keep too
+from ahrs_service.estimators.presets import (  # noqa: F401 (CONFIG_RANGE_FACTOR, param_bounds: imported from here)
+    CONFIG_RANGE_FACTOR,
+    load_preset,
+    param_bounds,
+    range_violation,
+    reference_params,
+)
 
 
 def estimator_name(key: str, v: Any) -> str:
@@ -50,10 +42,7 @@ ESTIMATOR: Section = {
 
 def _reference_params(name: str) -> list[dict[str, Any]]:
     """The values a parameter's range is taken from: its defaults, and its paper values."""
-    references = [estimators.create(name).get_params()]
-    if has_paper_preset(estimators.get(name).Params):
-        references.append(load_preset(name, "paper"))
-    return references
+    return reference_params(name)
 
 
 def check_estimator_section(section: dict[str, Any]) -> None:
@@ -73,8 +62,7 @@ def check_estimator_section(section: dict[str, Any]) -> None:
         except OSError as exc:  # a name too long for the file system, a folder not searchable …
             raise ConfigError(f"estimator.preset: {short(section['preset'])} cannot be read: "
                               f"{exc.strerror or exc}; accepted: 'paper' or a preset file") from None
-        references.append(preset)
-        section["params"] = {**preset, **section["params"]}
+        section["params"] = {**preset, **section["params"]}  # its values were checked against the references
     try:
         estimators.create(section["name"], **section["params"])
     except (ValueError, TypeError, OverflowError) as exc:
@@ -84,22 +72,15 @@ def check_estimator_section(section: dict[str, Any]) -> None:
 
 def check_param_ranges(params: dict[str, Any], references: list[dict[str, Any]],
                        label: str = "estimator.params.{}") -> None:
-    """Each numeric value within ``CONFIG_RANGE_FACTOR`` of its reference: the largest of its
-    default, its paper value (a paper's 1e9 for "gate off") and its preset's. A finite 1e300
-    passes the estimator's own checks and overflows inside it. ``label`` names a parameter in
-    the error (``"--param {}"`` on the command line)."""
-    def is_number(v: Any) -> bool:
-        return isinstance(v, (int, float)) and not isinstance(v, bool)
-
+    """Each numeric value within ``CONFIG_RANGE_FACTOR`` of its reference: the larger of its
+    default and its paper value (a paper's 1e9 for "gate off"), never a preset's own value
+    (``presets.range_violation``). A finite 1e300 passes the estimator's own checks and
+    overflows inside it. ``label`` names a parameter in the error (``"--param {}"`` on the
+    command line)."""
     for name, value in params.items():
-        refs = [r[name] for r in references if is_number(r.get(name))]
-        if not is_number(value) or not refs:
-            continue
-        reference = max(refs, key=abs)
-        lo, hi = param_bounds(float(reference), CONFIG_RANGE_FACTOR)
-        if not lo <= value <= hi:
-            raise ConfigError(f"{label.format(name)} = {value!r}: must be within {lo:g} … {hi:g} "
-                              f"({CONFIG_RANGE_FACTOR:g} × its default {reference:g})")
+        wrong = range_violation(name, value, references)
+        if wrong is not None:
+            raise ConfigError(f"{label.format(name)} = {wrong}")
 
 
 def check_estimator_params(name: str, params: dict[str, Any], label: str = "--param {}") -> None:
