@@ -81,6 +81,10 @@ SOURCE: Section = {
     "mavlink_imu_hz": (200.0, number(1.0, 2000.0)),
     # RAW_IMU counts -> m/s2, rad/s, uT per count; unset keys: ArduPilot's (mG, mrad/s, mgauss)
     "mavlink_raw_scale": ({}, finite_table),
+    # the flight controller the link listens to (0: the first one heard); any other one's
+    # HEARTBEATs are counted and reported, never adopted (docs/autopilot.md)
+    "mavlink_autopilot_system_id": (0, number(0, 255, integer=True)),
+    "mavlink_autopilot_component_id": (0, number(0, 255, integer=True)),
 }
 
 

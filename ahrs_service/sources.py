@@ -48,7 +48,8 @@ def simulated_imu(source_cfg: dict[str, Any]):
     return SimulatedImu(trajectory, models, clock=MonotonicClock(), seed=source_cfg["seed"])
 
 
-def make_source(source_cfg: dict[str, Any], estimation_hz: float, system_id: int = 1) -> ImuSource:
+def make_source(source_cfg: dict[str, Any], estimation_hz: float, system_id: int = 1,
+                companion: bool = False) -> ImuSource:
     """An unopened source for the ``[source]`` section of the configuration (``system_id``:
     the service's MAVLink system id, its address on an autopilot link)."""
     kind = source_cfg["type"]
@@ -86,16 +87,20 @@ def make_source(source_cfg: dict[str, Any], estimation_hz: float, system_id: int
 
         return RecordedSource(source_cfg["recorded_path"], realtime=source_cfg["recorded_realtime"])
     if kind == "mavlink":
-        return make_mavlink_source(source_cfg, system_id)
+        return make_mavlink_source(source_cfg, system_id, companion)
     raise ValueError(f"source.type: unknown source {kind!r}")
 
 
-def make_mavlink_source(source_cfg: dict[str, Any], system_id: int = 1) -> ImuSource:
-    """The autopilot's IMU over a new autopilot link (opened with the source)."""
+def make_mavlink_source(source_cfg: dict[str, Any], system_id: int = 1, companion: bool = False) -> ImuSource:
+    """The autopilot's IMU over a new autopilot link (opened with the source). The link listens
+    to ``source.mavlink_autopilot_system_id``; when that is 0 and the service speaks as the
+    autopilot's companion (``mavlink.identity``), to the system id they share, ``system_id``."""
     from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink
     from ahrs_service.protocols.mavlink.imu_source import MavlinkImuSource, parse_raw_scale
 
-    link = AutopilotLink(source_cfg["mavlink_connection"], system_id=system_id)
+    link = AutopilotLink(source_cfg["mavlink_connection"], system_id=system_id,
+                         autopilot_system_id=source_cfg.get("mavlink_autopilot_system_id", 0) or (system_id if companion else 0),
+                         autopilot_component_id=source_cfg.get("mavlink_autopilot_component_id", 0))
     return MavlinkImuSource(link, message=source_cfg["mavlink_imu"], rate_hz=source_cfg["mavlink_imu_hz"],
                             raw_scale=parse_raw_scale(source_cfg["mavlink_raw_scale"]))
 

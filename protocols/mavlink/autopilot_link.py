@@ -15,9 +15,20 @@ thread and must be quick (append to a deque); everything else happens on the loo
 
 What it detects and survives:
 
-* **the autopilot**: the first HEARTBEAT whose ``autopilot`` is not ``MAV_AUTOPILOT_INVALID``
-  and whose type is not a ground station or companion names it (:class:`AutopilotInfo`: PX4,
-  ArduPilot or other, system and component id); subscribers may ask for messages from it only;
+* **the autopilot**: the first HEARTBEAT whose ``autopilot`` is not ``MAV_AUTOPILOT_INVALID``,
+  whose type is not a ground station or companion and whose system (and component) is the
+  configured one (``autopilot_system_id``/``autopilot_component_id``; 0: any) names it
+  (:class:`AutopilotInfo`: PX4, ArduPilot or other, system and component id); subscribers may
+  ask for messages from it only. It is never replaced: another flight controller heard later
+  (or before, when it is not the configured one) is counted (``stats.other_autopilots``) and
+  reported once, never adopted;
+* **a second sender with the autopilot's ids**: on a UDP listening link the autopilot's
+  address is pinned when it is adopted; the same ids from another address while the pinned
+  one still speaks (within ``HANDOVER_S``) are counted (``stats.identity_conflicts``),
+  reported once and not dispatched as the autopilot's (an address silent that long hands
+  over: a restarted router or autopilot). Sequence numbers that keep going backwards (two
+  senders interleaving behind one address or on a serial line) are reported as a conflict
+  too (``stats.sequence_backsteps``);
 * **silence** (a UDP peer gone, a cable pulled): no message for ``silence_s`` makes the link
   *lost* (``stats.losses``); the next message makes it *up* again (``stats.recoveries``) and
   starts a new ``session`` — users that configured the autopilot (stream intervals) do it again;
@@ -28,6 +39,10 @@ What it detects and survives:
   end of file closes the connection and re-opens it every ``reopen_s`` until it opens
   (``stats.read_errors``, ``stats.reopens``, ``stats.open_failures``).
 
+Reports (a foreign autopilot, a conflict, TIMESYNC replies refused or its clock jumping) are
+kept as notices: logged once (this module's logger, under ``ahrs_service``: the journal) and queued for
+the service, which takes them with :meth:`AutopilotLink.take_notices` (STATUSTEXT, ``/log``).
+
 Time is ``time.monotonic_ns()`` throughout. The remote clock (the autopilot's boot time) is
 mapped onto ours by :class:`RemoteTimeline`, one per link, so the IMU source and the monitor
 use the same mapping and their times stay consistent.
@@ -37,6 +52,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import logging
 import select
 import threading
 import time
@@ -46,7 +62,7 @@ from typing import Any, Callable, Iterable
 from ahrs_service.protocols.mavlink.dialect import mavlink
 from ahrs_service.protocols.mavlink.endpoints import Endpoint
 from ahrs_service.protocols.mavlink.identity import Identity, encode_heartbeat
-from ahrs_service.protocols.mavlink.timesync import REQUEST_RATE_HZ, TimeSync
+from ahrs_service.protocols.mavlink.timesync import MAX_DRIFT_PPM, REQUEST_RATE_HZ, TimeSync
 
 #: no message for this long: the link counts as lost (autopilots beat at 1 Hz, stream faster)
 SILENCE_S = 2.0
@@ -59,8 +75,28 @@ POLL_S = 0.05
 HEARTBEAT_S = 1.0
 #: messages parsed per read at most (a read of 4 kB holds at most ~90 MAVLink frames)
 _MAX_PER_READ = 256
+#: the autopilot's pinned UDP address silent this long: its ids from a new address take over
+#: (a restarted router or autopilot), s. Below any silence of a live autopilot beside us: it
+#: streams the IMU and answers TIMESYNC at 10 Hz
+HANDOVER_S = 0.5
+#: sequence numbers of the autopilot's messages looked at for interleaving, and how many of
+#: them stepping backwards (not a loss: a loss only skips forward) make a conflict
+SEQUENCE_WINDOW = 64
+SEQUENCE_BACKSTEPS = 8
+#: notices kept for the service at most (the oldest go first; each was logged already)
+NOTICES = 32
+#: TIMESYNC clock jumps reported at most this often, s (a peer could jump every 0.5 s)
+JUMP_NOTICE_S = 10.0
+
+_log = logging.getLogger(__name__)
 
 #: HEARTBEAT types that are never the flight controller
+#: how much later than its sample an IMU message may arrive at the least, s: a TIMESYNC estimate
+#: that puts the samples further before the arrivals' floor (the smallest arrival − remote time
+#: of a few seconds) is wrong (a TIMESYNC clock that jumped while the IMU stamps did not). A
+#: queue on the link delays some messages longer; the floor is the least delayed one's
+MAX_LATENCY_S = 1.0
+
 _NOT_AUTOPILOT_TYPES = frozenset({
     mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_GIMBAL,
     mavlink.MAV_TYPE_ADSB, mavlink.MAV_TYPE_CAMERA, mavlink.MAV_TYPE_IMU,
@@ -105,6 +141,11 @@ class LinkStats:
     reopens: int = 0  # connections re-opened after a failure
     losses: int = 0  # up -> lost transitions (silence or a vanished device)
     recoveries: int = 0  # lost -> up transitions
+    other_autopilots: int = 0  # HEARTBEATs of a flight controller that is not the one listened to
+    other_system_messages: int = 0  # messages of any system but the autopilot's (a GCS behind a router too)
+    identity_conflicts: int = 0  # messages with the autopilot's ids from a second address
+    sequence_backsteps: int = 0  # the autopilot's sequence numbers going backwards
+    address_handovers: int = 0  # the autopilot's ids moved to a new address after its silence
     last_error: str = ""
     received: dict[str, int] = field(default_factory=dict)
 
@@ -131,10 +172,12 @@ class RemoteTimeline:
     estimate moves more than ``deadband_ns`` away from the held offset (clock drift, a better
     sync), the held offset slews towards it by at most ``slew_ppm`` of the elapsed remote time;
     beyond ``step_ns`` it steps (``steps`` counts those; a rebooted autopilot steps too).
+    TIMESYNC's estimate is used only between ``max_latency_s`` before the arrivals' floor and
+    ``deadband_ns`` after it (``timesync_refused`` counts the others).
     """
 
     def __init__(self, *, deadband_ns: int = 10_000_000, slew_ppm: float = 200.0, step_ns: int = 50_000_000,
-                 window_s: float = 4.0) -> None:
+                 window_s: float = 4.0, max_latency_s: float = MAX_LATENCY_S) -> None:
         self.deadband_ns = int(deadband_ns)
         self.slew = float(slew_ppm) * 1e-6
         self.step_ns = int(step_ns)
@@ -142,6 +185,10 @@ class RemoteTimeline:
         self.timesync_lock = threading.Lock()
         self.offset_ns: int | None = None
         self.steps = 0
+        #: TIMESYNC estimates not used: more than ``max_latency_ns`` before the arrivals' floor
+        #: (or after it), i.e. a sample taken long before it could have been sent
+        self.timesync_refused = 0
+        self.max_latency_ns = int(max_latency_s * 1e9)
         self.slewed_ns = 0  # total |adjustment| by slewing, ns (0: every spacing is the autopilot's)
         self._bin_ns = int(window_s * 1e9 / 4)
         self._bins: collections.deque[tuple[int, int]] = collections.deque(maxlen=4)  # (bin, min offset)
@@ -166,15 +213,20 @@ class RemoteTimeline:
         than ``deadband_ns`` is impossible, and TIMESYNC's is not used then. That is the case
         when the autopilot's IMU stamps jump (a clock stepped by 1e9 s) while its TIMESYNC
         replies do not: TIMESYNC's offset put every sample 31 years after its arrival, and
-        once the stamps came back, every later sample was dropped as older than those."""
+        once the stamps came back, every later sample was dropped as older than those.
+        Nor does a message arrive ``max_latency_ns`` after its sample at the least: a TIMESYNC
+        offset that far below the floor (its clock jumped ahead while the IMU stamps did not)
+        would place every later sample before the ones already handed out."""
         with self._lock:
             floor = min(o for _, o in self._bins) if self._bins else None
         ts = self.timesync
         if ts is not None:
             with self.timesync_lock:
                 synced = int(ts.to_local_ns(int(remote_us))) - int(remote_us) * 1000 if ts.synced else None
-            if synced is not None and (floor is None or synced <= floor + self.deadband_ns):
-                return synced
+            if synced is not None:
+                if floor is None or floor - self.max_latency_ns <= synced <= floor + self.deadband_ns:
+                    return synced
+                self.timesync_refused += 1
         return floor
 
     def to_local_ns(self, remote_us: int) -> int | None:
@@ -248,13 +300,17 @@ class AutopilotLink:
     """One connection to the flight controller, read on a thread (see the module docstring).
 
     url: pymavlink connection string. system_id, component_id: our own MAVLink address on the
-    link (the service's identity). silence_s, reopen_s: see the module constants.
+    link (the service's identity). autopilot_system_id, autopilot_component_id: the flight
+    controller listened to (0: the first one heard). silence_s, reopen_s: see the module
+    constants.
     """
 
     def __init__(self, url: str, *, system_id: int = 1, component_id: int = mavlink.MAV_COMP_ID_IMU,
+                 autopilot_system_id: int = 0, autopilot_component_id: int = 0,
                  silence_s: float = SILENCE_S, reopen_s: float = REOPEN_S) -> None:
         self.url = url
         self.system_id, self.component_id = int(system_id), int(component_id)
+        self.autopilot_system_id, self.autopilot_component_id = int(autopilot_system_id), int(autopilot_component_id)
         self.silence_ns = int(silence_s * 1e9)
         self.reopen_ns = int(reopen_s * 1e9)
         self.stats = LinkStats()
@@ -283,6 +339,14 @@ class AutopilotLink:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._reopen_at_ns = 0
+        self._notices: collections.deque[tuple[int, str]] = collections.deque(maxlen=NOTICES)
+        self._notices_lock = threading.Lock()
+        self._reported: set[Any] = set()  # what was reported once (a foreign autopilot, an address)
+        self._ap_address: Any = None  # the autopilot's UDP address (listening links), pinned
+        self._ap_heard_ns = 0  # the newest message from it
+        self._ap_seq: int | None = None
+        self._backsteps: collections.deque[bool] = collections.deque(maxlen=SEQUENCE_WINDOW)
+        self._jump_noted_ns = -(1 << 62)  # the last TIMESYNC jump reported
 
     # ------------------------------------------------------------------ set-up
     def subscribe(self, names: Iterable[str], sink: Sink, *, autopilot_only: bool = True) -> None:
@@ -362,12 +426,33 @@ class AutopilotLink:
             "autopilot": None if ap is None else dataclasses.asdict(ap),
             "link": self.stats.as_dict(),
             "timesync": timesync,
-            "timeline": {"offset_ns": tl.offset_ns, "slewed_ns": tl.slewed_ns, "steps": tl.steps},
+            "timeline": {"offset_ns": tl.offset_ns, "slewed_ns": tl.slewed_ns, "steps": tl.steps,
+                         "timesync_refused": tl.timesync_refused},
         }
 
     @property
     def up(self) -> bool:
         return self.state == "up"
+
+    def notify(self, text: str, severity: int = 4, once: Any = None) -> None:
+        """A report for humans (any thread): logged now, queued for :meth:`take_notices`.
+        ``once``: a key; a second notice with the same key is not made. ``severity``:
+        MAVLink's (4 warning)."""
+        with self._notices_lock:
+            if once is not None:
+                if once in self._reported:
+                    return
+                self._reported.add(once)
+            self._notices.append((int(severity), text))
+        _log.log(logging.WARNING if severity <= 4 else logging.INFO, text)
+
+    def take_notices(self) -> list[tuple[int, str]]:
+        """The notices since the last call, oldest first, as (severity, text): for the service
+        to report (STATUSTEXT, ``/log``); each was logged when it was made."""
+        with self._notices_lock:
+            out = list(self._notices)
+            self._notices.clear()
+        return out
 
     def _note_error(self, text: str) -> None:
         self.stats.last_error = f"{self.url}: {text}"
@@ -428,7 +513,7 @@ class AutopilotLink:
         for _ in range(_MAX_PER_READ):
             if msg is None:
                 break
-            self._dispatch(msg, rx_ns)
+            self._dispatch(msg, rx_ns, getattr(ep, "_from", None))
             msg = self._safe_parse(ep, b"")
         if ep.datagram and ep.end_of_datagram():
             self.stats.bad_data += 1
@@ -442,7 +527,9 @@ class AutopilotLink:
             ep.reset_parser()
             return None
 
-    def _dispatch(self, msg: Any, rx_ns: int) -> None:
+    def _dispatch(self, msg: Any, rx_ns: int, address: Any = None) -> None:
+        """One parsed message, from ``address`` (the sender's UDP address on a listening link,
+        else None)."""
         name = msg.get_type()
         if name == "BAD_DATA" or name.startswith("UNKNOWN_"):
             self.stats.bad_data += 1
@@ -452,13 +539,32 @@ class AutopilotLink:
         self.last_rx_ns = rx_ns
         if self.state != "up":
             self._went_up()
-        if name == "HEARTBEAT" and self.autopilot is None:
-            self.autopilot = AutopilotInfo.from_heartbeat(msg)
+        if name == "HEARTBEAT":
+            heard = AutopilotInfo.from_heartbeat(msg)
+            if heard is not None:
+                self._heard_autopilot(heard, address, rx_ns)
         ap = self.autopilot
-        from_ap = ap is not None and msg.get_srcSystem() == ap.system_id and msg.get_srcComponent() == ap.component_id
+        system = msg.get_srcSystem()
+        wanted = ap.system_id if ap is not None else self.autopilot_system_id
+        if wanted and system != wanted:
+            self.stats.other_system_messages += 1
+        from_ap = ap is not None and system == ap.system_id and msg.get_srcComponent() == ap.component_id
+        if from_ap:
+            from_ap = self._same_sender(msg, address, rx_ns)
         if name == "TIMESYNC" and from_ap:
             with self.timesync_lock:
+                counters = self.timesync.counters
+                refused, jumps = counters.implausible, counters.jumps
                 answer = self.timesync.handle(msg, rx_ns)
+                jump_ns = self.timesync.last_jump_ns
+            if counters.jumps != jumps and rx_ns - self._jump_noted_ns >= JUMP_NOTICE_S * 1e9:
+                self._jump_noted_ns = rx_ns
+                self.notify(f"autopilot link: TIMESYNC: the autopilot's clock jumped by {jump_ns / 1e9:+.3f} s; "
+                            f"estimate restarted", 4)
+            elif counters.implausible != refused and counters.jumps == jumps:
+                self.notify("autopilot link: TIMESYNC replies refused: their offset moves faster than "
+                            f"±{MAX_DRIFT_PPM:g} ppm and the round trip allow (counted in timesync.implausible)",
+                            4, once=("timesync refused", self.timesync.counters.resets))
             if answer is not None:  # the autopilot asked us: answer at once
                 self.send(answer.encode())
         for sub in self._subs:
@@ -467,6 +573,63 @@ class AutopilotLink:
                     sub.sink(msg, rx_ns)
                 except Exception as exc:  # a consumer's bug must not stop the link
                     self._note_error(f"{name} handler: {type(exc).__name__}: {exc}")
+
+    def _heard_autopilot(self, heard: AutopilotInfo, address: Any, rx_ns: int) -> None:
+        """A flight controller's HEARTBEAT: adopted when it is the first one the configuration
+        allows; any other one is counted and reported once, never adopted."""
+        ap = self.autopilot
+        if ap is None and (not self.autopilot_system_id or heard.system_id == self.autopilot_system_id) \
+                and (not self.autopilot_component_id or heard.component_id == self.autopilot_component_id):
+            self.autopilot = heard
+            self._ap_address, self._ap_heard_ns = address, rx_ns
+            return
+        if ap is not None and (heard.system_id, heard.component_id) == (ap.system_id, ap.component_id):
+            return
+        self.stats.other_autopilots += 1
+        if ap is not None:
+            listening = f"listening to {ap.kind} system {ap.system_id} component {ap.component_id}"
+        else:
+            listening = f"listening to system {self.autopilot_system_id}" + (
+                f" component {self.autopilot_component_id}" if self.autopilot_component_id else "")
+        self.notify(f"autopilot link: ignoring {heard.kind} system {heard.system_id} component "
+                    f"{heard.component_id}: {listening}", 4, once=("autopilot", heard.system_id, heard.component_id))
+
+    def _same_sender(self, msg: Any, address: Any, rx_ns: int) -> bool:
+        """Whether a message with the autopilot's ids comes from the sender adopted: its pinned
+        UDP address (handed over after ``HANDOVER_S`` of its silence); its sequence numbers
+        are watched for a second sender behind the same address."""
+        pinned = self._ap_address
+        if address is not None and pinned is not None and address != pinned:
+            if rx_ns - self._ap_heard_ns < HANDOVER_S * 1e9:
+                self.stats.identity_conflicts += 1
+                ap = self.autopilot
+                self.notify(f"autopilot link: a second sender at {address[0]}:{address[1]} uses the autopilot's ids "
+                            f"(system {ap.system_id} component {ap.component_id}, at {pinned[0]}:{pinned[1]}): "
+                            f"its messages are ignored", 4, once=("address", address))
+                return False
+            self.stats.address_handovers += 1
+            self.notify(f"autopilot link: the autopilot's messages now come from {address[0]}:{address[1]} "
+                        f"(silent at {pinned[0]}:{pinned[1]} for {(rx_ns - self._ap_heard_ns) / 1e9:.1f} s)", 5,
+                        once=("handover", address))
+            self._ap_address, self._ap_seq = address, None
+        elif pinned is None and address is not None:
+            self._ap_address = address
+        self._ap_heard_ns = rx_ns
+        seq = msg.get_seq()
+        if self._ap_seq is not None:
+            # a loss only skips forward; a step back of more than half the range is a second
+            # sender's count (or a reboot: once, not SEQUENCE_BACKSTEPS times in a window)
+            back = (seq - self._ap_seq) % 256 > 128
+            self._backsteps.append(back)
+            if back:
+                self.stats.sequence_backsteps += 1
+                if sum(self._backsteps) >= SEQUENCE_BACKSTEPS:
+                    ap = self.autopilot
+                    self.notify(f"autopilot link: the sequence numbers of system {ap.system_id} component "
+                                f"{ap.component_id} keep going back: a second sender seems to use its ids",
+                                4, once="sequence")
+        self._ap_seq = seq
+        return True
 
     def _drop(self, why: str) -> None:
         """The connection failed: close it, and re-open it after ``reopen_s``."""

@@ -27,7 +27,8 @@ autopilot, specific force (−g on z at rest), the service's own convention.
 Times: each message carries the autopilot's time of the sample. Those times go through the
 sample clock (:class:`~ahrs_service.core.sample_clock.SampleClock`, indexed mode: the index is the
 autopilot's time in tracked periods, so a gap of m periods counts m − 1 lost samples —
-sequence numbers cannot be used, they count all of a sender's messages) and are then mapped
+sequence numbers cannot be used, they count all of a sender's messages; the period is
+measured over ``WARMUP_SPAN_S`` of the first messages, a burst among them spread out) and are then mapped
 onto our monotonic clock by the link's :class:`RemoteTimeline` (TIMESYNC when synchronised:
 the first samples wait up to ``SYNC_WAIT_S`` for it, so the offset they keep is TIMESYNC's).
 Exactly uniform autopilot times pass the sample clock bit for bit.
@@ -63,7 +64,7 @@ from ahrs_service.core.samples import (
     SampleBlock,
     beyond_range,
 )
-from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink
+from ahrs_service.protocols.mavlink.autopilot_link import MAX_LATENCY_S, AutopilotLink
 from ahrs_service.protocols.mavlink.dialect import mavlink
 
 G = 9.80665
@@ -104,8 +105,18 @@ MAX_LEAD_S = 5.0
 #: autopilot's time near zero after a silence of its boot time (a second or more), so a stamp
 #: that lands just below the old one after such a silence is still a new timeline
 REORDER_S = 0.5
-#: messages whose spacing sets the sample clock's period before the first sample is handed out
+#: messages whose spacing sets the sample clock's period before the first sample is handed out …
 WARMUP_MESSAGES = 16
+#: … and the autopilot time they must span at least, s: a burst of first messages (a queue
+#: flushed, stamps 100 µs apart) is then a minority of the spacings, not the stream's period
+WARMUP_SPAN_S = 0.25
+#: new timelines (a clock jump or a reboot) taken freely within RESET_WINDOW_S; beyond that
+#: a message that would start one is skipped while the current timeline still gets messages
+#: (within TIMELINE_ALIVE_S): the stamps of two senders with the autopilot's ids interleave,
+#: and each switch between their clocks was a new timeline (thousands of them)
+RESET_BUDGET = 3
+RESET_WINDOW_S = 10.0
+TIMELINE_ALIVE_S = 0.5
 #: how long the first samples wait for TIMESYNC to converge, s: the offset the samples' times
 #: keep (RemoteTimeline) is then TIMESYNC's from the start instead of the arrival times' (late
 #: by the link's latency, tens of ms on a busy or slow link); an autopilot that does not answer
@@ -174,6 +185,42 @@ def decode_raw(msg: Any, scale: RawScale) -> _Reading:
                     np.array([msg.xmag, msg.ymag, msg.zmag], dtype=float) * scale.mag, True, None)
 
 
+def spread_bursts(stamps_ns: list[int], period_ns: float) -> list[int]:
+    """The warm-up messages' times for the sample clock, ns: a run of messages stamped less than
+    half a period apart (a queue flushed at once, stamped when sent) is one sample a period,
+    ending a period before the message after the run (from the message before it when the
+    run ends the list; evenly between the two when a period each does not fit). Fed as
+    stamped, a young line takes such a burst for the stream's pace, and the indices counted
+    from it lock the clock onto a wrong period for good (3.4 ms for 5 ms, a phantom loss
+    every other sample)."""
+    out = list(stamps_ns)
+    if period_ns <= 0:
+        return out
+    n, i = len(out), 0
+    while i < n - 1:
+        if stamps_ns[i + 1] - stamps_ns[i] >= 0.5 * period_ns:
+            i += 1
+            continue
+        j = i
+        while i < n - 1 and stamps_ns[i + 1] - stamps_ns[i] < 0.5 * period_ns:
+            i += 1
+        run = range(j, i + 1)  # messages j … i came in one burst
+        before = stamps_ns[j - 1] if j > 0 else None
+        after = stamps_ns[i + 1] if i + 1 < n else None
+        if after is not None and (before is None or after - (i + 2 - j) * period_ns > before):
+            for k in run:
+                out[k] = int(round(after - (i + 1 - k) * period_ns))
+        elif after is not None:
+            step = (after - before) / (i + 2 - j)
+            for k in run:
+                out[k] = int(round(before + (k - j + 1) * step))
+        elif before is not None:
+            for k in run:
+                out[k] = int(round(before + (k - j + 1) * period_ns))
+        i += 1
+    return out
+
+
 class MavlinkImuSource(ImuSource):
     """IMU samples from the autopilot over ``link`` (see the module docstring).
 
@@ -217,6 +264,12 @@ class MavlinkImuSource(ImuSource):
         self._last_t_ns: int | None = None  # the newest sample's time on our clock, ns
         self._lost_carry = 0  # samples lost before a skipped sample, counted with the next
         self.queue_overflows = 0
+        #: messages that would have started a new timeline while the current one still got
+        #: messages, beyond RESET_BUDGET resets in RESET_WINDOW_S (two clocks interleaving)
+        self.timeline_conflicts = 0
+        self._reset_times_ns: collections.deque[int] = collections.deque(maxlen=RESET_BUDGET)
+        self._timeline_rx_ns = 0  # arrival of the newest message on the current timeline
+        self._timesync_refused_seen = 0
         self.refusals = 0  # SET_MESSAGE_INTERVAL answered with anything but ACCEPTED
         self.refusal = ""  # the last refusal, for humans
         link.subscribe([self.msg_name], self._on_message)
@@ -257,6 +310,9 @@ class MavlinkImuSource(ImuSource):
             if remote_ns < last or remote_ns - last > MAX_GAP_S * 1e9 or ahead_ns > MAX_LEAD_S * 1e9:
                 # the autopilot rebooted (its time went back) or its clock jumped: a new timeline
                 # (TIMESYNC notices the same jump in its replies and starts again by itself)
+                if not self._may_reset(rx_ns):
+                    self.timeline_conflicts += 1
+                    return
                 self.timeline_resets += 1
                 if self._clock is None and self._warmup:
                     # the old timeline ended while its first samples waited for TIMESYNC: they
@@ -266,25 +322,57 @@ class MavlinkImuSource(ImuSource):
                 self._clock, self._warmup = None, []
         self.link.timeline.arrival(r.remote_us, rx_ns)
         self._last_remote_ns = remote_ns
+        self._timeline_rx_ns = rx_ns
+        refused = self.link.timeline.timesync_refused
+        if refused != self._timesync_refused_seen:  # once a timeline
+            self._timesync_refused_seen = refused
+            self.link.notify("autopilot IMU: TIMESYNC's offset disagrees with the IMU messages' arrivals "
+                             f"(beyond {MAX_LATENCY_S:g} s of latency): their times are mapped by the arrivals",
+                             4, once=("timesync vs arrivals", self.timeline_resets))
         if self._clock is None:
             # the stream's real rate, from its first spacings: an autopilot may not give the
             # rate asked for, and the sample clock's periods must be the stream's own
             self._warmup.append(r)
-            if len(self._warmup) >= WARMUP_MESSAGES and self._may_start():
+            span_us = r.remote_us - self._warmup[0].remote_us
+            spanned = span_us >= WARMUP_SPAN_S * 1e6 or len(self._warmup) >= QUEUE_SAMPLES
+            if len(self._warmup) >= WARMUP_MESSAGES and spanned and self._may_start():
                 self._start_clock()
             return
         self._stamp(r)
 
+    def _may_reset(self, rx_ns: int) -> bool:
+        """Whether a message whose time jumped may start a new timeline: freely RESET_BUDGET
+        times in RESET_WINDOW_S, beyond that only once the current timeline has been silent
+        for TIMELINE_ALIVE_S (a reboot, a clock that stepped); reported once when refused."""
+        times = self._reset_times_ns
+        if len(times) < RESET_BUDGET or rx_ns - times[0] > RESET_WINDOW_S * 1e9 \
+                or rx_ns - self._timeline_rx_ns > TIMELINE_ALIVE_S * 1e9:
+            times.append(rx_ns)
+            return True
+        self.link.notify(f"autopilot IMU: its times switch back and forth between clocks ({RESET_BUDGET} new "
+                         f"timelines in {RESET_WINDOW_S:g} s): a second sender seems to use the autopilot's ids; "
+                         "staying on the current timeline", 4, once="timeline conflict")
+        return False
+
     def _start_clock(self) -> None:
         """Starts the sample clock at the stream's rate measured over the warm-up messages (the
-        rate asked for when they are too few to measure) and stamps them."""
+        rate asked for when they are too few to measure) and stamps them. The median spacing,
+        unless most spacings are far below the mean (the stamps came in bursts): the mean; a
+        burst among them is spread a period a message (:func:`spread_bursts`)."""
         pending, self._warmup = self._warmup, []
-        spacing = float(np.median(np.diff([w.remote_us for w in pending]))) * 1000 if len(pending) > 1 else 0.0
+        spacing = 0.0
+        if len(pending) > 1:
+            times = np.array([w.remote_us for w in pending], dtype=np.float64) * 1000
+            spacing = float(np.median(np.diff(times)))
+            mean = (times[-1] - times[0]) / (len(times) - 1)
+            if spacing < 0.5 * mean:
+                spacing = mean
         self._clock = SampleClock(1e9 / spacing if spacing > 0 else self.rate_hz)
         self._index = 0
-        self._stamp(pending[0], first=True)
-        for w in pending[1:]:
-            self._stamp(w)
+        stamps = spread_bursts([w.remote_us * 1000 for w in pending], spacing)
+        self._stamp(pending[0], first=True, remote_ns=stamps[0])
+        for w, remote_ns in zip(pending[1:], stamps[1:]):
+            self._stamp(w, remote_ns=remote_ns)
 
     def _on_ack(self, msg: Any, rx_ns: int) -> None:
         """The autopilot's answer to our stream request (reader thread): a refusal is counted
@@ -304,8 +392,11 @@ class MavlinkImuSource(ImuSource):
         waited_us = self._warmup[-1].remote_us - self._warmup[0].remote_us
         return waited_us >= SYNC_WAIT_S * 1e6 or len(self._warmup) >= QUEUE_SAMPLES
 
-    def _stamp(self, r: _Reading, first: bool = False) -> None:
-        remote_ns = r.remote_us * 1000
+    def _stamp(self, r: _Reading, first: bool = False, remote_ns: int | None = None) -> None:
+        """Stamps and queues ``r``; ``remote_ns``: its time on the autopilot's clock when not
+        its own stamp (a warm-up burst's message), ns."""
+        if remote_ns is None:
+            remote_ns = r.remote_us * 1000
         lost = 0
         if not first:
             # the autopilot's time in tracked periods since the previous sample's place on the
@@ -380,7 +471,9 @@ class MavlinkImuSource(ImuSource):
         d.extra.update(link_losses=s.losses, link_recoveries=s.recoveries, stream_requests=self.requests,
                        timeline_resets=self.timeline_resets, out_of_order=self.out_of_order,
                        clock_steps=self.link.timeline.steps,
-                       stream_refusals=self.refusals)
+                       stream_refusals=self.refusals, timeline_conflicts=self.timeline_conflicts,
+                       timesync_refused=self.link.timeline.timesync_refused,
+                       identity_conflicts=s.identity_conflicts, other_autopilots=s.other_autopilots)
 
     def _pop(self) -> _Queued | None:
         try:

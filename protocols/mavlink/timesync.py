@@ -7,9 +7,19 @@ delays both ways, one sample of the offset: ``tc1 − (ts1 + now) / 2``.
 
 What follows PX4's ``src/lib/timesync/Timesync.cpp`` (``Timesync::update``; BSD-3-Clause,
 see THIRD_PARTY_NOTICES): samples whose round trip exceeds 10 ms are discarded
-(``MAX_RTT_SAMPLE``), and once synced, a sample more than 100 ms away from the estimate is
-not used; five such samples in a row mean the remote clock jumped (a reboot) and the filter
-starts again (``MAX_DEVIATION_SAMPLE``, ``MAX_CONSECUTIVE_HIGH_DEVIATION``).
+(``MAX_RTT_SAMPLE``), and five deviating samples in a row mean the remote clock jumped (a
+reboot) and the filter starts again (``MAX_CONSECUTIVE_HIGH_DEVIATION``).
+
+What is physically possible, not PX4's fixed 100 ms, decides what deviates: the answerer
+stamps ``tc1`` between our request and its reply, so a sample's offset is within half its
+round trip of the true one, and two clocks drift apart by at most ``MAX_DRIFT_PPM`` (±1 000
+ppm: crystals are within ±100). A reply whose offset moved from the newest accepted sample's
+by more than ``MAX_DRIFT_PPM`` of the time between them plus half of both round trips (and
+``JITTER_NS``) is refused (``counters.implausible``). Five refused replies in a row that agree
+with one another by the same bound are a clock that jumped (a reboot, a clock set): the filter
+starts again (``counters.jumps``). Replies that agree with nothing (a frozen clock:
+drift −1 000 000 ppm) are refused one by one and never synced. The fitted drift is clamped to
+±``MAX_DRIFT_PPM`` (a young window's noise can fit a steeper line).
 
 The filter itself differs from PX4's double exponential smoothing (which needs 500 exchanges,
 ``CONVERGENCE_WINDOW``, before it calls itself converged): a least-squares line, offset
@@ -41,8 +51,14 @@ from ahrs_service.protocols.mavlink.dialect import mavlink
 
 #: round trips longer than this are not used (PX4 ``MAX_RTT_SAMPLE``), ns
 MAX_RTT_NS = 10_000_000
-#: a synced estimate ignores samples further than this from it (PX4 ``MAX_DEVIATION_SAMPLE``), ns
+#: how fast two clocks may drift apart at most, ppm (crystals: ±100; beyond this a clock is broken)
+MAX_DRIFT_PPM = 1000.0
+#: PX4's fixed bound on an offset's deviation, ns: no longer the test here (the drift bound
+#: above is); kept so that code which imported it still runs
 MAX_DEVIATION_NS = 100_000_000
+#: what the stamps of one exchange may be off besides the round trip (the reply is stamped at
+#: its arrival by a reader thread, the request just before it is sent), ns
+JITTER_NS = 200_000
 #: this many deviating samples in a row: the remote clock jumped, start again (PX4's 5)
 MAX_CONSECUTIVE_DEVIATIONS = 5
 #: accepted samples before the estimate is called synced
@@ -101,6 +117,8 @@ class TimesyncCounters:
     deviating: int = 0
     not_ours: int = 0
     resets: int = 0
+    implausible: int = 0  # replies whose offset moved more than drift and round trips allow
+    jumps: int = 0  # restarts on replies that agreed on a new offset (a reboot, a clock set)
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,6 +126,14 @@ class _Sample:
     local_ns: int  # round-trip midpoint, our clock
     offset_ns: int  # remote − local observed
     rtt_ns: int
+
+
+def plausible(before: _Sample, after: _Sample) -> bool:
+    """Whether two TIMESYNC samples can both be true: their offsets differ by no more than
+    ``MAX_DRIFT_PPM`` of the time between them plus half of both round trips and ``JITTER_NS``."""
+    drift_ns = MAX_DRIFT_PPM * 1e-6 * abs(after.local_ns - before.local_ns)
+    bound = drift_ns + (before.rtt_ns + after.rtt_ns) / 2 + JITTER_NS
+    return abs(after.offset_ns - before.offset_ns) <= bound
 
 
 class TimeSync:
@@ -125,6 +151,9 @@ class TimeSync:
         self._pending: deque[int] = deque(maxlen=PENDING)
         self._samples: deque[_Sample] = deque(maxlen=WINDOW)
         self._deviations = 0
+        self._deviating: list[_Sample] = []  # refused samples that agree with one another
+        #: the size of the newest jump the filter restarted on, ns (remote − local, new − old)
+        self.last_jump_ns = 0
         # the fitted line: offset(t) = _a + _b * (t - _t0), ns and ns/ns
         self._t0 = 0
         self._a = 0.0
@@ -156,6 +185,7 @@ class TimeSync:
         self._samples.clear()
         self._pending.clear()
         self._deviations = 0
+        self._deviating = []
         self._a = self._b = 0.0
         self.counters.resets += 1
 
@@ -209,14 +239,24 @@ class TimeSync:
             return None
         mid = ts1 + rtt // 2
         observed = tc1 - mid
-        if self.synced and abs(observed - self._offset_at(mid)) > MAX_DEVIATION_NS:
+        sample = _Sample(mid, observed, rtt)
+        if self._samples and not plausible(self._samples[-1], sample):
             self.counters.deviating += 1
+            self.counters.implausible += 1
             self._deviations += 1
-            if self._deviations >= MAX_CONSECUTIVE_DEVIATIONS:
-                self.reset()  # the remote clock jumped (PX4: "time jump detected")
+            if self._deviating and not plausible(self._deviating[-1], sample):
+                self._deviating = []  # agrees with nothing before it either (a frozen clock)
+            self._deviating.append(sample)
+            if len(self._deviating) >= MAX_CONSECUTIVE_DEVIATIONS:
+                # the remote clock jumped (PX4: "time jump detected"): the replies agree on
+                # where it is now; start again (as PX4 does, from the next replies)
+                self.last_jump_ns = self._deviating[-1].offset_ns - self._samples[-1].offset_ns
+                self.reset()
+                self.counters.jumps += 1
             return None
         self._deviations = 0
-        self._samples.append(_Sample(mid, observed, rtt))
+        self._deviating = []
+        self._samples.append(sample)
         self.counters.accepted += 1
         self._fit()
         self.last_status = TimesyncStatus(
@@ -251,4 +291,6 @@ class TimeSync:
         stt = sum(w * (t - mt) ** 2 for w, t, _ in rows)
         sty = sum(w * (t - mt) * (y - my) for w, t, y in rows)
         b = 0.0 if len(rows) < 2 or stt <= 0.0 else sty / stt
+        # no clock drifts faster: a young window's round-trip noise fits a steeper line
+        b = max(-MAX_DRIFT_PPM * 1e-6, min(MAX_DRIFT_PPM * 1e-6, b))
         self._t0, self._b, self._a = t0, b, my - b * mt
