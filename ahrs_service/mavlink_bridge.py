@@ -15,6 +15,12 @@ the newest estimate of the pipeline that estimated it (:class:`LatestEstimate`, 
 when a stream is due). What a ground station sends — parameter writes, calibration commands —
 goes into the service through :class:`ServiceLink`, with the health and loss counters
 (:class:`LinkHealth`). The bridge holds no reference to the service, its scheduler or source.
+
+Writes follow the rules of docs/mavlink.md, "Security": a calibration starts only while the
+IMU is at rest (the pipeline's rest window, judged as the gyro calibration judges it) and no
+linked autopilot says it is armed; every accepted write that changed something is recorded
+once with its sender (``ServiceLink.set_param_from`` for ``EST_*``, ``record_write`` for the
+others), a write of the value in force not at all.
 """
 
 from __future__ import annotations
@@ -24,9 +30,12 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from ahrs_service import _moved, estimators
+from ahrs_service.calibration.gyro import gyro_bias_at_rest
 from ahrs_service.estimators.settings import param_bounds
 from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline, LatestAttitude, LatestEstimate
 from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, ParameterTable, SensorStatus, Telemetry
+from ahrs_service.protocols.mavlink.commands import ArmingState, Sender
+from ahrs_service.protocols.mavlink.component import AcceptedWrite
 from ahrs_service.protocols.mavlink.dialect import mavlink
 from ahrs_service.protocols.mavlink.odometry import RULES as ODOMETRY_RULES
 from ahrs_service.protocols.mavlink.odometry import AttitudeEstimate, OdometrySender
@@ -81,6 +90,15 @@ class ServiceLink:
     latest_attitude: the newest estimate and its attitude, None before the first;
     attitude_variance: the roll/pitch/yaw variances now, rad² (ODOMETRY). A bridge that
     follows a pipeline (:meth:`MavlinkBridge.receive`) reads these from the pipeline.
+
+    Who wrote — set_param_from: set_param with the writer, (name, value, source) → the value
+    in force, where source names the sender (``"mavlink 255/190 unsigned"``) and the service
+    records the change with it (its ``set_estimator_param``); None: set_param, the writer not
+    recorded. record_write: (name, old, new, source) — every other accepted write that changed
+    something (``MAG_DECL_DEG``, ``RATE_*``, ``"<MESSAGE> rate Hz"`` of a message interval,
+    ``"calibration"`` with the sensor as its new value), to record once on the flight log's
+    /params and /log; None: not recorded. autopilot: the ``AutopilotLink`` beside an
+    autopilot, whose HEARTBEATs say whether it is armed (no calibration starts then).
     """
 
     boot_ns: int
@@ -101,6 +119,9 @@ class ServiceLink:
     latest: Callable[[], LatestEstimate | None] | None = None
     latest_attitude: Callable[[], LatestAttitude | LatestEstimate | None] | None = None
     attitude_variance: Callable[[], Any] | None = None
+    set_param_from: Callable[[str, float, str], float] | None = None
+    record_write: Callable[[str, Any, Any, str], None] | None = None
+    autopilot: Any = None
 
 # incoming commands and parameter writes are handled at 50 Hz: a ground station does not
 # notice 20 ms, and an idle non-blocking read costs as much as a published message
@@ -121,6 +142,28 @@ STALE_NS = 250_000_000
 
 #: an EST_* parameter may move this factor away from its default (and to 0), not further
 EST_RANGE_FACTOR = 1000.0
+
+#: the stillness a calibration command needs, the gyro calibration's own
+#: (``EstimationPipeline.calibrate_gyro_bias``): the rest window's gyro spread at most
+#: 0.02 rad/s per axis, |f| spread 0.6 m/s², its direction within 2° rms
+REST_MAX_ACC_NORM_STD = 0.6
+REST_MAX_ACC_DIRECTION_DEG = 2.0
+
+
+def rest_refusal(pipeline: EstimationPipeline) -> str:
+    """Why ``pipeline``'s rest window (its last ``REST_WINDOW_S`` of samples) does not show the
+    IMU at rest, "" when it does."""
+    recent = pipeline._recent_rows()  # the window the gyro calibration averages, read-only here
+    check = gyro_bias_at_rest(recent[:, :3], recent[:, 3:], min_samples=pipeline.rest_window // 2,
+                              max_acc_norm_std=REST_MAX_ACC_NORM_STD,
+                              max_acc_direction_deg=REST_MAX_ACC_DIRECTION_DEG)
+    return "" if check.at_rest else f"not at rest ({check.reason})"
+
+
+def write_source(sender: Sender | None) -> str:
+    """How the flight log names a writer: ``"mavlink 255/190 unsigned"`` (``"mavlink"`` when
+    unknown)."""
+    return "mavlink" if sender is None else f"mavlink {sender}"
 
 
 def estimator_param_bounds(default: float, factor: float = EST_RANGE_FACTOR) -> tuple[float, float]:
@@ -172,6 +215,10 @@ class MavlinkBridge:
             else Identity.companion(mcfg["system_id"])
         )
         key = bytes.fromhex(mcfg["signing_key"]) if mcfg["signing_key"] else None
+        self.arming = ArmingState()
+        self._autopilot = link.autopilot
+        if self._autopilot is not None:
+            self._autopilot.subscribe(["HEARTBEAT"], self.arming.on_heartbeat)
         self.component = MavlinkComponent(
             mcfg["endpoints"],
             identity,
@@ -183,6 +230,9 @@ class MavlinkBridge:
             accel_calibration=lambda action: self._start_collection("accel"),
             max_rate_hz=1e9 / io_period_ns,
             current_telemetry=lambda: self.telemetry(time.monotonic_ns(), self.latest()),
+            calibration_guard=self._calibration_refusal,
+            on_write=self._record_write,
+            require_signed_writes=mcfg["require_signing_for_writes"],
         )
         self.odometry = self._odometry_sender(mcfg["odometry"])
 
@@ -274,7 +324,7 @@ class MavlinkBridge:
             table.add(
                 mav_name,
                 getter=lambda n=name: link.get_param(n),
-                setter=lambda v, n=name: link.set_param(n, float(v)),
+                setter=lambda v, n=name: self._set_estimator_param(n, float(v)),
                 minimum=lo,
                 maximum=hi,
                 description=f"{link.estimator} parameter {name}",
@@ -299,7 +349,34 @@ class MavlinkBridge:
         table.add("LOOP_RATE_HZ", getter=link.loop_rate_hz, description="estimation rate, Hz (read-only)")
         return table
 
+    def _set_estimator_param(self, name: str, value: float) -> float:
+        """An ``EST_*`` write, recorded by the service with the sender the component is
+        handling (``set_param_from``) when it can take one."""
+        link = self.link
+        if link.set_param_from is None:
+            return link.set_param(name, value)
+        return link.set_param_from(name, value, write_source(self.component.sender))
+
+    def _record_write(self, write: AcceptedWrite) -> None:
+        """An accepted write that changed something: recorded once, with its sender. ``EST_*``
+        writes were recorded by the service as they were applied."""
+        record = self.link.record_write
+        if record is None or write.name.startswith("EST_"):
+            return
+        record(write.name, write.old, write.new, write_source(write.sender))
+
     # ------------------------------------------------------------------ commands
+    def _calibration_refusal(self, sensor: str) -> str:
+        """Why a ``sensor`` calibration may not start now ("" when it may): an armed autopilot
+        (PX4 and ArduPilot refuse calibrating while armed), or an IMU not at rest (what keeps
+        a vehicle in flight out where no autopilot is linked). A bridge following no pipeline
+        leaves rest to the callbacks."""
+        if self.arming.armed:
+            return "the autopilot is armed"
+        if self.estimates is not None:
+            return rest_refusal(self.estimates)
+        return ""
+
     def _calibrate_gyro(self, action: int) -> tuple[int, str]:
         accepted, text = self.link.calibrate_gyro()
         return (mavlink.MAV_RESULT_ACCEPTED if accepted else mavlink.MAV_RESULT_TEMPORARILY_REJECTED), text
@@ -387,6 +464,8 @@ class MavlinkBridge:
         return self.component.stats.as_dict()
 
     def close(self) -> None:
+        if self._autopilot is not None:
+            self._autopilot.unsubscribe(self.arming.on_heartbeat)
         self.component.close()
 
 

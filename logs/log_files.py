@@ -29,6 +29,16 @@ from ahrs_service.logs.records import carried
 from ahrs_service.logs.schemas import encode, jsonable, log_message
 
 
+def _estimator_param_names(name: Any) -> frozenset[str]:
+    """The parameter names of estimator ``name`` (none for a name no estimator has)."""
+    from ahrs_service.estimators.registry import get
+
+    try:
+        return frozenset(get(str(name)).param_names())
+    except (KeyError, ValueError):
+        return frozenset()
+
+
 @dataclass(frozen=True, slots=True)
 class Outage:
     """What an I/O outage (or the whole run) kept out of the files."""
@@ -189,7 +199,9 @@ class LogFiles:
         if cfg is None:
             return
         est = cfg["config"].get("estimator")
-        if isinstance(est, dict):
+        # only the estimator's own parameters: /params also records a ground station's other
+        # writes (declination, stream rates, calibrations), which the estimator table must not take
+        if isinstance(est, dict) and str(name) in _estimator_param_names(est.get("name")):
             est.setdefault("params", {})[str(name)] = jsonable(new)
 
     def lose(self, messages: int, samples: int = 0) -> None:

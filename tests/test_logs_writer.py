@@ -312,6 +312,8 @@ def test_rotation_by_size_keeps_every_sample_and_restates_config(tmp_path):
     for i, row in enumerate(rows):
         if i == 10:
             w.write_param_change(i, i, "beta", 0.1, 0.25, "mavlink")
+            # a ground station's other writes are on /params too, but no estimator parameter
+            w.write_param_change(i, i, "MAG_DECL_DEG", 0.0, 5.0, "mavlink 255/190 unsigned")
         w.write_raw(i + 1, row, 0)
         w.write_attitude(i + 1, [1.0, 0.0, 0.0, 0.0], "madgwick")
         if i % 500 == 0:

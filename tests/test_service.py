@@ -242,6 +242,42 @@ def test_parameters_change_the_running_estimator(tmp_path, gcs):
     assert not np.array_equal(replay(log, follow_param_changes=False), log.attitudes)
 
 
+def test_a_ground_station_write_is_in_the_log_once_with_its_sender(tmp_path, gcs):
+    """The declination set twice (the second a no-op) and a stream rate: each accepted change
+    once on /params and /log with who sent it; the no-op nowhere; replay is unaffected."""
+    conn, port = gcs
+    run = RunningService(service_config(tmp_path, port, estimator={"name": "madgwick"}))
+    try:
+        collect(conn, 1.0, until=lambda m: m.get_type() == "HEARTBEAT")
+        assert _wait_until(lambda: run.service.pipeline.samples >= 100)  # the changes come mid-log
+        for _ in range(2):
+            conn.mav.param_set_send(1, 1, b"MAG_DECL_DEG", 5.0, mavlink2.MAV_PARAM_TYPE_REAL32)
+            assert _param_value(conn, "MAG_DECL_DEG").param_value == pytest.approx(5.0)
+        conn.mav.param_set_send(1, 1, b"RATE_ATT_HZ", 10.0, mavlink2.MAV_PARAM_TYPE_REAL32)
+        assert _param_value(conn, "RATE_ATT_HZ").param_value == pytest.approx(10.0)
+        assert run.service.pipeline.declination_deg == pytest.approx(5.0)
+    finally:
+        run.stop()
+    log = read_log(run.service.log_writer.files[0])
+    sender = "mavlink 255/190 unsigned"
+    decl = [c for c in log.param_changes if c["name"] == "MAG_DECL_DEG"]
+    rate = [c for c in log.param_changes if c["name"] == "RATE_ATT_HZ"]
+    assert len(decl) == 1 and decl[0]["new"] == pytest.approx(5.0) and decl[0]["source"] == sender
+    assert len(rate) == 1 and rate[0]["new"] == pytest.approx(10.0) and rate[0]["source"] == sender
+    texts = [m for f in run.service.log_writer.files for _, m in _log_lines(f)]
+    assert sum(t.startswith("MAG_DECL_DEG:") and sender in t for t in texts) == 1
+    # the estimator's parameters are not these: its replay is bit for bit as before
+    from ahrs_service.replay import replay
+
+    assert np.array_equal(replay(log), log.attitudes)
+
+
+def _log_lines(path) -> list[tuple[int, str]]:
+    from tests.test_demo_accuracy import _log_events
+
+    return _log_events(path)
+
+
 def test_unwritable_log_directory_is_reported_and_publishing_goes_on(tmp_path, gcs):
     conn, port = gcs
     blocker = tmp_path / "not-a-directory"
@@ -342,7 +378,7 @@ def test_companion_identity(tmp_path, gcs):
 
 def test_magnetometer_calibration_collects_and_refuses_a_second_start(tmp_path, gcs):
     conn, port = gcs
-    run = RunningService(service_config(tmp_path, port, source={"profile": "figure8"}))
+    run = RunningService(service_config(tmp_path, port, source={"profile": "validation"}))
     try:
         collect(conn, 1.0)
         conn.mav.command_long_send(1, 1, mavlink2.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 0, 1, 0, 0, 0, 0, 0)
@@ -540,7 +576,7 @@ def _statustext(conn, fragment: str, seconds: float = 10.0):
 def _config_file(tmp_path, port: int) -> tuple:
     """A configuration loaded from a file (so that accepted calibrations are saved into it)."""
     path = tmp_path / "ahrs.toml"
-    path.write_text(config_mod.to_toml(service_config(tmp_path, port, source={"profile": "figure8"}).raw))
+    path.write_text(config_mod.to_toml(service_config(tmp_path, port, source={"profile": "static"}).raw))
     return path, config_mod.load(path)
 
 
@@ -599,7 +635,7 @@ def test_live_calibration_fit_that_raises_is_reported_and_the_service_goes_on(tm
     fit = blocking_mag_fit
     fit.error = np.linalg.LinAlgError("singular matrix")
     fit.release.set()
-    run = RunningService(service_config(tmp_path, port, source={"profile": "figure8"}))
+    run = RunningService(service_config(tmp_path, port, source={"profile": "static"}))
     svc = run.service
     try:
         collect(conn, 1.0)
@@ -622,7 +658,7 @@ def test_live_calibration_fit_that_raises_is_reported_and_the_service_goes_on(tm
 def test_live_calibration_command_during_a_running_fit_is_refused(tmp_path, gcs, blocking_mag_fit):
     conn, port = gcs
     fit = blocking_mag_fit
-    run = RunningService(service_config(tmp_path, port, source={"profile": "figure8"}))
+    run = RunningService(service_config(tmp_path, port, source={"profile": "static"}))
     svc = run.service
     try:
         collect(conn, 1.0)

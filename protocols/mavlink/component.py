@@ -21,6 +21,13 @@ Typical drive (one loop iteration of the service)::
 Signing (MAVLink 2, 32-byte key): every outgoing message is signed; incoming writes
 (``signing.SIGNED_ONLY``: PARAM_SET, COMMAND_LONG, …) need a valid signature, and unsigned or
 wrongly signed ones are dropped and counted in ``stats.unsigned_rejected``.
+
+Writes, signed or not, follow the rules of docs/mavlink.md, "Security" (PX4's and
+ArduPilot's): HEARTBEAT cannot be switched off or slowed below ``HEARTBEAT_MIN_HZ``; a
+calibration starts only when ``calibration_guard`` finds nothing against it (at rest, no
+armed autopilot). Every accepted write that changed something is handed to ``on_write`` with
+its sender (an :class:`AcceptedWrite`), a write of the value already in force is answered and
+not handed on, and every refused write is counted in ``stats.writes_refused``.
 """
 
 from __future__ import annotations
@@ -38,10 +45,14 @@ from ahrs_service.protocols.mavlink.attitude import (
     encode_attitude_quaternion,
 )
 from ahrs_service.protocols.mavlink.commands import (
+    WRITE_COMMANDS,
     CalibrationCallback,
+    CalibrationGuard,
     Command,
     CommandResult,
     CommandTable,
+    Sender,
+    calibrated_sensor,
     encode_command_ack,
     preflight_calibration_handler,
 )
@@ -95,6 +106,8 @@ class MavlinkStats:
     bad_crc: int = 0  # the CRC failures among ``malformed``
     unknown_ids: int = 0  # well-framed messages of ids outside the common dialect
     unsigned_rejected: int = 0  # writes without a valid signature while signing is on
+    writes_accepted: int = 0  # PARAM_SETs and write commands that changed something
+    writes_refused: int = 0  # writes refused, for any reason (unsigned_rejected among them)
     not_for_us: int = 0  # requests addressed to another system/component
     handler_errors: int = 0  # exceptions raised by service callbacks (answered FAILED)
     statustext_suppressed: int = 0  # STATUSTEXTs over their kind's rate limit (statustext_limit)
@@ -110,6 +123,10 @@ class MavlinkStats:
         return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.__dict__.items()}
 
 
+#: slowest HEARTBEAT a peer may ask for, Hz: MAVLink's nominal rate. Ground stations call a
+#: vehicle lost after a few seconds without one; off or slower is refused (PX4 refuses off).
+HEARTBEAT_MIN_HZ = 1.0
+
 #: slowest stream rate, Hz: an interval of 100 s. GET_MESSAGE_INTERVAL answers in
 #: MESSAGE_INTERVAL.interval_us, an int32 (at most 2³¹-1 µs ≈ 35.8 min); a slower rate could not
 #: be reported, and a stream that slow is off in all but name.
@@ -117,6 +134,19 @@ MIN_RATE_HZ = 0.01
 
 #: streams that carry the estimate or the IMU readings: withheld while the estimate is stale
 _NEEDS_FRESH_ESTIMATE = frozenset({"ATTITUDE", "ATTITUDE_QUATERNION", "HIGHRES_IMU", "VIBRATION"})
+
+
+@dataclass(frozen=True)
+class AcceptedWrite:
+    """A write a peer made that changed something: ``name`` (a parameter's, ``"<MESSAGE> rate
+    Hz"`` for a message interval, ``"calibration"`` for a calibration started), the value
+    before and after (None for a calibration's before; its after names the sensor), and who
+    sent it."""
+
+    name: str
+    old: Any
+    new: Any
+    sender: Sender
 
 
 @dataclass
@@ -149,6 +179,13 @@ class MavlinkComponent:
     current_telemetry: builds a full :class:`Telemetry` of now (None before the first
         estimate) for messages sent on request (MAV_CMD_REQUEST_MESSAGE, ``send_now``); without
         it they use the last full one ``publish`` was given.
+    calibration_guard: ``(sensor) -> reason`` run before a calibration callback; a reason
+        answers TEMPORARILY_REJECTED (commands.preflight_calibration_handler).
+    on_write: told every accepted write that changed something (:class:`AcceptedWrite`), after
+        its answer went out; an exception it raises is counted in ``stats.handler_errors``.
+    require_signed_writes: refuse to start without ``signing_key`` (ValueError): with a key,
+        writes need a valid signature anyway; this makes a missing key an error instead of an
+        open link.
     """
 
     def __init__(self, endpoints: Iterable[str], identity: Identity | None = None, *,
@@ -158,8 +195,16 @@ class MavlinkComponent:
                  mag_calibration: CalibrationCallback | None = None,
                  accel_calibration: CalibrationCallback | None = None,
                  max_rate_hz: float = 250.0,
-                 current_telemetry: Callable[[], Telemetry | None] | None = None) -> None:
+                 current_telemetry: Callable[[], Telemetry | None] | None = None,
+                 calibration_guard: CalibrationGuard | None = None,
+                 on_write: Callable[[AcceptedWrite], None] | None = None,
+                 require_signed_writes: bool = False) -> None:
+        if require_signed_writes and signing_key is None:
+            raise ValueError("require_signed_writes needs a signing key")
         self.identity = identity or Identity()
+        self.on_write = on_write
+        #: the sender of the write being handled (a setter may ask), None between writes
+        self.sender: Sender | None = None
         self._current_telemetry = current_telemetry
         self.params = params if params is not None else ParameterTable()
         self.max_rate_hz = float(max_rate_hz)
@@ -175,6 +220,7 @@ class MavlinkComponent:
         self._status_limit = StatusTextLimiter()
         self._rejected = False
         self._reply_after_ack: Any = None  # a message a command handler wants sent after its ACK
+        self._write_done: AcceptedWrite | None = None  # what a write command changes, if it is accepted
         if signing_key is not None:
             signing_key = check_key(signing_key)
         self.signing = signing_key is not None
@@ -184,8 +230,9 @@ class MavlinkComponent:
         self.commands.register(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, self._cmd_set_message_interval)
         self.commands.register(mavlink.MAV_CMD_GET_MESSAGE_INTERVAL, self._cmd_get_message_interval)
         self.commands.register(mavlink.MAV_CMD_REQUEST_MESSAGE, self._cmd_request_message)
-        self.commands.register(mavlink.MAV_CMD_PREFLIGHT_CALIBRATION,
-                               preflight_calibration_handler(gyro_calibration, mag_calibration, accel_calibration))
+        self._calibrate = preflight_calibration_handler(gyro_calibration, mag_calibration, accel_calibration,
+                                                        guard=calibration_guard)
+        self.commands.register(mavlink.MAV_CMD_PREFLIGHT_CALIBRATION, self._cmd_preflight_calibration)
 
         endpoints = list(endpoints)
         if len(set(endpoints)) != len(endpoints):
@@ -379,6 +426,7 @@ class MavlinkComponent:
         # pymavlink asks this for every message without a valid signature
         if msg_id in SIGNED_ONLY:
             self.stats.unsigned_rejected += 1
+            self.stats.writes_refused += 1
             self._rejected = True
             return False
         return True
@@ -494,13 +542,32 @@ class MavlinkComponent:
         # a set must name our system: a broadcast write to every system is not honoured
         if not self._for_us(msg, broadcast_system=False):
             return
-        answers, reason = self.params.handle_set(msg)
+        self.sender = sender = Sender.of(msg)
+        try:
+            answers, reason, result = self.params.handle_set(msg)
+        finally:
+            self.sender = None
         for answer in answers:
             self._send_all(answer)  # every link, so every ground station sees the new value
         if reason:
+            self.stats.writes_refused += 1
             # anyone on a link can send these: rate-limited, unknown names and rejections apart
             self.statustext(mavlink.MAV_SEVERITY_WARNING, reason,
                             kind="param unknown" if not answers else "param rejected")
+        elif result is not None and result.changed:
+            self._accepted(AcceptedWrite(answers[0].param_id, result.old, result.value, sender))
+
+    def _accepted(self, write: AcceptedWrite) -> None:
+        """Counts an accepted write and tells ``on_write``; its failure is counted, not raised:
+        the write is in force and answered already."""
+        self.stats.writes_accepted += 1
+        if self.on_write is None:
+            return
+        try:
+            self.on_write(write)
+        except Exception as exc:
+            self.stats.handler_errors += 1
+            self.stats.last_error = f"recording {write.name}: {type(exc).__name__}: {exc}"
 
     # ------------------------------------------------------------------ command protocol
     def _on_command_long(self, ep: Endpoint, msg: Any) -> None:
@@ -508,20 +575,26 @@ class MavlinkComponent:
             return
         cmd = Command.from_command_long(msg)
         self._reply_after_ack = None
+        self._write_done = None
         try:
             result = self.commands.dispatch(cmd)
         except Exception as exc:
             self.stats.handler_errors += 1
             self.stats.last_error = f"command {cmd.command}: {type(exc).__name__}: {exc}"
             result = CommandResult(mavlink.MAV_RESULT_FAILED, f"command {cmd.command} failed: {exc}")
+        ok = result.result in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
+        if cmd.command in WRITE_COMMANDS and not ok:
+            self.stats.writes_refused += 1
         self._send_all(encode_command_ack(cmd, result), ep)
         if result.text:
-            ok = result.result in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
             self.statustext(mavlink.MAV_SEVERITY_INFO if ok else mavlink.MAV_SEVERITY_WARNING, result.text,
                             kind=f"command {cmd.command}")
         if self._reply_after_ack is not None:
             reply, self._reply_after_ack = self._reply_after_ack, None
             self._send_all(reply, ep)
+        if self._write_done is not None and ok:
+            write, self._write_done = self._write_done, None
+            self._accepted(write)
 
     def _on_command_int(self, ep: Endpoint, msg: Any) -> None:
         # none of the supported commands has a position, so MAVLink wants them as COMMAND_LONG
@@ -561,8 +634,23 @@ class MavlinkComponent:
                 self.stats.rates_refused += 1
                 return CommandResult(mavlink.MAV_RESULT_DENIED,
                                      f"{s.name}: {MIN_RATE_HZ:g}..{self.max_rate_hz:g} Hz")
-        self.set_rate(s.name, hz)
+        # interval 0 returns to the configured rate, whatever it is: the operator's choice
+        if s.name == "HEARTBEAT" and interval_us != 0 and hz < HEARTBEAT_MIN_HZ:
+            self.stats.rates_refused += 1
+            return CommandResult(mavlink.MAV_RESULT_DENIED,
+                                 f"HEARTBEAT stays on: {HEARTBEAT_MIN_HZ:g}..{self.max_rate_hz:g} Hz")
+        old = s.hz
+        if hz != old:
+            self.set_rate(s.name, hz)
+            self._write_done = AcceptedWrite(f"{s.name} rate Hz", old, hz, cmd.sender)
         return CommandResult(mavlink.MAV_RESULT_ACCEPTED)
+
+    def _cmd_preflight_calibration(self, cmd: Command) -> CommandResult:
+        result = self._calibrate(cmd)
+        sensor = calibrated_sensor(cmd)
+        if sensor:  # recorded when the command is accepted (the ACK says so)
+            self._write_done = AcceptedWrite("calibration", None, sensor, cmd.sender)
+        return result
 
     def _cmd_get_message_interval(self, cmd: Command) -> CommandResult:
         s = self._stream_of(cmd.params[0])

@@ -11,7 +11,9 @@ Wire rules followed (https://mavlink.io/en/services/parameter.html):
 * PARAM_SET → validated (finite, a normal float32 or 0 for REAL32, integral for INT32, within
   min/max, setter accepts) and
   applied; the answer is PARAM_VALUE with the value actually in force. A rejected set answers
-  the unchanged value and a STATUSTEXT with the reason.
+  the unchanged value and a STATUSTEXT with the reason. A set to the value already in force
+  (equal in the float32 the wire carries) is accepted without calling the setter: a ground
+  station that writes back what it read changes nothing and leaves no record.
 
 INT32 values travel as the float value by default ("C-cast" encoding, what ArduPilot and
 MAVProxy use); integers are therefore limited to ±2²⁴, where a float32 is exact. The
@@ -55,11 +57,14 @@ class Parameter:
 
 @dataclass
 class SetResult:
-    """Outcome of a set: ``accepted``, the value in force afterwards, and a reason if rejected."""
+    """Outcome of a set: ``accepted``, the value in force afterwards, a reason if rejected,
+    the value before (``old``) and whether the value in force changed."""
 
     accepted: bool
     value: Value
     reason: str = ""
+    old: Value | None = None
+    changed: bool = False
 
 
 class ParameterTable:
@@ -125,10 +130,12 @@ class ParameterTable:
             raise KeyError(name)
         p = self._params[self._index[name]]
         reason = self._check(p, value)
+        old = self.get(name)
         if not reason:
             # + 0.0: a PARAM_SET of -0.0 stores (and echoes) 0.0, not "-0" (RATE_ATT_HZ = -0 Hz)
             new = int(value) if p.param_type == INT32 else float(value) + 0.0
-            old = self.get(name)
+            if self._same_on_the_wire(p, new, old):
+                return SetResult(True, old, old=old)
             try:
                 p.setter(new)  # type: ignore[misc]  # _check rejected read-only parameters
             except (ValueError, TypeError) as exc:
@@ -137,8 +144,16 @@ class ParameterTable:
                 now = self.get(name)
                 if p.on_change is not None and now != old:
                     p.on_change(name, now)
-                return SetResult(True, now)
-        return SetResult(False, self.get(name), reason)
+                return SetResult(True, now, old=old, changed=now != old)
+        return SetResult(False, self.get(name), reason, old=old)
+
+    @staticmethod
+    def _same_on_the_wire(p: Parameter, new: Value, old: Value) -> bool:
+        """Whether ``new`` is the value in force as PARAM_VALUE carries it: a REAL32 read as
+        float32 and written back (0.1 → 0.10000000149) is no change."""
+        if p.param_type == INT32:
+            return int(new) == int(old)
+        return _float32(float(new)) == _float32(float(old))
 
     @staticmethod
     def _check(p: Parameter, value: Value) -> str:
@@ -199,15 +214,24 @@ class ParameterTable:
             return []
         return [self.param_value_message(self._params[self._index[name]])]
 
-    def handle_set(self, msg: "mavlink.MAVLink_param_set_message") -> tuple[list, str]:
-        """(answers, rejection reason) for a PARAM_SET; answers is [] for an unknown name."""
+    def handle_set(self, msg: "mavlink.MAVLink_param_set_message") -> tuple[list, str, SetResult | None]:
+        """(answers, rejection reason, outcome) for a PARAM_SET; answers is [] and the
+        outcome None for an unknown name."""
         name = _param_id(msg.param_id)
         if name not in self._index:
-            return [], f"unknown parameter {name}"
+            return [], f"unknown parameter {name}", None
         p = self._params[self._index[name]]
         result = self.set(name, self.decode_value(p, msg.param_value, msg.param_type))
         reason = "" if result.accepted else f"{name} rejected: {result.reason}"
-        return [self.param_value_message(p)], reason
+        return [self.param_value_message(p)], reason, result
+
+
+def _float32(x: float) -> float:
+    """``x`` rounded to the nearest float32 (what a PARAM_VALUE carries); overflow is infinite."""
+    try:
+        return struct.unpack("<f", struct.pack("<f", x))[0]
+    except OverflowError:
+        return math.copysign(math.inf, x)
 
 
 def _param_id(raw: str | bytes) -> str:

@@ -17,6 +17,7 @@ from ahrs_service.core.settings import (
     Checker,
     ConfigError,
     Section,
+    boolean,
     choice,
     defaults_of,
     number,
@@ -138,8 +139,17 @@ MAVLINK: Section = {
     "identity": (STANDALONE, choice(IDENTITIES)),
     "system_id": (1, number(1, 255, integer=True)),
     "signing_key": ("", signing_key),
+    "require_signing_for_writes": (False, boolean),
     "odometry": (defaults_of(ODOMETRY), subtable(ODOMETRY)),
 }
+
+
+def check_mavlink_section(section: dict[str, Any]) -> None:
+    """The checked ``[mavlink]`` section as a whole: requiring signed writes without a key
+    would leave every write open, the opposite of what was asked."""
+    if section["require_signing_for_writes"] and not section["signing_key"]:
+        raise ConfigError("mavlink.require_signing_for_writes: true needs mavlink.signing_key (64 hexadecimal "
+                          "digits, a 32-byte key); accepted: a signing key, or require_signing_for_writes = false")
 
 
 def check_link_hosts(links: Sequence[tuple[str, str]]) -> list[str]:
