@@ -15,10 +15,21 @@ estimated block (:meth:`LiveView.receive`), and it publishes the newest state of
 that estimated it at its own rate.
 
 The estimator's parameters appear as Foxglove parameters ``estimator.<name>``. A client's
-set request is queued by the server thread and applied by the loop at its next IO tick
-through the ``set_param`` the service gives the view (its ``set_estimator_param``) — the
-path of a MAVLink PARAM_SET: between two samples, logged on ``/params`` with its sample index. The request
-waits (at most ``SET_WAIT_S``) for the loop and answers with the value now in force.
+set request is queued by the server thread and applied by the loop at its IO ticks, at most
+``APPLY_PER_TICK`` a tick, through the ``set_param`` the service gives the view (its
+``set_estimator_param``) — the path of a MAVLink PARAM_SET: between two samples, logged on
+``/params`` with its sample index. The request waits (at most ``SET_WAIT_S``) for the loop and
+answers with the values now in force. A setParameters message is accepted whole or refused
+whole: refused in a view-only view (``allow_control`` false), when it carries more than
+``MAX_SETS_PER_MESSAGE`` entries, or when the view's budget of ``MAX_SETS_PER_S`` entries a
+second (all clients together) is spent — so no client can make the loop apply thousands of
+sets in one tick.
+
+The SDK has no hook to authenticate a client, cap connections or time out a handshake. What
+the view does instead: it raises the process's soft open-file limit towards the hard one (a
+crowd of idle sockets would otherwise exhaust it, and the SDK's listener stops for good when
+``accept`` fails), and a guard thread watches the listening socket and starts the server
+again when it has gone (``listener_restarts``).
 
 Faults: a port already in use gives one warning and no live view (the service runs on);
 malformed or unknown client operations are the SDK's to ignore; unknown parameter names and
@@ -30,11 +41,12 @@ from __future__ import annotations
 import collections
 import logging
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
 from ahrs_service.estimators import STATE_HEADER
-from ahrs_service.live_settings import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_RATE_HZ
+from ahrs_service.live_settings import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_RATE_HZ, is_loopback
 from ahrs_service.logs import schemas
 from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline
 
@@ -43,6 +55,21 @@ log = logging.getLogger("ahrs_service.live")
 _H = STATE_HEADER.slices  # the state header every estimator shares
 PARAM_PREFIX = "estimator."
 SET_WAIT_S = 1.0  # how long a client's parameter set waits for the loop to apply it, s
+#: entries one setParameters message may carry (Foxglove's panels send one at a time)
+MAX_SETS_PER_MESSAGE = 64
+#: entries accepted per second from all clients together (a token bucket this deep)
+MAX_SETS_PER_S = 64
+#: queued sets the loop applies in one IO tick (5 ms): the rest wait for the next ticks
+APPLY_PER_TICK = 8
+#: at most one warning this often per kind of refused set, s (the counters count every one)
+REFUSAL_WARNING_PERIOD_S = 5.0
+#: how often the guard thread looks at the listening socket, s
+LISTENER_CHECK_PERIOD_S = 1.0
+#: the soft open-file limit the view asks for (never above the hard limit)
+WANTED_OPEN_FILES = 65536
+#: how long closing waits for the SDK's server to stop, s: its stop waits for every connection
+#: still in its handshake, which an idle socket never finishes
+STOP_WAIT_S = 2.0
 # channels the live view serves: the log's, less those only a file needs
 LIVE_TOPICS = ("/imu/raw", "/attitude", "/attitude/truth", "/tf", "/loop", "/log", "/params", "/config", "/mavlink",
                "/autopilot/attitude", "/monitor")  # the last two beside an autopilot (attitude monitor)
@@ -70,11 +97,12 @@ class LiveView:
         live (called on the loop thread).
     host, port: where to listen (port 0: any free port; see :attr:`port`).
     rate_hz: per-sample channels are published at most this often.
+    allow_control: false makes the view view-only: every parameter set is refused.
     """
 
     def __init__(self, estimates: EstimationPipeline, set_param: Callable[[str, float, str], float],
                  host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
-                 rate_hz: float = DEFAULT_RATE_HZ) -> None:
+                 rate_hz: float = DEFAULT_RATE_HZ, allow_control: bool = True) -> None:
         try:
             import foxglove
             from foxglove.websocket import Capability
@@ -87,9 +115,19 @@ class LiveView:
         self._published_t_ns: int | None = None  # sample time of the last sample published, ns
         self._requests: collections.deque[_SetRequest] = collections.deque()
         self._params = self._current_params()
+        self.allow_control = allow_control
         self.published = 0  # messages handed to the server
         self.ignored_sets = 0  # set requests for unknown names or with non-numeric values
         self.refused_sets = 0  # set requests the estimator or the EST_* bounds refused (applied by the loop)
+        self.denied_sets = 0  # entries of setParameters messages refused because the view is view-only
+        self.excess_sets = 0  # entries of messages refused for size or for the per-second budget
+        self.listener_restarts = 0  # times the guard found the listener gone and started the server again
+        self._budget_lock = threading.Lock()  # the SDK may call the listener from several threads
+        self._budget = float(MAX_SETS_PER_S)
+        self._budget_t = time.monotonic()
+        self._warned_at: dict[str, float] = {}
+        self._bounds_of: dict[tuple[str, str], tuple[float, float]] = {}
+        self._host = host
         self._ctx = foxglove.Context()
         self._channels = {
             topic: foxglove.Channel(
@@ -102,18 +140,28 @@ class LiveView:
             )
             for topic in LIVE_TOPICS
         }
+        self._capabilities = [Capability.Parameters]
+        self._listener = _listener(self)
+        _raise_open_file_limit()
         try:
-            self._server = foxglove.start_server(
-                name="ahrs-service",
-                host=host,
-                port=port,
-                capabilities=[Capability.Parameters],
-                server_listener=_listener(self),
-                context=self._ctx,
-            )
+            self._server = self._start_server(port)
         except Exception as exc:  # the SDK raises on bind errors (port in use, bad address)
             raise LiveViewUnavailable(f"live view: cannot listen on {host}:{port}: {exc}") from None
         self.port = self._server.port
+        self._closing = threading.Event()
+        self._guard = threading.Thread(target=self._guard_listener, name="live-view-guard", daemon=True)
+        if _listening(self.port) is not None:  # /proc/net/tcp readable (Linux): the guard can watch
+            self._guard.start()
+
+    def _start_server(self, port: int) -> Any:
+        return self._foxglove.start_server(
+            name="ahrs-service",
+            host=self._host,
+            port=port,
+            capabilities=self._capabilities,
+            server_listener=self._listener,
+            context=self._ctx,
+        )
 
     # ---------------------------------------------------------------- loop thread
     def receive(self, estimated: EstimatedBlock) -> None:
@@ -127,8 +175,13 @@ class LiveView:
     def tick(self, now_ns: int) -> None:
         """Called by the loop at IO rate: applies queued parameter sets, then publishes the
         latest sample's /imu/raw, /attitude, /tf and truth when it is due (:meth:`_due`)."""
-        while self._requests:
+        applied = 0
+        while self._requests and applied < APPLY_PER_TICK:
             self._apply(self._requests.popleft())
+            applied += 1
+        if applied:
+            self._params = self._current_params()
+            self._server.publish_parameter_values(self._parameters(None))
         pipeline = self.estimates
         sample = pipeline.last_sample
         if sample is None or not self._due(sample.t_ns):
@@ -174,20 +227,30 @@ class LiveView:
             self.set_param(req.name, req.value, "foxglove")
         except (KeyError, ValueError, TypeError) as exc:  # a value the estimator refuses
             self.refused_sets += 1
-            log.warning("live view: parameter %s = %r refused: %s", req.name, req.value, exc)
-        self._params = self._current_params()
+            self._warn("refused", "live view: parameter %s = %r refused: %s", req.name, req.value, exc)
         req.done.set()
-        self._server.publish_parameter_values(self._parameters(None))
 
     def _bounds(self, name: str) -> tuple[float, float]:
         """[minimum, maximum] of estimator parameter ``name``: those of its MAVLink EST_*
         parameter (``mavlink_bridge.estimator_param_bounds`` around the estimator's default),
         so a Foxglove client cannot put into the filter what a ground station may not (1e300)."""
-        from ahrs_service import estimators
-        from ahrs_service.mavlink_bridge import estimator_param_bounds
+        estimator_name = self.estimates.estimator.name
+        key = (estimator_name, name)
+        if key not in self._bounds_of:  # building an estimator for its defaults costs more than a tick
+            from ahrs_service import estimators
+            from ahrs_service.mavlink_bridge import estimator_param_bounds
 
-        default = estimators.create(self.estimates.estimator.name).get_params()[name]
-        return estimator_param_bounds(float(default))
+            default = estimators.create(estimator_name).get_params()[name]
+            self._bounds_of[key] = estimator_param_bounds(float(default))
+        return self._bounds_of[key]
+
+    def _warn(self, kind: str, message: str, *args: Any) -> None:
+        """A warning of ``kind``, at most one every ``REFUSAL_WARNING_PERIOD_S`` (a client
+        sending refused sets in a loop must not flood the journal; the counters keep the count)."""
+        now = time.monotonic()
+        if now - self._warned_at.get(kind, -REFUSAL_WARNING_PERIOD_S) >= REFUSAL_WARNING_PERIOD_S:
+            self._warned_at[kind] = now
+            log.warning(message, *args)
 
     def params_changed(self) -> None:
         """The estimator's parameters changed another way (MAVLink, reload): tells the clients."""
@@ -195,7 +258,12 @@ class LiveView:
         self._server.publish_parameter_values(self._parameters(None))
 
     def close(self) -> None:
-        self._server.stop()
+        self._closing.set()
+        if self._guard.is_alive():
+            self._guard.join(2 * LISTENER_CHECK_PERIOD_S)
+        if not _stop_server(self._server, STOP_WAIT_S):
+            log.warning("live view: the WebSocket server has not stopped within %.0f s (connections stuck in "
+                        "their handshake); left to end with the process", STOP_WAIT_S)
         while self._requests:  # nobody will apply these any more: let their clients go
             self._requests.popleft().done.set()
 
@@ -211,7 +279,34 @@ class LiveView:
         wanted = params if not names else [n[len(PARAM_PREFIX):] for n in names if n.startswith(PARAM_PREFIX)]
         return [Parameter(PARAM_PREFIX + n, value=params[n]) for n in wanted if n in params]
 
+    def _admit(self, count: int) -> bool:
+        """Whether a setParameters message of ``count`` entries may be queued; counts and warns
+        (rate-limited) when not. Server threads."""
+        if not self.allow_control:
+            self.denied_sets += count
+            self._warn("denied", "live view: view-only (live.allow_remote_control = false): "
+                       "a client's set of %d parameter(s) refused", count)
+            return False
+        if count > MAX_SETS_PER_MESSAGE:
+            self.excess_sets += count
+            self._warn("excess", "live view: a setParameters message of %d entries refused whole; "
+                       "at most %d per message", count, MAX_SETS_PER_MESSAGE)
+            return False
+        with self._budget_lock:
+            now = time.monotonic()
+            self._budget = min(float(MAX_SETS_PER_S), self._budget + (now - self._budget_t) * MAX_SETS_PER_S)
+            self._budget_t = now
+            if count > self._budget:
+                self.excess_sets += count
+                self._warn("budget", "live view: parameter sets beyond %d a second refused "
+                           "(a message of %d entries)", MAX_SETS_PER_S, count)
+                return False
+            self._budget -= count
+        return True
+
     def _request_sets(self, parameters: list[Any]) -> list[Any]:
+        if not parameters or not self._admit(len(parameters)):
+            return self._parameters(None)
         waiting = []
         for p in parameters:
             full = str(getattr(p, "name", ""))
@@ -226,9 +321,34 @@ class LiveView:
             req = _SetRequest(name, float(value))
             self._requests.append(req)
             waiting.append(req)
+        deadline = time.monotonic() + SET_WAIT_S
         for req in waiting:
-            req.done.wait(SET_WAIT_S)
+            req.done.wait(max(0.0, deadline - time.monotonic()))
         return self._parameters(None)
+
+    # ---------------------------------------------------------------- guard thread
+    def _guard_listener(self) -> None:
+        """Watches the listening socket and starts the server again when it has gone (the SDK
+        stops accepting for good when ``accept`` fails, e.g. with every file descriptor taken):
+        one warning when it goes, one line when it is back; retried every check meanwhile."""
+        gone_since: float | None = None
+        while not self._closing.wait(LISTENER_CHECK_PERIOD_S):
+            if _listening(self.port) is not False:
+                continue
+            if gone_since is None:
+                gone_since = time.monotonic()
+                log.warning("live view: the WebSocket listener on %s:%d has stopped accepting connections "
+                            "(open-file limit reached?); starting it again", self._host, self.port)
+            try:
+                _stop_server(self._server, 0.0)  # its listener is gone; its idle clients may hold it for long
+                self._server = self._start_server(self.port)
+            except Exception as exc:  # noqa: BLE001 - still no descriptors or port: try at the next check
+                self._warn("restart", "live view: cannot listen on %s:%d yet: %s", self._host, self.port, exc)
+                continue
+            self.listener_restarts += 1
+            log.warning("live view: listening again on %s:%d after %.1f s", self._host, self.port,
+                        time.monotonic() - gone_since)
+            gone_since = None
 
 
 def _listener(view: LiveView) -> Any:
@@ -247,13 +367,67 @@ def _listener(view: LiveView) -> Any:
     return Listener()
 
 
+def _stop_server(server: Any, wait_s: float) -> bool:
+    """Stops an SDK server on a daemon thread (its ``stop`` blocks while any connection is in
+    its handshake) and waits at most ``wait_s``; whether it has stopped."""
+    stopper = threading.Thread(target=server.stop, name="live-view-stop", daemon=True)
+    stopper.start()
+    stopper.join(wait_s)
+    return not stopper.is_alive()
+
+
+def _listening(port: int) -> bool | None:
+    """Whether a TCP socket of this network namespace listens on ``port`` (``/proc/net/tcp``
+    and ``tcp6``); None where those cannot be read (not Linux). Reading them opens no
+    connection, so the check itself neither needs a free descriptor slot on the server nor
+    shows up as a failed handshake."""
+    wanted = f":{port:04X} "
+    readable = False
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            with open(table, encoding="ascii") as f:
+                readable = True
+                for line in f:
+                    fields = line.split()
+                    # local address "ADDR:PORT", state 0A is LISTEN
+                    if len(fields) > 3 and fields[3] == "0A" and (fields[1] + " ").endswith(wanted):
+                        return True
+        except OSError:
+            continue
+    return False if readable else None
+
+
+def _raise_open_file_limit() -> None:
+    """Raises the soft open-file limit towards ``WANTED_OPEN_FILES`` (never above the hard limit):
+    the SDK has no connection cap, and a unit's default of 1024 is taken by ~1000 idle sockets."""
+    try:
+        import resource
+    except ImportError:  # not POSIX
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    wanted = WANTED_OPEN_FILES if hard == resource.RLIM_INFINITY else min(WANTED_OPEN_FILES, hard)
+    if soft != resource.RLIM_INFINITY and soft < wanted:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (wanted, hard))
+        except (ValueError, OSError) as exc:
+            log.warning("live view: open-file limit stays at %d: %s", soft, exc)
+            return
+        log.info("live view: open-file limit raised from %d to %d", soft, wanted)
+
+
 def open_live_view(estimates: EstimationPipeline, set_param: Callable[[str, float, str], float],
                    settings: Mapping[str, Any]) -> LiveView | None:
     """The configured live view, or None after one warning when it cannot start."""
+    allow_control = settings.get("allow_remote_control", True)
     try:
-        view = LiveView(estimates, set_param, settings["host"], settings["port"], settings["rate_hz"])
+        view = LiveView(estimates, set_param, settings["host"], settings["port"], settings["rate_hz"],
+                        allow_control=allow_control)
     except LiveViewUnavailable as exc:
         log.warning("%s; running without live view", exc)
         return None
-    log.info("live view: Foxglove WebSocket on ws://%s:%d", settings["host"], view.port)
+    access = "clients may set estimator parameters" if allow_control else "view-only"
+    log.info("live view: Foxglove WebSocket on ws://%s:%d (%s)", settings["host"], view.port, access)
+    if not is_loopback(settings["host"]):
+        log.warning("live view: listening on %s, reachable from the network without authentication (%s)",
+                    settings["host"], access)
     return view

@@ -21,7 +21,22 @@ from ahrs_service.logs.schemas import CHANNELS, decode, validate  # noqa: E402
 from tests.test_service import RunningService, service_config  # noqa: E402
 
 pytestmark = pytest.mark.timeout(120)
-SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+# the only subprotocol the SDK's server accepts (docs/live.md); foxglove.websocket.v1 gets HTTP 400
+SUBPROTOCOL = "foxglove.sdk.v1"
+SUBPROTOCOLS = [SUBPROTOCOL]
+UPGRADE_REQUEST = ("GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                   "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n"
+                   "Sec-WebSocket-Protocol: {}\r\n\r\n")
+
+
+async def raw_upgrade(port: int, subprotocol: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter, bytes]:
+    """A hand-written WebSocket upgrade offering ``subprotocol``: the reader, the writer and the
+    server's HTTP response head (status line and headers)."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(UPGRADE_REQUEST.format(subprotocol).encode())
+    await writer.drain()
+    head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), 10)
+    return reader, writer, head
 
 
 def free_port() -> int:
@@ -30,10 +45,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def live_service(tmp_path, **sections):
+def live_service(tmp_path, live=None, **sections):
     cfg = service_config(
         tmp_path, free_port(), estimator={"name": "madgwick"}, source={"profile": "figure8"},
-        live={"enabled": True, "port": free_port(), "rate_hz": 20}, **sections,
+        live={"enabled": True, "port": free_port(), "rate_hz": 20, **(live or {})}, **sections,
     )
     return RunningService(cfg, duration_s=60.0)
 
@@ -76,7 +91,7 @@ def test_client_sees_channels_messages_and_sets_a_parameter(tmp_path, capfd):
 
     async def session():
         async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS) as ws:
-            assert ws.subprotocol in SUBPROTOCOLS
+            assert ws.subprotocol == SUBPROTOCOL
             info = await _ops(ws, "serverInfo")
             assert "parameters" in info["capabilities"]
             channels = await _advertised(ws)
@@ -129,12 +144,11 @@ def test_bad_clients_do_not_disturb_the_service_or_other_clients(tmp_path):
     beta0 = run.service.estimator.get_params()["beta"]
 
     async def session():
-        # ten clients at once, each vanishing in the middle of a frame
+        # ten clients at once, each completing its handshake, then vanishing in the middle of a frame
         for _ in range(10):
-            r, w = await asyncio.open_connection("127.0.0.1", port)
-            w.write(b"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-                    b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n"
-                    b"Sec-WebSocket-Protocol: foxglove.websocket.v1\r\n\r\n\x81\xfe\x01")
+            r, w, head = await raw_upgrade(port, SUBPROTOCOL)
+            assert head.startswith(b"HTTP/1.1 101 ") and f"sec-websocket-protocol: {SUBPROTOCOL}".encode() in head.lower()
+            w.write(b"\x81\xfe\x01")  # a masked text frame whose 16-bit length is cut after one byte
             await w.drain()
             w.close()
         clients = [await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS) for _ in range(10)]
@@ -231,3 +245,27 @@ def test_parameter_sets_outside_the_mavlink_bounds_are_refused(tmp_path):
     (path,) = (tmp_path / "logs").glob("*.mcap")
     params = [decode(d) for topic, _, _, d in MessageSource(path) if topic == "/params"]
     assert [p["new"] for p in params] == [pytest.approx(beta0 * 3)]  # only the set inside the bounds
+
+
+def test_only_the_sdk_subprotocol_is_accepted(tmp_path):
+    """docs/live.md names the one subprotocol the server speaks: a client offering it gets the
+    upgrade and then the serverInfo op; one offering only the older ``foxglove.websocket.v1``
+    gets HTTP 400, and the view stays up for the next client."""
+    run = live_service(tmp_path)
+    port = run.service.live.port
+
+    async def session():
+        refused = await raw_upgrade(port, "foxglove.websocket.v1")
+        refused[1].close()
+        reader, writer, head = await raw_upgrade(port, SUBPROTOCOL)
+        first = await asyncio.wait_for(reader.read(2), 10)  # an unmasked text frame: FIN|text, length
+        writer.close()
+        return refused[2], head, first
+
+    try:
+        refused, accepted, first = asyncio.run(session())
+    finally:
+        run.stop()
+    assert refused.startswith(b"HTTP/1.1 400 ")
+    assert accepted.startswith(b"HTTP/1.1 101 ") and f"sec-websocket-protocol: {SUBPROTOCOL}".encode() in accepted.lower()
+    assert first[0] == 0x81  # the server's first message: serverInfo, a text frame
