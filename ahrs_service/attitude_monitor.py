@@ -50,6 +50,11 @@ MONITOR: Section = {
     "rate_hz": (5.0, number(0.1, 50.0)),  # NAMED_VALUE_FLOAT of the disagreement, Hz
 }
 
+#: the rate the monitor asks the autopilot's ATTITUDE_QUATERNION at, Hz (60 bytes a frame:
+#: 0.6 kB/s), and how long without one before it asks again, s
+ATTITUDE_REQUEST_HZ = 10.0
+ATTITUDE_REQUEST_RETRY_S = 5.0
+
 #: NAMED_VALUE_FLOAT names (≤ 10 characters), degrees
 NAME_TOTAL = "ATT_DIFF"
 NAME_INCLINATION = "ATT_INCL"
@@ -215,6 +220,10 @@ class AttitudeMonitor:
         self.unmatched = 0  # autopilot attitudes outside the estimate history (too old, too new, no time map)
         self.rejected = 0  # autopilot attitudes that are no rotation (not finite, norm not 1): never compared
         self.warnings = 0
+        self.stream_requests = 0  # SET_MESSAGE_INTERVAL(ATTITUDE_QUATERNION) sent
+        self._requested_session: int | None = None
+        self._requested_at_ns = 0
+        self._last_rx_ns = 0
         link.subscribe(["ATTITUDE_QUATERNION", "ATTITUDE"], self._on_attitude)
 
     def close(self) -> None:
@@ -235,6 +244,23 @@ class AttitudeMonitor:
             return
         self._inbox.append(_AutopilotAttitude(int(msg.time_boot_ms), q))  # type: ignore[arg-type]
         self.received += 1
+        self._last_rx_ns = rx_ns
+
+    def request_stream(self, now_ns: int) -> None:
+        """Loop thread: asks the autopilot for ATTITUDE_QUATERNION at ``ATTITUDE_REQUEST_HZ``
+        when its link has a new session (a first HEARTBEAT, a reboot) or no attitude came for
+        ``ATTITUDE_REQUEST_RETRY_S``. ArduPilot streams nothing a link's ``MAVn_*`` rates or a
+        request did not ask for; PX4's onboard mode does stream it, and the request then only
+        sets the rate."""
+        link = self.link
+        if link.autopilot is None:
+            return
+        silent = now_ns - max(self._requested_at_ns, self._last_rx_ns) > ATTITUDE_REQUEST_RETRY_S * 1e9
+        if link.session != self._requested_session or silent:
+            if link.set_message_interval("ATTITUDE_QUATERNION", ATTITUDE_REQUEST_HZ):
+                self.stream_requests += 1
+            self._requested_session = link.session
+            self._requested_at_ns = now_ns
 
     def add_estimate(self, t_ns: int, q: Any) -> None:
         """Our estimate q_earth←body (magnetic north, as the estimator keeps it) at ``t_ns``."""

@@ -63,9 +63,12 @@ from ahrs_service.core.divergence import DIVERGENCE
 from ahrs_service.core.paths import regular_file
 from ahrs_service.core.settings import ConfigError, Section, check_keys, defaults_of, number, render, unreadable
 from ahrs_service.estimators.settings import ESTIMATOR, check_estimator_params, check_estimator_section
-from ahrs_service.live_settings import LIVE
+from ahrs_service.live_settings import LIVE, check_live_section
+from ahrs_service.logs.redaction import redact_text, secret_values
 from ahrs_service.logs.settings import LOG
-from ahrs_service.protocols.mavlink.settings import MAVLINK, STREAM_RATES, check_link_hosts, listening_port
+from ahrs_service.protocols.mavlink.settings import (MAVLINK, STREAM_RATES, check_link_hosts, check_mavlink_section,
+                                                    listening_port)
+from ahrs_service.realtime import SERVICE
 from ahrs_service.source_settings import BOARDS, MAVLINK_IMUS, PROFILES, SOURCE, SOURCE_TYPES, check_source_section  # noqa: F401
 
 if sys.version_info >= (3, 11):
@@ -94,6 +97,7 @@ SCHEMA: dict[str, Section] = {
     "monitor": MONITOR,
     "divergence": DIVERGENCE,
     "live": LIVE,
+    "service": SERVICE,
 }
 
 #: sections whose keys are not declared one by one: the owner's check takes the whole table
@@ -107,7 +111,9 @@ FREE_FORM_SECTIONS: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {
 SECTION_CHECKS: dict[str, Callable[[dict[str, Any]], None]] = {
     "estimator": check_estimator_section,
     "location": check_location_section,
+    "mavlink": check_mavlink_section,
     "source": check_source_section,
+    "live": check_live_section,
 }
 
 
@@ -131,7 +137,19 @@ def defaults() -> dict[str, dict[str, Any]]:
 
 
 def validate(data: dict[str, Any]) -> Config:
-    """Checks a parsed TOML document against the schema and fills in defaults."""
+    """Checks a parsed TOML document against the schema and fills in defaults. An error that
+    quotes a secret the file holds (``mavlink.signing_key`` …) quotes ``"<redacted>"``: a
+    refused reload goes to STATUSTEXT and the journal."""
+    try:
+        return _validate(data)
+    except ConfigError as exc:
+        secrets = secret_values(data)
+        if not secrets:
+            raise
+        raise ConfigError(redact_text(str(exc), secrets)) from None
+
+
+def _validate(data: dict[str, Any]) -> Config:
     if not isinstance(data, dict):
         raise ConfigError("the configuration must be a TOML table")
     unknown = sorted(set(data) - set(SCHEMA))

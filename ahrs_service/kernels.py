@@ -35,8 +35,10 @@ EXTEND_TIMEOUT_S = 30.0
 EXTEND_EVERY_S = 5.0
 #: how often a waiting start looks at the child and at a stop request, s
 POLL_S = 0.1
-#: nice value of a compile child: the estimation loop keeps the CPU it needs
-CHILD_NICE = 10
+#: nice value of a reload's compile child: the estimation loop beside it keeps the CPU it needs.
+#: A start's child runs at the service's own priority: no loop runs yet, and on a busy
+#: machine a niced compile would get a sliver of a core while systemd and the user wait.
+CHILD_NICE = 5
 
 
 def loaded(name: str) -> bool:
@@ -58,9 +60,10 @@ def warm_up(name: str) -> float:
     return time.monotonic() - t0
 
 
-def child_command(names: list[str]) -> list[str]:
-    """The command line of a compile child: ``ahrs-service compile`` of this interpreter."""
-    return [sys.executable, "-m", "ahrs_service.cli", "compile", "--nice", str(CHILD_NICE), *names]
+def child_command(names: list[str], nice: int = 0) -> list[str]:
+    """The command line of a compile child: ``ahrs-service compile`` of this interpreter,
+    ``nice`` added to its nice value."""
+    return [sys.executable, "-m", "ahrs_service.cli", "compile", "--nice", str(nice), *names]
 
 
 @dataclass
@@ -79,10 +82,10 @@ class ChildCompile:
     error: str = ""
 
     @classmethod
-    def start(cls, names: list[str]) -> "ChildCompile":
+    def start(cls, names: list[str], *, nice: int = 0) -> "ChildCompile":
         env = {k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID")}
         stderr = tempfile.TemporaryFile(mode="w+b")  # a pipe nobody reads could fill and block it
-        process = subprocess.Popen(child_command(names), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+        process = subprocess.Popen(child_command(names, nice), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                    stderr=stderr, env=env)
         return cls(list(names), process, time.monotonic_ns(), stderr)
 
@@ -216,7 +219,7 @@ class ReloadCompiler:
             return True  # the reload after it reads the latest file
         if name == running or name in self.compiled or loaded(name):
             return False
-        self.child = ChildCompile.start([name])
+        self.child = ChildCompile.start([name], nice=CHILD_NICE)
         self._from = counters
         return True
 

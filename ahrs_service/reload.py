@@ -109,6 +109,9 @@ class ConfigReload:
         if new.source != svc.cfg.source:
             svc.report("reload: source changes need a restart; source kept", 4)
             new.raw["source"] = svc.cfg.source
+        if new.service != svc.cfg.service:
+            svc.report("reload: [service] scheduling changes need a restart; kept", 4)
+            new.raw["service"] = svc.cfg.service
         added = [url for url in new.mavlink["endpoints"] if url not in svc.cfg.mavlink["endpoints"]]
         try:  # before anything is applied: an endpoint that cannot be opened refuses the reload
             check_can_open(added, new.mavlink["system_id"], 0)

@@ -21,6 +21,7 @@ and what the service reports about its health (``health.ServiceHealth``).
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import logging
 import signal
@@ -41,9 +42,11 @@ from ahrs_service.live_calibration import LiveCalibration
 
 # imported with the service, not when the log opens: its ~40 ms of modules (mcap, the
 # schemas) fell between the source's start and its first read
+from ahrs_service.logs.redaction import redact_text, secret_values
 from ahrs_service.logs.writer import FlightLogWriter
 from ahrs_service.mavlink_bridge import ServiceLink
 from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline
+from ahrs_service.realtime import RealtimeSettings, apply_to_this_thread, undo_memory_lock
 from ahrs_service.reload import RELOAD_MAX_WAIT_NS, RELOAD_SETTLE_NS, ConfigReload  # noqa: F401 (their old home)
 from ahrs_service.scheduler import DataReadyScheduler, FixedRateScheduler, LoopStats
 from ahrs_service.sinks import DivergenceSink, FlightLogSink, Sink
@@ -151,6 +154,9 @@ class Service:
         # is open (a reload keeps the source)
         self._autopilot_link: Any = None
         self._timesync_logged_ns: int | None = None  # the TIMESYNC estimate last on /timesync
+        self._secrets_of: Any = None  # the configuration self._secrets were taken from
+        self._secrets: list[str] = []
+        self._memory_locked = False  # [service] lock_memory took effect (undone by close)
         #: the handlers install_signal_handlers replaced, put back by close()
         self._replaced_handlers: dict[signal.Signals, Any] = {}
 
@@ -174,7 +180,8 @@ class Service:
         # FIFO: run()'s own freeze then walks only what the start adds after this (tens of ms
         # less between the source's start and its first read)
         _freeze_heap()
-        self.source = make_source(cfg.source, cfg.rates["estimation_hz"], cfg.mavlink["system_id"])
+        self.source = make_source(cfg.source, cfg.rates["estimation_hz"], cfg.mavlink["system_id"],
+                                  companion=cfg.mavlink["identity"] == "companion")
         self.source.open()
         self._autopilot_link = getattr(self.source, "autopilot_link", None)
         if not self.source.has_mag:
@@ -264,6 +271,7 @@ class Service:
         warning and the all-clear (STATUSTEXT through the rate limit, journal, /log)."""
         from ahrs_service.protocols.mavlink.dialect import mavlink
 
+        self.monitor.request_stream(now)
         comparisons, events = self.monitor.update(self.pipeline.declination_deg)
         if self.log_writer is not None:
             for d in comparisons:
@@ -415,6 +423,9 @@ class Service:
             odometry_send=None if link is None else link.send,
             odometry_clock=None if link is None else link.clock,
             attitude_diverged=self.attitude_diverged,
+            set_param_from=self.set_estimator_param,  # (name, value, source): /params and /log with the sender
+            record_write=self.record_write,
+            autopilot=link,  # its HEARTBEATs say whether it is armed (no calibration then)
         )
 
     def link_health(self):
@@ -460,14 +471,24 @@ class Service:
     def report(self, text: str, severity: int = 6, kind: str | None = None) -> None:
         """A health message: STATUSTEXT on MAVLink, the service log and /log. ``kind`` puts
         the STATUSTEXT under the rate limit of that kind (``statustext_limit``)."""
+        text = self._without_secrets(text)
         if self.mavlink is not None:
             self.mavlink.statustext(severity, text, kind)
         self.log_event(text, severity)
+
+    def _without_secrets(self, text: str) -> str:
+        """``text`` with the configuration's secrets (``mavlink.signing_key`` …) redacted: an
+        error may quote a value, and nothing secret goes to STATUSTEXT, the journal or /log."""
+        cfg = self.cfg
+        if self._secrets_of is not cfg:
+            self._secrets_of, self._secrets = cfg, secret_values(cfg.raw)
+        return redact_text(text, self._secrets) if self._secrets else text
 
     def log_event(self, text: str, severity: int = 6) -> None:
         """A health event for the journal and /log (flight log and live view), not STATUSTEXT:
         rejections and parameter changes, too frequent or too minor for the ground station.
         ``severity``: MAVLink's, 0 emergency … 7 debug."""
+        text = self._without_secrets(text)
         log.log(logging.WARNING if severity <= 4 else logging.INFO, text)
         now = time.monotonic_ns()
         if self.log_writer is not None:
@@ -513,6 +534,7 @@ class Service:
         """Runs until stopped, the duration ends, or a recorded source finishes. Returns 0."""
         # the log writer's thread must not hold the interpreter for Python's default 5 ms
         sys.setswitchinterval(0.0001)
+        self._make_this_thread_realtime()
         _freeze_heap()
         end_ns = None if self.duration_s is None else time.monotonic_ns() + int(self.duration_s * 1e9)
         self._ready_sent = False
@@ -545,6 +567,20 @@ class Service:
             if getattr(self.source, "finished", False):
                 break
         return 0
+
+    def _make_this_thread_realtime(self) -> None:
+        """``[service]``: real-time priority, CPU pinning and locked memory for the thread that
+        runs the loop (``ahrs_service.realtime``), after every other thread has started; a
+        setting the process may not apply is one warning, and the loop runs on without it."""
+        settings = RealtimeSettings.from_config(self.cfg.service)
+        if not settings.wanted:
+            return
+        outcome = apply_to_this_thread(settings)
+        self._memory_locked = outcome.memory_locked
+        for line in outcome.applied:
+            self.log_event(line, 6)
+        for line in outcome.refused:
+            self.report(line, 4, kind="realtime")
 
     def _job_failed(self, job: PeriodicJob, exc: Exception) -> None:
         """A periodic job raised: one line (STATUSTEXT, journal, /log) at its 1st, 2nd, 4th,
@@ -624,6 +660,9 @@ class Service:
         self.notifier.status(self.status_line(st))
         if self.live_calibration.state != "idle":  # collecting, or "<kind> cal: fitting"
             self.report(self.live_calibration.status_text(), 6)
+        if self._autopilot_link is not None:  # identity and time sanity (docs/autopilot.md): once each
+            for severity, text in self._autopilot_link.take_notices():
+                self.report(text, severity, kind="autopilot link")
         diag = self.source.diagnostics.as_dict()
         health.report_faults(st, self.source, diag)
         self._record_loop(now, st, diag)
@@ -645,6 +684,9 @@ class Service:
             loop["log"] = self.log_writer.stats()  # docs/logs.md: /loop `log`, what was not logged
         if self._autopilot_link is not None:  # the link, TIMESYNC's offset and drift (docs/autopilot.md)
             loop["autopilot"] = self._autopilot_link.status()
+        odometry = None if self.mavlink is None else self.mavlink.odometry
+        if odometry is not None:  # what went to the autopilot: sent, unsynced, resets, send errors
+            loop["odometry"] = dataclasses.asdict(odometry.stats)
         if self.live is not None:
             self.live.publish("/loop", now, loop)
         if self.log_writer is not None:
@@ -678,6 +720,17 @@ class Service:
         self.log_event(f"parameter {name}: {old} -> {new} ({source}, from sample {self.pipeline.samples})", 6)
         return new
 
+    def record_write(self, name: str, old: Any, new: Any, source: str) -> None:
+        """A ground station's accepted write other than an estimator parameter (declination,
+        stream rates, message intervals, a calibration started): once on /params and /log."""
+        now = time.monotonic_ns()
+        if self.log_writer is not None:
+            self.log_writer.write_param_change(now, self.pipeline.samples, name, old, new, source)
+        if self.live is not None:
+            self.live.publish("/params", now, {"t_ns": now, "sample_index": self.pipeline.samples, "name": name,
+                                               "old": old, "new": new, "source": source})
+        self.log_event(f"{name}: {old} -> {new} ({source}, from sample {self.pipeline.samples})", 6)
+
     # ------------------------------------------------------------------ shutdown
     def close(self) -> None:
         """Stops everything after :meth:`run` has returned. A live-calibration fit still
@@ -703,4 +756,7 @@ class Service:
             except Exception as exc:  # a failing part must not keep the others open
                 log.warning("closing %s: %s", type(part).__name__, exc)
         self.notifier.close()
+        if self._memory_locked:
+            undo_memory_lock()
+            self._memory_locked = False
         self._restore_signal_handlers()

@@ -37,6 +37,10 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--log-dir", help="override log.directory")
     run.add_argument("--no-log", action="store_true", help="do not write an MCAP log")
     run.add_argument("--live", action="store_true", help="serve the Foxglove live view (sets live.enabled; extra 'live')")
+    run.add_argument("--realtime-priority", type=int, default=None, metavar="N",
+                     help="real-time priority 1-99 of the estimation loop's thread (sets service.realtime_priority; "
+                          "0 off; docs/systemd.md)")
+    run.add_argument("--lock-memory", action="store_true", help="lock the process's memory (sets service.lock_memory)")
     run.add_argument("-v", "--verbose", action="store_true")
     run.set_defaults(func=cmd_run)
 
@@ -60,7 +64,7 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     comp.add_argument("-c", "--config", help="TOML configuration whose estimator is compiled (default: the embedded default)")
     comp.add_argument("--all", action="store_true", help="every estimator (a later reload to any of them then compiles nothing)")
     comp.add_argument("--nice", type=int, default=0, metavar="N",
-                      help="lower this process's CPU priority by N (the service's reload child uses 10)")
+                      help="lower this process's CPU priority by N (the service's reload child uses 5)")
     comp.set_defaults(func=cmd_compile)
 
     lay = sub.add_parser("foxglove-layout", help="print the Foxglove layout for the live view and the logs (JSON)")
@@ -123,6 +127,13 @@ def cmd_run(args: argparse.Namespace) -> int:
             overrides["log"] = log_overrides
         if args.live:
             overrides["live"] = {"enabled": True}
+        service_overrides: dict[str, object] = {}
+        if args.realtime_priority is not None:
+            service_overrides["realtime_priority"] = args.realtime_priority
+        if args.lock_memory:
+            service_overrides["lock_memory"] = True
+        if service_overrides:
+            overrides["service"] = service_overrides
         cfg = config_mod.load(args.config, overrides or None)
     except config_mod.ConfigError as exc:
         print(f"ahrs-service: configuration error: {exc}", file=sys.stderr)

@@ -195,7 +195,8 @@ class SimAutopilot:
                  component_id: int = 1, drop: frozenset[int] = frozenset(), attitude_hz: float = 50.0,
                  attitude_offset_deg: float = 0.0, pause: tuple[int, float] | None = None,
                  refuse_streams: bool = False, send_jitter_us: int = 0, seed: int = 0,
-                 time_limit_s: float = 30.0, answer_timesync: bool = True) -> None:
+                 time_limit_s: float = 30.0, answer_timesync: bool = True,
+                 attitude_on_request: bool = False) -> None:
         self.t = transport
         self.rec = recording
         self.kind = kind
@@ -213,6 +214,9 @@ class SimAutopilot:
         self._rng = np.random.default_rng(seed)
         self.time_limit_s = time_limit_s
         self.answer_timesync = answer_timesync  # False: TIMESYNC requests go unanswered
+        # True: ATTITUDE_QUATERNION only once asked for, at the asked interval (ArduPilot, whose
+        # links stream only what their MAVn_* rates or a request set); False: always (PX4 onboard)
+        self.attitude_on_request = attitude_on_request
         self.stats = SimStats()
         self.intervals: dict[int, float] = {}  # msg id -> µs (0 = off)
         self.boot_ns = time.monotonic_ns()
@@ -264,6 +268,12 @@ class SimAutopilot:
             self.send(msg)
             self.stats.imu_sent[name] = self.stats.imu_sent.get(name, 0) + 1
             self.stats.imu_stamps_us.append(t_us if name == "HIGHRES_IMU" else t_us // 1000 * 1000)
+
+    def _attitude_period_us(self) -> int:
+        """µs between ATTITUDE_QUATERNIONs; 0: none now."""
+        if not self.attitude_on_request:
+            return self.attitude_period_us
+        return max(0, int(self.intervals.get(mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, 0.0)))
 
     def _send_attitude(self, i: int) -> None:
         q = quat_mul(self.q_offset, tuple(self.rec.q[i].tolist()))
@@ -327,9 +337,10 @@ class SimAutopilot:
                         self.stats.imu_dropped += 1
                     else:
                         self._send_imu(i)
-                    if self.sample_time_us(i) >= next_att_us:
+                    attitude_period_us = self._attitude_period_us()
+                    if attitude_period_us and self.sample_time_us(i) >= next_att_us:
                         self._send_attitude(i)
-                        next_att_us = self.sample_time_us(i) + self.attitude_period_us
+                        next_att_us = self.sample_time_us(i) + attitude_period_us
                     i += 1
                 if i < n:
                     time.sleep(max(0.0, min(0.002, (self.sample_time_us(i) - self.now_us()) * 1e-6)))

@@ -19,7 +19,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from ahrs_service import config as config_mod
 from ahrs_service import estimators
-from ahrs_service.attitude_monitor import AttitudeMonitor, Disagreement, EstimateHistory
+from ahrs_service.attitude_monitor import ATTITUDE_REQUEST_HZ, AttitudeMonitor, Disagreement, EstimateHistory
 from ahrs_service.core.quaternion import quat_from_euler, quat_mul
 from ahrs_service.estimators import SAMPLE_ROW
 from ahrs_service.logs.reader import MessageSource, read_log
@@ -161,7 +161,8 @@ def test_udp_autopilot_highres_imu_estimates_bit_identical_and_monitor_agrees(tm
         odometry = rig.sim.stats.odometry_times_us
         assert len(odometry) >= 20 and set(odometry) <= sample_times
         assert link.autopilot is not None and link.autopilot.kind == "px4"
-        assert rig.sim.stats.interval_requests[0] == (mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU, 3500.0)
+        imu_requests = [r for r in rig.sim.stats.interval_requests if r[0] == mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU]
+        assert imu_requests[0] == (mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU, 3500.0)
         assert svc.pipeline.samples == len(rec.rel_us)
         assert svc.source.diagnostics.lost.total == 0
         # TIMESYNC with the autopilot converged; its clock is ours minus its boot time
@@ -235,6 +236,27 @@ def test_pty_serial_autopilot_drops_counted_and_estimate_bit_identical(tmp_path,
     assert len(warnings) == 1
 
 
+def test_the_monitor_asks_an_autopilot_that_streams_only_on_request_for_its_attitude(tmp_path, broad_segment):
+    """ArduPilot streams a link nothing its MAVn_* rates or a request did not ask for: the
+    monitor asks for ATTITUDE_QUATERNION itself, and compares what comes."""
+    rec = broad_segment
+    port = free_udp_port()
+    rig = Rig(tmp_path, rec, UdpTransport(port), f"udpin:127.0.0.1:{port}", kind="ardupilot",
+              attitude_on_request=True)
+    try:
+        rig.run_to_end()
+        monitor = rig.service.monitor
+        attitude_id = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
+        asked = [r for r in rig.sim.stats.interval_requests if r[0] == attitude_id]
+        assert asked and asked[0] == (attitude_id, 1e6 / ATTITUDE_REQUEST_HZ)
+        assert monitor.stream_requests >= 1
+        # the recording lasts about 3.5 s at 10 Hz: most of its attitudes were compared
+        assert rig.sim.stats.attitudes >= 20
+        assert monitor.compared >= 0.8 * rig.sim.stats.attitudes and monitor.warnings == 0
+    finally:
+        rig.close()
+
+
 def test_serial_device_vanishing_and_coming_back(tmp_path, broad_segment):
     rec = broad_segment
     pty = PtyTransport(tmp_path)
@@ -258,7 +280,8 @@ def test_serial_device_vanishing_and_coming_back(tmp_path, broad_segment):
         assert link.stats.read_errors >= 1 and link.stats.reopens >= 1
         assert link.stats.losses >= 1 and link.stats.recoveries == 1
         # the stream is asked for again after the link came back
-        assert len(rig.sim.stats.interval_requests) >= 2
+        imu_id = mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU
+        assert sum(r[0] == imu_id for r in rig.sim.stats.interval_requests) >= 2
     finally:
         rig.close()
     texts = [m.text for m in rig.gcs_messages if m.get_type() == "STATUSTEXT"]

@@ -4,6 +4,8 @@ rules goes to the autopilot on its link. (ODOMETRY's time stamps on the link: te
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from ahrs_service.logs.reader import MessageSource
@@ -29,6 +31,10 @@ def test_timesync_logged_and_ardupilot_odometry_on_the_link(tmp_path, broad_segm
         rig.close()
     assert rig.sim.stats.received.get("ODOMETRY", 0) >= 10
     assert rig.service.mavlink.odometry.stats.sent >= rig.sim.stats.received["ODOMETRY"]
+    # the log's own counters show that ODOMETRY flowed: the last /loop (written at close) has them all
+    loops = [decode(data) for topic, _, _, data in MessageSource(rig.log().path) if topic == "/loop"]
+    assert loops[-1]["odometry"] == dataclasses.asdict(rig.service.mavlink.odometry.stats)
+    assert loops[-1]["odometry"]["sent"] >= rig.sim.stats.received["ODOMETRY"] and loops[-1]["odometry"]["send_errors"] == 0
     records = [decode(data) for topic, _, _, data in MessageSource(rig.log().path) if topic == "/timesync"]
     # one record per accepted sample the loop saw (it may see two between its ticks as one)
     assert 5 <= len(records) <= accepted and records[-1]["synced"]

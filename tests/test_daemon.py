@@ -79,6 +79,21 @@ class FakeSystemd:
                 return True
         return False
 
+    def wait_as_systemd(self, text: str, seconds: float, limit_s: float = 900.0) -> bool:
+        """Collects datagrams until one arriving from now on starts with ``text``, waiting as
+        systemd does: ``seconds`` (the unit's start or reload timeout), each
+        ``EXTEND_TIMEOUT_USEC=N`` moving the deadline to N µs after its arrival, and never
+        beyond ``limit_s`` (the unit's TimeoutStartSec). False once the deadline passed."""
+        start = time.monotonic()
+        end = start + seconds
+        while time.monotonic() < min(end, start + limit_s):
+            for line in self._receive():
+                if line.startswith(text):
+                    return True
+                if line.startswith("EXTEND_TIMEOUT_USEC="):
+                    end = max(end, time.monotonic() + int(line.split("=", 1)[1]) / 1e6)
+        return False
+
     def wait_count(self, line: str, n: int, seconds: float, since: float = 0.0) -> int:
         """Collects datagrams until ``n`` lines equal to ``line`` arrived at or after ``since``
         (at most ``seconds``); returns how many did."""
