@@ -239,6 +239,15 @@ def _replay_fleet(args: argparse.Namespace) -> int:
     return 1 if any(r.error for r in rows) else 0
 
 
+def _say_if_compiling(name: str) -> None:
+    """One line on stderr before a first use compiles for seconds or minutes in silence."""
+    from ahrs_service import estimators
+
+    if name in estimators.names() and not estimators.kernels_cached(name):
+        print(f"ahrs-service: compiling the {name} kernels (first use on this machine: seconds for a paper "
+              f"filter, minutes for robust; later runs load them from the cache)", file=sys.stderr, flush=True)
+
+
 def _replay(args: argparse.Namespace) -> int:
     if _is_fleet(args.log):
         return _replay_fleet(args)
@@ -267,6 +276,7 @@ def _replay(args: argparse.Namespace) -> int:
         check_estimator_params(name, params)  # ConfigError (ValueError): cli.main's one line, exit 2
     follow = not args.no_param_changes
     blend = _blend_time(args)
+    _say_if_compiling(name)
     if blend is not None:
         q = replay_offline(log, name, params, follow, blend_time_s=blend).q
     else:

@@ -30,7 +30,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from ahrs_service import _moved, estimators
-from ahrs_service.calibration.gyro import gyro_bias_at_rest
 from ahrs_service.estimators.settings import param_bounds
 from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline, LatestAttitude, LatestEstimate
 from ahrs_service.protocols.mavlink import Identity, MavlinkComponent, ParameterTable, SensorStatus, Telemetry
@@ -143,20 +142,11 @@ STALE_NS = 250_000_000
 #: an EST_* parameter may move this factor away from its default (and to 0), not further
 EST_RANGE_FACTOR = 1000.0
 
-#: the stillness a calibration command needs, the gyro calibration's own
-#: (``EstimationPipeline.calibrate_gyro_bias``): the rest window's gyro spread at most
-#: 0.02 rad/s per axis, |f| spread 0.6 m/s², its direction within 2° rms
-REST_MAX_ACC_NORM_STD = 0.6
-REST_MAX_ACC_DIRECTION_DEG = 2.0
-
-
 def rest_refusal(pipeline: EstimationPipeline) -> str:
     """Why ``pipeline``'s rest window (its last ``REST_WINDOW_S`` of samples) does not show the
-    IMU at rest, "" when it does."""
-    recent = pipeline._recent_rows()  # the window the gyro calibration averages, read-only here
-    check = gyro_bias_at_rest(recent[:, :3], recent[:, 3:], min_samples=pipeline.rest_window // 2,
-                              max_acc_norm_std=REST_MAX_ACC_NORM_STD,
-                              max_acc_direction_deg=REST_MAX_ACC_DIRECTION_DEG)
+    IMU at rest, judged as the gyro calibration judges it (``EstimationPipeline.rest_check``);
+    "" when it does."""
+    check = pipeline.rest_check()
     return "" if check.at_rest else f"not at rest ({check.reason})"
 
 

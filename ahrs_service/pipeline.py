@@ -455,18 +455,23 @@ class EstimationPipeline:
             return np.full(3, np.nan)
         return recent[:, :3].mean(axis=0)
 
-    def calibrate_gyro_bias(self) -> GyroBiasResult:
-        """Adds the mean residual rate of the recent window (``REST_WINDOW_S``) to the
-        calibration's gyro bias — only when that window shows the IMU at rest."""
+    def rest_check(self) -> GyroBiasResult:
+        """Whether the recent window (``REST_WINDOW_S``) shows the IMU at rest, judged as the
+        gyro calibration judges it (its ``at_rest`` and ``reason``); changes nothing."""
         recent = self._recent_rows()
         gyr, acc = recent[:, :3], recent[:, 3:]
         # per-sample accelerometer noise of low-cost parts at high output rates reaches
         # 0.35 m/s² (the simulated ADXL345 at 800 Hz), so over this one-second window even the
         # block means wander by ~0.7° rms: the norm and direction tests allow that, while
         # motion still shows in the gyro spread
-        result = gyro_bias_at_rest(
+        return gyro_bias_at_rest(
             gyr, acc, min_samples=self.rest_window // 2, max_acc_norm_std=0.6, max_acc_direction_deg=2.0
         )
+
+    def calibrate_gyro_bias(self) -> GyroBiasResult:
+        """Adds the mean residual rate of the recent window (``REST_WINDOW_S``) to the
+        calibration's gyro bias — only when that window shows the IMU at rest."""
+        result = self.rest_check()
         if result.at_rest:
             self.calibration = self.calibration.with_gyro_bias_shift(result.bias)
             self._fill[_S.recent_count] = self._fill[_S.recent_head] = 0

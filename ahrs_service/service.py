@@ -164,6 +164,9 @@ class Service:
     def start(self) -> None:
         cfg = self.cfg
         self.build_estimation(cfg)
+        if not estimators.kernels_cached(self.estimator.name):  # a start that would say nothing for minutes
+            log.info("compiling the %s kernels: the first start after an install or upgrade takes seconds for a "
+                     "paper filter, minutes for robust; later starts load them from the cache", self.estimator.name)
         if self.notifier.enabled:
             # under systemd a first start compiles for up to minutes: a child does it while
             # this process keeps extending systemd's start timeout (EXTEND_TIMEOUT_USEC)
@@ -239,6 +242,15 @@ class Service:
     def divergence_summary(self) -> str:
         """The final summary's part about the attitude's consistency."""
         return self.divergence.summary() if self.divergence is not None else "attitude: not monitored"
+
+    def odometry_summary(self) -> str:
+        """The final summary's part about ODOMETRY sent to an autopilot ("" when it is off)."""
+        odometry = None if self.mavlink is None else self.mavlink.odometry
+        if odometry is None:
+            return ""
+        st = odometry.stats
+        return (f"ODOMETRY: sent {st.sent} ({st.not_synced} before TIMESYNC synced), heading resets {st.resets}, "
+                f"send errors {st.send_errors}")
 
     def _timesync_tick(self) -> None:
         """Beside an autopilot: the link's TIMESYNC estimate, logged on /timesync once per new

@@ -156,5 +156,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         service.run()
     finally:
         service.close()
-    logger.info("stopped: %s; %s; %s", service.status_line(), service.divergence_summary(), service.log_summary())
+    parts = [service.status_line(), service.divergence_summary(), service.odometry_summary(), service.log_summary()]
+    logger.info("stopped: %s", "; ".join(p for p in parts if p))
     return 0

@@ -35,6 +35,9 @@ def test_timesync_logged_and_ardupilot_odometry_on_the_link(tmp_path, broad_segm
     loops = [decode(data) for topic, _, _, data in MessageSource(rig.log().path) if topic == "/loop"]
     assert loops[-1]["odometry"] == dataclasses.asdict(rig.service.mavlink.odometry.stats)
     assert loops[-1]["odometry"]["sent"] >= rig.sim.stats.received["ODOMETRY"] and loops[-1]["odometry"]["send_errors"] == 0
+    stats = rig.service.mavlink.odometry.stats  # and the final summary line says so
+    assert rig.service.odometry_summary() == (f"ODOMETRY: sent {stats.sent} ({stats.not_synced} before TIMESYNC synced), "
+                                              f"heading resets {stats.resets}, send errors 0")
     records = [decode(data) for topic, _, _, data in MessageSource(rig.log().path) if topic == "/timesync"]
     # one record per accepted sample the loop saw (it may see two between its ticks as one)
     assert 5 <= len(records) <= accepted and records[-1]["synced"]

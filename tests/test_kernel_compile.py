@@ -6,6 +6,7 @@ passed as NOTIFY_SOCKET), the real ``ahrs-service`` process, a cold numba cache 
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
@@ -16,7 +17,7 @@ import pytest
 from ahrs_service import kernels
 from ahrs_service.systemd import Notifier
 
-from tests.test_daemon import FakeSystemd, running, write_config
+from tests.test_daemon import FakeSystemd, ahrs_service_command, running, write_config
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -114,7 +115,6 @@ def test_a_cold_start_extends_the_start_timeout_and_a_reload_compiles_without_st
 
 def test_compile_refuses_an_unknown_estimator_in_one_line(tmp_path):
     from ahrs_service import estimators
-    from tests.test_daemon import ahrs_service_command
 
     proc = subprocess.run(ahrs_service_command() + ["compile", "madgwik"], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
@@ -174,3 +174,23 @@ def test_the_loop_compiles_and_loads_no_kernel_after_start(tmp_path, source):
     found = json.loads(line.group(1))
     assert found["known"] >= 10  # the counting saw the pipeline's kernels
     assert found["new"] == []
+
+
+@pytest.mark.timeout(1200)
+def test_a_start_that_compiles_says_so_first_and_a_cached_one_does_not(tmp_path):
+    """From a terminal a cold start used to compile for minutes before its first line; now a
+    line says what is happening before the compile, and a start on a filled cache has none."""
+    config = tmp_path / "ahrs.toml"
+    config.write_text('[estimator]\nname = "madgwick"\n[mavlink]\nendpoints = ["udpout:127.0.0.1:14551"]\n')
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}  # cold
+    args = ahrs_service_command() + ["run", "-c", str(config), "--duration", "1", "--no-log"]
+    lines = []
+    for _ in range(2):
+        done = subprocess.run(args, capture_output=True, text=True, timeout=900, env=env)
+        assert done.returncode == 0, done.stderr[-2000:]
+        lines.append(done.stderr.splitlines())
+    cold, warm = lines
+    says = [i for i, x in enumerate(cold) if "compiling the madgwick kernels" in x]
+    compiled = [i for i, x in enumerate(cold) if "compiled the madgwick kernels in" in x]
+    assert len(says) == 1 and (not compiled or says[0] < compiled[0]), cold[-10:]
+    assert not any("compiling the madgwick kernels" in x for x in warm), warm[-10:]

@@ -30,6 +30,16 @@ from ahrs_service.estimators.presets import load_preset  # noqa: E402
 from ahrs_service.estimators.registry import get, names  # noqa: E402
 
 
+def kernels_cached(name: str) -> bool:
+    """Whether estimator ``name``'s compiled kernels are in numba's on-disk cache: False means
+    its first use in a process compiles them (seconds for a paper filter, minutes for robust);
+    True, that it loads them (tens of ms). ValueError for an unknown name."""
+    from ahrs_service.estimators._cache import kernels_cached as in_cache
+    from ahrs_service.estimators.registry import module_of
+
+    return in_cache(module_of(name))
+
+
 def create(name: str, preset: str | os.PathLike | None = None, **params: float) -> Estimator:
     """A fresh estimator instance; unknown parameter names raise ValueError.
 
@@ -67,4 +77,5 @@ def run(
     return est.run(gyr, acc, mag, dt=time_steps(n, rate_hz, timestamps, recover_clock=recover_clock))
 
 
-__all__ = ["SAMPLE_ROW", "STATE_HEADER", "Estimator", "create", "get", "names", "run", "stack_rows", "time_steps"]
+__all__ = ["SAMPLE_ROW", "STATE_HEADER", "Estimator", "create", "get", "kernels_cached", "names", "run", "stack_rows",
+           "time_steps"]

@@ -67,3 +67,13 @@ def drop_stale_kernels() -> bool:
     except OSError:
         return False
     return True
+
+
+def kernels_cached(module: str) -> bool:
+    """Whether the cache holds compiled kernels of estimator module ``module`` (e.g.
+    ``"robust"``): False means its first use compiles (seconds for a paper filter, minutes for
+    robust). An index file per compiled kernel, ``<module>.<function>-<line>.py<ver>.nbi``."""
+    try:
+        return any(cache_dir().glob(f"{module}.*.nbi"))
+    except OSError:
+        return False

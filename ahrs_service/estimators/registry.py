@@ -37,6 +37,14 @@ def names() -> list[str]:
     return list(_REGISTRY)
 
 
+def module_of(name: str) -> str:
+    """The module (of this package) that defines estimator ``name``; ValueError if unknown."""
+    try:
+        return _REGISTRY[name][0]
+    except KeyError:
+        raise ValueError(f"unknown estimator {name!r}; available: {', '.join(names())}") from None
+
+
 def get(name: str) -> type[Estimator]:
     """The estimator class registered under ``name`` (its module is imported on first use)."""
     try:

@@ -90,13 +90,13 @@ JUMP_NOTICE_S = 10.0
 
 _log = logging.getLogger(__name__)
 
-#: HEARTBEAT types that are never the flight controller
 #: how much later than its sample an IMU message may arrive at the least, s: a TIMESYNC estimate
 #: that puts the samples further before the arrivals' floor (the smallest arrival − remote time
 #: of a few seconds) is wrong (a TIMESYNC clock that jumped while the IMU stamps did not). A
 #: queue on the link delays some messages longer; the floor is the least delayed one's
 MAX_LATENCY_S = 1.0
 
+#: HEARTBEAT types that are never the flight controller
 _NOT_AUTOPILOT_TYPES = frozenset({
     mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_GIMBAL,
     mavlink.MAV_TYPE_ADSB, mavlink.MAV_TYPE_CAMERA, mavlink.MAV_TYPE_IMU,
