@@ -25,11 +25,10 @@ whole: refused in a view-only view (``allow_control`` false), when it carries mo
 second (all clients together) is spent — so no client can make the loop apply thousands of
 sets in one tick.
 
-The SDK has no hook to authenticate a client, cap connections or time out a handshake. What
-the view does instead: it raises the process's soft open-file limit towards the hard one (a
-crowd of idle sockets would otherwise exhaust it, and the SDK's listener stops for good when
-``accept`` fails), and a guard thread watches the listening socket and starts the server
-again when it has gone (``listener_restarts``).
+The SDK has no hook to authenticate a client, cap connections or time out a handshake, so
+its server listens on a private loopback port and clients reach it through the view's front
+(:class:`ahrs_service.live_front.LiveFront`) on the configured host and port: it caps the
+connections, times out a client that sends no upgrade request, and checks the token.
 
 Faults: a port already in use gives one warning and no live view (the service runs on);
 malformed or unknown client operations are the SDK's to ignore; unknown parameter names and
@@ -46,7 +45,15 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
 from ahrs_service.estimators import STATE_HEADER
-from ahrs_service.live_settings import DEFAULT_HOST, DEFAULT_PORT, DEFAULT_RATE_HZ, is_loopback
+from ahrs_service.live_front import FrontUnavailable, LiveFront
+from ahrs_service.live_settings import (
+    DEFAULT_HANDSHAKE_TIMEOUT_S,
+    DEFAULT_HOST,
+    DEFAULT_MAX_CONNECTIONS,
+    DEFAULT_PORT,
+    DEFAULT_RATE_HZ,
+    is_loopback,
+)
 from ahrs_service.logs import schemas
 from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline
 
@@ -63,12 +70,8 @@ MAX_SETS_PER_S = 64
 APPLY_PER_TICK = 8
 #: at most one warning this often per kind of refused set, s (the counters count every one)
 REFUSAL_WARNING_PERIOD_S = 5.0
-#: how often the guard thread looks at the listening socket, s
-LISTENER_CHECK_PERIOD_S = 1.0
-#: the soft open-file limit the view asks for (never above the hard limit)
-WANTED_OPEN_FILES = 65536
-#: how long closing waits for the SDK's server to stop, s: its stop waits for every connection
-#: still in its handshake, which an idle socket never finishes
+#: how long closing waits for the SDK's server to stop, s (its stop waits for every connection
+#: still in its handshake; the front has closed them all by then)
 STOP_WAIT_S = 2.0
 # channels the live view serves: the log's, less those only a file needs
 LIVE_TOPICS = ("/imu/raw", "/attitude", "/attitude/truth", "/tf", "/loop", "/log", "/params", "/config", "/mavlink",
@@ -98,11 +101,16 @@ class LiveView:
     host, port: where to listen (port 0: any free port; see :attr:`port`).
     rate_hz: per-sample channels are published at most this often.
     allow_control: false makes the view view-only: every parameter set is refused.
+    max_connections, handshake_timeout_s (s), token: the front's connection cap, the time a
+        client has to send its upgrade request, and the ``?token=`` every client must send
+        ("" none); see :class:`ahrs_service.live_front.LiveFront`.
     """
 
     def __init__(self, estimates: EstimationPipeline, set_param: Callable[[str, float, str], float],
                  host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
-                 rate_hz: float = DEFAULT_RATE_HZ, allow_control: bool = True) -> None:
+                 rate_hz: float = DEFAULT_RATE_HZ, allow_control: bool = True,
+                 max_connections: int = DEFAULT_MAX_CONNECTIONS,
+                 handshake_timeout_s: float = DEFAULT_HANDSHAKE_TIMEOUT_S, token: str = "") -> None:
         try:
             import foxglove
             from foxglove.websocket import Capability
@@ -121,13 +129,11 @@ class LiveView:
         self.refused_sets = 0  # set requests the estimator or the EST_* bounds refused (applied by the loop)
         self.denied_sets = 0  # entries of setParameters messages refused because the view is view-only
         self.excess_sets = 0  # entries of messages refused for size or for the per-second budget
-        self.listener_restarts = 0  # times the guard found the listener gone and started the server again
         self._budget_lock = threading.Lock()  # the SDK may call the listener from several threads
         self._budget = float(MAX_SETS_PER_S)
         self._budget_t = time.monotonic()
         self._warned_at: dict[str, float] = {}
         self._bounds_of: dict[tuple[str, str], tuple[float, float]] = {}
-        self._host = host
         self._ctx = foxglove.Context()
         self._channels = {
             topic: foxglove.Channel(
@@ -142,26 +148,26 @@ class LiveView:
         }
         self._capabilities = [Capability.Parameters]
         self._listener = _listener(self)
-        _raise_open_file_limit()
+        try:  # private: only the front connects to it
+            self._server = foxglove.start_server(
+                name="ahrs-service", host="127.0.0.1", port=0, capabilities=self._capabilities,
+                server_listener=self._listener, context=self._ctx,
+            )
+        except Exception as exc:  # the SDK raises on bind errors (no loopback, no descriptors)
+            raise LiveViewUnavailable(f"live view: cannot start the WebSocket server: {exc}") from None
         try:
-            self._server = self._start_server(port)
-        except Exception as exc:  # the SDK raises on bind errors (port in use, bad address)
+            self._front = LiveFront(host, port, self._server.port, max_connections=max_connections,
+                                    handshake_timeout_s=handshake_timeout_s, token=token)
+        except FrontUnavailable as exc:  # port in use, an address this computer lacks
+            _stop_server(self._server, STOP_WAIT_S)
             raise LiveViewUnavailable(f"live view: cannot listen on {host}:{port}: {exc}") from None
-        self.port = self._server.port
-        self._closing = threading.Event()
-        self._guard = threading.Thread(target=self._guard_listener, name="live-view-guard", daemon=True)
-        if _listening(self.port) is not None:  # /proc/net/tcp readable (Linux): the guard can watch
-            self._guard.start()
+        self.port: int = self._front.port  # where clients connect
 
-    def _start_server(self, port: int) -> Any:
-        return self._foxglove.start_server(
-            name="ahrs-service",
-            host=self._host,
-            port=port,
-            capabilities=self._capabilities,
-            server_listener=self._listener,
-            context=self._ctx,
-        )
+    @property
+    def connections(self) -> dict[str, int]:
+        """The front's connection counters: open, accepted (handed to the server), refused_cap,
+        refused_token, handshake_timeouts, malformed."""
+        return self._front.stats()
 
     # ---------------------------------------------------------------- loop thread
     def receive(self, estimated: EstimatedBlock) -> None:
@@ -258,9 +264,7 @@ class LiveView:
         self._server.publish_parameter_values(self._parameters(None))
 
     def close(self) -> None:
-        self._closing.set()
-        if self._guard.is_alive():
-            self._guard.join(2 * LISTENER_CHECK_PERIOD_S)
+        self._front.close()
         if not _stop_server(self._server, STOP_WAIT_S):
             log.warning("live view: the WebSocket server has not stopped within %.0f s (connections stuck in "
                         "their handshake); left to end with the process", STOP_WAIT_S)
@@ -326,30 +330,6 @@ class LiveView:
             req.done.wait(max(0.0, deadline - time.monotonic()))
         return self._parameters(None)
 
-    # ---------------------------------------------------------------- guard thread
-    def _guard_listener(self) -> None:
-        """Watches the listening socket and starts the server again when it has gone (the SDK
-        stops accepting for good when ``accept`` fails, e.g. with every file descriptor taken):
-        one warning when it goes, one line when it is back; retried every check meanwhile."""
-        gone_since: float | None = None
-        while not self._closing.wait(LISTENER_CHECK_PERIOD_S):
-            if _listening(self.port) is not False:
-                continue
-            if gone_since is None:
-                gone_since = time.monotonic()
-                log.warning("live view: the WebSocket listener on %s:%d has stopped accepting connections "
-                            "(open-file limit reached?); starting it again", self._host, self.port)
-            try:
-                _stop_server(self._server, 0.0)  # its listener is gone; its idle clients may hold it for long
-                self._server = self._start_server(self.port)
-            except Exception as exc:  # noqa: BLE001 - still no descriptors or port: try at the next check
-                self._warn("restart", "live view: cannot listen on %s:%d yet: %s", self._host, self.port, exc)
-                continue
-            self.listener_restarts += 1
-            log.warning("live view: listening again on %s:%d after %.1f s", self._host, self.port,
-                        time.monotonic() - gone_since)
-            gone_since = None
-
 
 def _listener(view: LiveView) -> Any:
     """The SDK's ServerListener for ``view``: called on the server's threads, it never touches
@@ -376,58 +356,23 @@ def _stop_server(server: Any, wait_s: float) -> bool:
     return not stopper.is_alive()
 
 
-def _listening(port: int) -> bool | None:
-    """Whether a TCP socket of this network namespace listens on ``port`` (``/proc/net/tcp``
-    and ``tcp6``); None where those cannot be read (not Linux). Reading them opens no
-    connection, so the check itself neither needs a free descriptor slot on the server nor
-    shows up as a failed handshake."""
-    wanted = f":{port:04X} "
-    readable = False
-    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
-        try:
-            with open(table, encoding="ascii") as f:
-                readable = True
-                for line in f:
-                    fields = line.split()
-                    # local address "ADDR:PORT", state 0A is LISTEN
-                    if len(fields) > 3 and fields[3] == "0A" and (fields[1] + " ").endswith(wanted):
-                        return True
-        except OSError:
-            continue
-    return False if readable else None
-
-
-def _raise_open_file_limit() -> None:
-    """Raises the soft open-file limit towards ``WANTED_OPEN_FILES`` (never above the hard limit):
-    the SDK has no connection cap, and a unit's default of 1024 is taken by ~1000 idle sockets."""
-    try:
-        import resource
-    except ImportError:  # not POSIX
-        return
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    wanted = WANTED_OPEN_FILES if hard == resource.RLIM_INFINITY else min(WANTED_OPEN_FILES, hard)
-    if soft != resource.RLIM_INFINITY and soft < wanted:
-        try:
-            resource.setrlimit(resource.RLIMIT_NOFILE, (wanted, hard))
-        except (ValueError, OSError) as exc:
-            log.warning("live view: open-file limit stays at %d: %s", soft, exc)
-            return
-        log.info("live view: open-file limit raised from %d to %d", soft, wanted)
-
-
 def open_live_view(estimates: EstimationPipeline, set_param: Callable[[str, float, str], float],
                    settings: Mapping[str, Any]) -> LiveView | None:
     """The configured live view, or None after one warning when it cannot start."""
     allow_control = settings.get("allow_remote_control", True)
     try:
         view = LiveView(estimates, set_param, settings["host"], settings["port"], settings["rate_hz"],
-                        allow_control=allow_control)
+                        allow_control=allow_control,
+                        max_connections=settings.get("max_connections", DEFAULT_MAX_CONNECTIONS),
+                        handshake_timeout_s=settings.get("handshake_timeout_s", DEFAULT_HANDSHAKE_TIMEOUT_S),
+                        token=settings.get("token", ""))
     except LiveViewUnavailable as exc:
         log.warning("%s; running without live view", exc)
         return None
     access = "clients may set estimator parameters" if allow_control else "view-only"
-    log.info("live view: Foxglove WebSocket on ws://%s:%d (%s)", settings["host"], view.port, access)
+    token = "token required" if settings.get("token") else "no token"
+    log.info("live view: Foxglove WebSocket on ws://%s:%d (%s, %s)", settings["host"], view.port, access, token)
     if not is_loopback(settings["host"]):
-        log.warning("live view: listening on %s, reachable from the network without authentication (%s)",
-                    settings["host"], access)
+        log.warning("live view: listening on %s, reachable from the network %s, unencrypted (%s)", settings["host"],
+                    "with a token" if settings.get("token") else "without authentication", access)
     return view

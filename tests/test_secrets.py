@@ -99,6 +99,24 @@ def test_the_signing_key_is_in_no_log_statustext_or_journal_line(tmp_path, caplo
     assert not [d for d in _texts_of(log_path) if b"5e5e5e5e" in d]  # /config, /log, anything
 
 
+def test_the_live_token_is_redacted_in_the_flight_logs_config(tmp_path):
+    token = "f00dfeedc0ffee11deadbeef22cafe33"
+    cfg_file = tmp_path / "ahrs.toml"
+    cfg_file.write_text(f'[source]\ntype = "simulated_i2c"\n\n[estimator]\nname = "madgwick"\n\n'
+                        f'[mavlink]\nendpoints = ["udpout:127.0.0.1:9"]\n\n[live]\ntoken = "{token}"\n\n'
+                        f'[log]\ndirectory = "{tmp_path / "logs"}"\n')
+    svc = Service(config_mod.load(cfg_file), duration_s=0.5)
+    svc.start()
+    try:
+        svc.run()
+    finally:
+        svc.close()
+    (log_path,) = sorted((tmp_path / "logs").glob("*.mcap"))
+    log = read_log(log_path)
+    assert log.configs and all(c["config"]["live"]["token"] == REDACTED for c in log.configs)
+    assert not [d for d in _texts_of(log_path) if token.encode() in d]
+
+
 def _old_log(path: Path, key: str) -> Path:
     """A log as an earlier version wrote it: the signing key in clear in /config."""
     config = {"estimator": {"name": "madgwick", "params": {"beta": 0.1}},
