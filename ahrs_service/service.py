@@ -721,27 +721,26 @@ class Service:
         old = self.estimator.get_params()[name]
         self.estimator.set_params(**{name: value})
         new = self.estimator.get_params()[name]
-        now = time.monotonic_ns()
-        if self.log_writer is not None:
-            self.log_writer.write_param_change(now, self.pipeline.samples, name, old, new, source)
-        if self.live is not None:
-            self.live.publish("/params", now, {"t_ns": now, "sample_index": self.pipeline.samples, "name": name,
-                                               "old": old, "new": new, "source": source})
-            if source != "foxglove":  # the live view tells its clients about its own sets
-                self.live.params_changed()
-        self.log_event(f"parameter {name}: {old} -> {new} ({source}, from sample {self.pipeline.samples})", 6)
+        self._record_change(name, old, new, source, f"parameter {name}")
+        if self.live is not None and source != "foxglove":  # the live view tells its clients about its own sets
+            self.live.params_changed()
         return new
 
     def record_write(self, name: str, old: Any, new: Any, source: str) -> None:
         """A ground station's accepted write other than an estimator parameter (declination,
         stream rates, message intervals, a calibration started): once on /params and /log."""
+        self._record_change(name, old, new, source, name)
+
+    def _record_change(self, name: str, old: Any, new: Any, source: str, what: str) -> None:
+        """A live change on /params (flight log and live view) at the sample index where it
+        takes effect, and one line on /log and the journal."""
         now = time.monotonic_ns()
         if self.log_writer is not None:
             self.log_writer.write_param_change(now, self.pipeline.samples, name, old, new, source)
         if self.live is not None:
             self.live.publish("/params", now, {"t_ns": now, "sample_index": self.pipeline.samples, "name": name,
                                                "old": old, "new": new, "source": source})
-        self.log_event(f"{name}: {old} -> {new} ({source}, from sample {self.pipeline.samples})", 6)
+        self.log_event(f"{what}: {old} -> {new} ({source}, from sample {self.pipeline.samples})", 6)
 
     # ------------------------------------------------------------------ shutdown
     def close(self) -> None:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import re
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -21,20 +20,16 @@ from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink
 from ahrs_service.protocols.mavlink.imu_source import MavlinkImuSource
 from ahrs_service.protocols.mavlink.timesync import TimeSync, TimesyncFields
 from tests.test_autopilot import free_udp_port
+from tests.test_source_identity import PERIOD_US, _read_all, _still
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from sim_autopilot import Recording, SimAutopilot, UdpTransport, mavlink  # noqa: E402
+from sim_autopilot import SimAutopilot, UdpTransport, mavlink  # noqa: E402
 
 pytestmark = pytest.mark.timeout(120)
 
-PERIOD_US = 5000
 #: the documented bound on how fast two clocks drift apart, ppm
 MAX_DRIFT_PPM = 1000.0
 
-
-def _still(n: int) -> Recording:
-    return Recording.uniform(np.tile([0.01, 0.0, 0.0], (n, 1)), np.tile([0.0, 0.0, -9.81], (n, 1)),
-                             np.tile([20.0, 0.0, 45.0], (n, 1)), np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), PERIOD_US)
 
 
 class _BadTimesync(SimAutopilot):
@@ -75,21 +70,10 @@ def _stream(sim_cls, n: int, **options) -> tuple[MavlinkImuSource, list, list]:
     src = MavlinkImuSource(AutopilotLink(f"udpin:127.0.0.1:{port}"), rate_hz=1e6 / PERIOD_US)
     src.open()
     sim = sim_cls(UdpTransport(port), _still(n), **options).start()
-    got: list = []
     try:
-        end = time.monotonic() + 30.0
-        last = time.monotonic()
-        while time.monotonic() < end and len(got) < n:
-            block = src.read_block()
-            if len(block):
-                got.extend(block.samples())
-                last = time.monotonic()
-                continue
-            if sim.join(0.0) and time.monotonic() - last > 0.3:
-                break
-            time.sleep(0.005)
+        got = _read_all(src, sim, n, seconds=30.0)
         src.read_block()  # the diagnostics as of the end
-        notices = src.link.take_notices() if hasattr(src.link, "take_notices") else []
+        notices = src.link.take_notices()
     finally:
         sim.stop()
         src.close()
