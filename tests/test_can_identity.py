@@ -16,19 +16,11 @@ from ahrs_service.core.samples import MAG_VALID
 from ahrs_service.protocols.dronecan.imu_source import DroneCanConfig, DroneCanImuSource
 from ahrs_service.protocols.dronecan.sim_node import SimulatedDroneCanImuNode
 
+from tests.test_can import ManualNs
+
 F16_RTOL = 2.0**-11
 RATE_HZ = 100
 G = 9.81
-
-
-class ManualNs:
-    """Host clock for the source, in ns, moved by hand."""
-
-    def __init__(self, t_ns: int = 10**12) -> None:
-        self.t = t_ns
-
-    def __call__(self) -> int:
-        return self.t
 
 
 class StillImu:
