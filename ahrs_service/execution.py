@@ -1,5 +1,5 @@
-"""One execution layer for the batch commands (``evaluate``, fleet ``replay``, ``tune``): each job
-is a Dask task.
+"""One execution layer for the batch commands (``evaluate``, fleet ``replay``, ``tune``): jobs run
+as Dask tasks, grouped so that each task is worth scheduling (``task_floor_s``, below).
 
 ``open_runner(workers=N, scheduler=ADDRESS)`` gives a :class:`Runner` whose :meth:`Runner.map`
 runs ``fn(job)`` for every job and returns the results **in the jobs' order**, whatever order
@@ -13,6 +13,14 @@ they finish in, so a parallel run's results are the serial run's.
   ``dask worker tcp://HOST:8786`` on each machine, or dask-jobqueue / dask-kubernetes); see
   docs/fleet.md. An unreachable address fails after ``connect_timeout_s`` with a
   :class:`RunnerError` naming it.
+
+Task granularity: Dask spends a few milliseconds of CPU on every task (scheduler, client and
+worker event loops), as much as a 20-40 ms job's tenth. :meth:`Runner.map` therefore groups
+jobs into tasks expected to take at least ``task_floor_s`` seconds each (default
+:data:`DEFAULT_TASK_FLOOR_S`, ``--task-floor-s``), a recording's jobs together where possible,
+from a cost model: the caller's first guess per job (``cost=``, seconds), scaled by what the
+runner's finished tasks of the same job function took. See :func:`plan_tasks` and docs/fleet.md,
+"Task granularity".
 
 Faults: a task whose worker dies is rescheduled by the scheduler on another worker (Dask's
 ``allowed-failures``, 3 by default); a task that *raises* is retried ``retries`` times and then
@@ -30,20 +38,26 @@ Requires the ``fleet`` extra (``pip install 'ahrs-service[fleet]'``) for N > 1 o
 from __future__ import annotations
 
 import contextlib
-import functools
 import logging
+import math
 import os
 import signal
+import statistics
 import sys
 import threading
-from collections import OrderedDict
+import time
+from collections import OrderedDict, deque
 from dataclasses import dataclass
-from typing import Any, Callable, Hashable, Iterator, Sequence, TypeVar
+from typing import Any, Callable, Hashable, Iterable, Iterator, Sequence, TypeVar
 
 J = TypeVar("J")
 R = TypeVar("R")
 
 DEFAULT_CONNECT_TIMEOUT_S = 5.0
+
+#: Tasks shorter than this (seconds, expected) are grouped: Dask's 3-4 ms of CPU per task on
+#: 2 cores stays under 1 % of a task's time (docs/fleet.md, "Task granularity").
+DEFAULT_TASK_FLOOR_S = 0.5
 
 
 class RunnerError(RuntimeError):
@@ -98,20 +112,147 @@ def clear_worker_cache() -> None:
     _cache.clear()
 
 
-def _run_after(fn: Callable[[J], R], job: J, _prepared: Any) -> R:
-    """``fn(job)`` as a task that depends on its input's prepare task (placed beside it)."""
-    return fn(job)
+def check_task_floor(seconds: float, label: str = "--task-floor-s") -> float:
+    """``seconds`` as a float when it is a finite number >= 0; else :class:`RunnerError` naming ``label``."""
+    try:
+        value = float(seconds)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not math.isfinite(value) or value < 0:
+        raise RunnerError(f"{label} must be a number of seconds >= 0, not {seconds!r}")
+    return value
+
+
+def plan_tasks(
+    expected_s: Sequence[float | None],
+    keys: Sequence[Hashable] | None = None,
+    *,
+    floor_s: float = DEFAULT_TASK_FLOOR_S,
+    workers: int = 1,
+) -> list[list[int]]:
+    """The jobs' indices grouped into tasks, each expected to take ``floor_s`` seconds or more.
+
+    ``expected_s``: each job's expected duration (seconds; None where unknown). ``keys``: each
+    job's input (``place_by``): a key's jobs are kept together, keys in their first
+    appearance's order, so a task reads one input or a few neighbours. The pieces are an
+    input's jobs together while they are under the floor, else single jobs; the total is cut
+    between pieces into equal shares of at least the floor plus the largest piece (so every
+    share stays above the floor), as many as fit, rounded down to a multiple of ``workers``
+    (the last round keeps every worker busy); a share that still falls under the floor is
+    merged into its neighbour. Every job is its own task when ``floor_s`` is 0 or a duration
+    is unknown (nothing to size the tasks by yet); everything is one task when the total is
+    under the floor.
+    """
+    n = len(expected_s)
+    order = list(range(n))
+    if keys is not None:
+        rank: dict[Hashable, int] = {}
+        for key in keys:
+            rank.setdefault(key, len(rank))
+        order.sort(key=lambda i: rank[keys[i]])
+    if n == 0 or floor_s <= 0 or any(e is None or not math.isfinite(e) for e in expected_s):
+        return [[i] for i in order]
+    costs = [max(0.0, float(e)) for e in expected_s]
+    # the pieces shares are cut between: an input's jobs together while they are under the
+    # floor (the input is then read by one task only), else each job
+    units: list[list[int]] = []
+    for block in _blocks(order, keys):
+        units += [block] if sum(costs[i] for i in block) < floor_s else [[i] for i in block]
+    unit_costs = [sum(costs[i] for i in unit) for unit in units]
+    total = sum(unit_costs)
+    # a cut between pieces misses an even cut by up to half a piece at each end: shares of the
+    # floor + the largest piece stay above the floor
+    count = int(total / (floor_s + max(unit_costs)) + 1e-9)
+    if count >= workers:
+        count -= count % workers
+    count = max(1, min(count, len(units)))
+    share = total / count
+    shares: list[list[int]] = [[] for _ in range(count)]
+    done = 0.0
+    for unit, unit_cost in zip(units, unit_costs):
+        # a piece goes to the share its middle falls in, so the shares cut the total evenly
+        slot = min(count - 1, int((done + unit_cost / 2) / share)) if share > 0 else 0
+        shares[slot] += unit
+        done += unit_cost
+    tasks: list[list[int]] = []
+    for members in filter(None, shares):
+        if tasks and sum(costs[i] for i in tasks[-1]) < floor_s:
+            tasks[-1] += members
+        else:
+            tasks.append(members)
+    if len(tasks) > 1 and sum(costs[i] for i in tasks[-1]) < floor_s:
+        last = tasks.pop()
+        tasks[-1] += last
+    return tasks
+
+
+def _blocks(order: list[int], keys: Sequence[Hashable] | None) -> list[list[int]]:
+    """``order`` cut where the input changes (every job alone without ``keys``)."""
+    if keys is None:
+        return [[i] for i in order]
+    out: list[list[int]] = []
+    for i in order:
+        if out and keys[out[-1][-1]] == keys[i]:
+            out[-1].append(i)
+        else:
+            out.append([i])
+    return out
+
+
+def _run_batch(pickled_fn: bytes, jobs: list[J], *_prepared: Any) -> list[tuple[Any, float]]:
+    """The job function over ``jobs`` as one task, after their inputs' prepare tasks (so placed
+    beside them): each result with its wall time in seconds, which sizes the runner's next tasks.
+
+    The function travels cloudpickled: as an argument of the task, Dask would pickle it by
+    reference, and a function a script or a test registers to be pickled by value would not
+    load in a scheduler or worker started elsewhere."""
+    import cloudpickle
+
+    fn = cloudpickle.loads(pickled_fn)
+    out = []
+    for job in jobs:
+        t0 = time.perf_counter()
+        out.append((fn(job), time.perf_counter() - t0))
+    return out
+
+
+def _learning_key(fn: Callable[..., Any], guesses: list[float] | None) -> tuple[Any, bool]:
+    """What a runner's measured durations are kept under: the job function (itself, or its
+    identity when it cannot be hashed) and whether its jobs came with a guess."""
+    try:
+        hash(fn)
+    except TypeError:
+        return (id(fn), guesses is not None)
+    return (fn, guesses is not None)
+
+
+#: Measured durations a runner keeps per job function to scale its cost guesses (the median
+#: of the newest ones: a worker's first job, which loads data and kernels, is an outlier).
+_LEARNED_JOBS = 1024
 
 
 class Runner:
     """Runs jobs serially or as Dask tasks; results in job order. Use as a context manager."""
 
-    def __init__(self, client: Any = None, cluster: Any = None, info: RunnerInfo | None = None, retries: int = 1) -> None:
+    def __init__(
+        self,
+        client: Any = None,
+        cluster: Any = None,
+        info: RunnerInfo | None = None,
+        retries: int = 1,
+        task_floor_s: float = DEFAULT_TASK_FLOOR_S,
+    ) -> None:
         self._client = client
         self._cluster = cluster
         self.info = info or RunnerInfo("serial", 1)
         self.retries = retries
+        #: the least expected duration of a task of :meth:`map`, seconds
+        self.task_floor_s = check_task_floor(task_floor_s)
+        #: job tasks :meth:`map` has submitted (prepare tasks not counted)
+        self.tasks_submitted = 0
         self._prepare_futures: dict[Hashable, Any] = {}
+        # measured/guessed duration ratios (jobs with a guess) or durations in seconds (without)
+        self._learned: dict[tuple[Any, bool], deque[float]] = {}  # see _learning_key
 
     # ---------------------------------------------------------------- running
     def map(
@@ -123,22 +264,36 @@ class Runner:
         desc: str = "",
         place_by: Callable[[J], Hashable] | None = None,
         prepare: Callable[[Any], Any] | None = None,
+        cost: Callable[[J], float] | None = None,
+        task_floor_s: float | None = None,
     ) -> list[R]:
-        """``[fn(job) for job in jobs]``, each job a task when on a cluster; same order as ``jobs``.
+        """``[fn(job) for job in jobs]``, as Dask tasks of several jobs when on a cluster; same order as ``jobs``.
+
+        Task granularity (on a cluster): the jobs are grouped into tasks expected to take at
+        least ``task_floor_s`` seconds each (default: the runner's :attr:`task_floor_s`; 0: one
+        task per job), by :func:`plan_tasks`. A job's expected duration is ``cost(job)``
+        (seconds, the caller's cheap first guess, e.g. samples × the estimator's µs/sample)
+        times the median ratio of measured to guessed duration over the jobs of ``fn`` this
+        runner has finished; without ``cost``, the median measured duration of ``fn``'s jobs,
+        and one task per job while nothing of ``fn`` has been measured yet. A task that raises
+        is retried as a whole; a task whose worker died is rerun elsewhere.
 
         Data locality (``place_by`` and ``prepare``, both or neither): jobs with the same
-        ``place_by(job)`` key read the same input (a recording, a log). On a cluster, one
-        ``prepare(key)`` task per key runs first and loads that input into its worker's
-        :func:`worker_cache`; the key's jobs depend on it, so the scheduler places them on the
-        worker that holds the input, and each input is read about once in the whole run
-        instead of once per worker (Dask's work stealing still moves jobs to an idle worker,
-        which then loads the input itself: ``fn`` must not rely on ``prepare`` having run in
-        its process). The prepare tasks stay in the cluster for the runner's lifetime, so the
-        next ``map`` over the same inputs (a tuning study's next batch) lands where they are.
-        Serially, ``prepare`` is not called: the first job of a key loads it.
+        ``place_by(job)`` key read the same input (a recording, a log), and a task holds one
+        key's jobs, or a few neighbouring keys' when one key's are under the floor. On a
+        cluster, one ``prepare(key)`` task per key runs first and loads that input into its
+        worker's :func:`worker_cache`; a task depends on its keys' prepare tasks, so the
+        scheduler places it on a worker that holds its input, and each input is read about
+        once in the whole run instead of once per worker (Dask's work stealing still moves
+        tasks to an idle worker, which then loads the input itself: ``fn`` must not rely on
+        ``prepare`` having run in its process). The prepare tasks stay in the cluster for the
+        runner's lifetime, so the next ``map`` over the same inputs (a tuning study's next
+        batch) lands where they are. Serially, ``prepare`` is not called: the first job of a
+        key loads it.
         """
         if (place_by is None) != (prepare is None):
             raise ValueError("place_by and prepare go together")
+        floor_s = self.task_floor_s if task_floor_s is None else check_task_floor(task_floor_s, "task_floor_s")
         jobs = list(jobs)
         bar = progress_bar(len(jobs), desc) if progress and jobs else None
         try:
@@ -149,23 +304,105 @@ class Runner:
                     if bar is not None:
                         bar.update(1)
                 return out
+            import cloudpickle
             from distributed import as_completed
 
-            if place_by is None:
-                # pure=False: two equal jobs are still two runs (the timings differ)
-                futures = self._client.map(fn, jobs, pure=False, retries=self.retries)
-            else:
-                ready = [self._prepared(place_by(job), prepare) for job in jobs]
-                futures = self._client.map(
-                    functools.partial(_run_after, fn), jobs, ready, pure=False, retries=self.retries
-                )
+            pickled_fn = cloudpickle.dumps(fn)
+            guesses = [float(cost(job)) for job in jobs] if cost is not None else None
+            keys = [place_by(job) for job in jobs] if place_by is not None else None
+            tasks = plan_tasks(self._expected_seconds(fn, guesses, len(jobs)), keys,
+                               floor_s=floor_s, workers=self._worker_count())
+            futures = []
+            for members in tasks:
+                ready = [] if keys is None else [self._prepared(k, prepare) for k in dict.fromkeys(keys[i] for i in members)]
+                # pure=False: two equal batches are still two runs (the timings differ)
+                futures.append(self._client.submit(
+                    _run_batch, pickled_fn, [jobs[i] for i in members], *ready, pure=False, retries=self.retries
+                ))
+            self.tasks_submitted += len(futures)
             if bar is not None:
-                for _ in as_completed(futures):
-                    bar.update(1)
-            return self._client.gather(futures)
+                size = {future.key: len(members) for future, members in zip(futures, tasks)}
+                for future in as_completed(futures):
+                    bar.update(size[future.key])
+            out_of_order = self._client.gather(futures)
+            results: list[Any] = [None] * len(jobs)
+            seconds = [0.0] * len(jobs)
+            for members, timed in zip(tasks, out_of_order):
+                for i, (result, took) in zip(members, timed):
+                    results[i] = result
+                    seconds[i] = took
+            self._learn(fn, guesses, seconds)
+            return results
         finally:
             if bar is not None:
                 bar.close()
+
+    def _worker_count(self) -> int:
+        """The cluster's workers now (the scheduler's last report), at least 1."""
+        return max(1, len(self._client.scheduler_info().get("workers", {})) or self.info.workers)
+
+    def _expected_seconds(self, fn: Callable[..., Any], guesses: list[float] | None, n: int) -> list[float | None]:
+        """Each job's expected duration (seconds): the guess scaled by what ``fn``'s jobs took."""
+        learned = self._learned.get(_learning_key(fn, guesses))
+        if guesses is None:
+            return [statistics.median(learned) if learned else None] * n
+        scale = statistics.median(learned) if learned else 1.0
+        return [g * scale for g in guesses]
+
+    def _learn(self, fn: Callable[..., Any], guesses: list[float] | None, seconds: list[float]) -> None:
+        """Keeps the finished jobs' measured durations (against their guesses, if any)."""
+        learned = self._learned.setdefault(_learning_key(fn, guesses), deque(maxlen=_LEARNED_JOBS))
+        if guesses is None:
+            learned.extend(seconds)
+        else:
+            learned.extend(took / guess for took, guess in zip(seconds, guesses) if guess > 0 and math.isfinite(guess))
+
+    def stream(self, fn: Callable[[J], R], jobs: Iterable[J], *, max_in_flight: int | None = None) -> Iterator[tuple[int, R]]:
+        """``(i, fn(job_i))`` for every job, yielded **as the jobs finish** (serially: in order).
+
+        Nothing is gathered: on a cluster at most ``max_in_flight`` tasks are submitted at a
+        time (default: twice the workers, so none idles while the client takes a result), a
+        finished task's result is released from the cluster once yielded, and ``jobs`` is read
+        only as tasks are submitted, so it may be a generator. The client's and the
+        scheduler's memory stay bounded whatever the number of jobs. A task that raises is
+        retried ``retries`` times, then its exception is raised here; closing the iterator
+        early cancels the tasks still submitted.
+        """
+        numbered = enumerate(jobs)
+        if self._client is None:
+            for i, job in numbered:
+                yield i, fn(job)
+            return
+        from distributed import as_completed
+
+        if max_in_flight is None:
+            workers = len(self._client.scheduler_info().get("workers", {})) or self.info.workers
+            max_in_flight = 2 * max(1, workers)
+        if max_in_flight < 1:
+            raise ValueError(f"max_in_flight must be at least 1, not {max_in_flight}")
+        index_of: dict[str, int] = {}
+        running = as_completed(loop=self._client.loop)  # this client's: it is not the default one
+
+        def submit_next() -> None:
+            for i, job in numbered:  # at most one: the loop only fetches the next job
+                future = self._client.submit(fn, job, pure=False, retries=self.retries)
+                index_of[future.key] = i
+                running.add(future)
+                return
+
+        try:
+            for _ in range(max_in_flight):
+                submit_next()
+            for future in running:
+                i = index_of.pop(future.key)
+                result = future.result()
+                future.release()
+                submit_next()  # before the yield: the cluster works while the caller writes
+                yield i, result
+        finally:
+            for future in running.futures:
+                future.cancel()
+            running.clear()
 
     def _prepared(self, key: Hashable, prepare: Callable[[Any], Any]) -> Any:
         """The future of ``prepare(key)`` on the cluster, submitted once per key and runner."""
@@ -211,12 +448,17 @@ def open_runner(
     *,
     connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S,
     retries: int = 1,
+    task_floor_s: float | None = None,
 ) -> Runner:
     """A :class:`Runner`: serial for ``workers == 1``, else a LocalCluster, or the given scheduler.
 
-    ``workers=None`` means :func:`default_workers`. Raises :class:`RunnerError` (one line, names
-    the address) when the scheduler cannot be reached within ``connect_timeout_s`` seconds.
+    ``workers=None`` means :func:`default_workers`; ``task_floor_s`` (seconds, None:
+    :data:`DEFAULT_TASK_FLOOR_S`) is the least expected duration of a task of
+    :meth:`Runner.map`. Raises :class:`RunnerError` (one line, names the address or the
+    option) when the scheduler cannot be reached within ``connect_timeout_s`` seconds, or for
+    a worker count below 1 or a negative floor.
     """
+    floor_s = check_task_floor(DEFAULT_TASK_FLOOR_S if task_floor_s is None else task_floor_s)
     # a missing ``distributed`` propagates as ModuleNotFoundError: the command line turns it into
     # the one line naming the extra (cli.OPTIONAL_MODULES: distributed -> fleet), as for every extra
     if scheduler:
@@ -229,18 +471,18 @@ def open_runner(
         except ValueError as exc:  # e.g. an address with an unknown protocol
             raise RunnerError(f"bad Dask scheduler address {scheduler!r}: {exc}") from exc
         n = len(client.scheduler_info().get("workers", {}))
-        return Runner(client, None, RunnerInfo("scheduler", n, scheduler), retries)
+        return Runner(client, None, RunnerInfo("scheduler", n, scheduler), retries, floor_s)
     n = default_workers() if workers is None else int(workers)
     if n < 1:
         raise RunnerError(f"--workers must be at least 1, not {n}")
     if n == 1:
-        return Runner(info=RunnerInfo("serial", 1), retries=retries)
+        return Runner(info=RunnerInfo("serial", 1), retries=retries, task_floor_s=floor_s)
     from distributed import Client, LocalCluster
 
     with _workers_ignore_ctrl_c():
         cluster = _local_cluster(LocalCluster, n)
     client = Client(cluster, set_as_default=False)
-    return Runner(client, cluster, RunnerInfo("local", n, cluster.scheduler_address), retries)
+    return Runner(client, cluster, RunnerInfo("local", n, cluster.scheduler_address), retries, floor_s)
 
 
 #: Dask settings of the embedded LocalCluster (docs/fleet.md, "The embedded cluster's
@@ -317,8 +559,9 @@ def progress_bar(total: int, desc: str, unit: str = "task"):
     return tqdm(total=total, unit=unit, desc=desc or None, file=sys.stderr, dynamic_ncols=True)
 
 
-def add_arguments(parser: Any) -> None:
-    """The ``--workers`` / ``--scheduler`` options every batch command shares."""
+def add_arguments(parser: Any, task_floor: bool = True) -> None:
+    """The ``--workers`` / ``--scheduler`` / ``--task-floor-s`` options the batch commands share
+    (``task_floor=False``: a command whose every job is a task's worth, the fleet replay)."""
     parser.add_argument(
         "--workers",
         type=int,
@@ -331,5 +574,15 @@ def add_arguments(parser: Any) -> None:
         default=None,
         metavar="ADDRESS",
         help="run on an existing Dask cluster instead, e.g. tcp://HOST:8786 (see docs/fleet.md)",
+    )
+    if not task_floor:
+        return
+    parser.add_argument(
+        "--task-floor-s",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help=f"on a cluster, group jobs into tasks expected to take at least this long (default {DEFAULT_TASK_FLOOR_S:g}; "
+        "0 = one task per job; see docs/fleet.md, 'Task granularity')",
     )
 

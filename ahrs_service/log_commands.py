@@ -85,8 +85,12 @@ def add_subcommands(subparsers: Any) -> None:
     )
     add_offline_options(p, "non-causal estimate: the estimator run forward and backward over the log and fused")
     p.add_argument("--json", action="store_true", help="print the comparison as JSON")
+    p.add_argument(
+        "--force", action="store_true",
+        help="several logs: replay again the logs a previous run into the same --out DIR finished (default: skip them)",
+    )
     _add_read_budget(p)
-    execution.add_arguments(p)
+    execution.add_arguments(p, task_floor=False)  # a log is a task's worth
     p.set_defaults(func=_replay)
 
 
@@ -225,18 +229,22 @@ def _replay_fleet(args: argparse.Namespace) -> int:
         for p, out_path in zip(paths, outputs)
     ]
     with open_runner(args.workers, args.scheduler) as runner:  # RunnerError: cli.main's one line
-        rows = runner.map(fleet.replay_one, jobs, progress=sys.stderr.isatty() and not args.json, desc="replay")
-    csv_path, pq_path = fleet.write_table(rows, args.out)
-    text = fleet.summary(rows)
-    (args.out / "summary.txt").write_text(text + "\n", encoding="utf-8")
+        run = fleet.run_fleet(runner, jobs, args.out, force=args.force, progress=sys.stderr.isatty() and not args.json)
     if args.json:
         from dataclasses import asdict
 
-        print(json.dumps([asdict(r) for r in rows], indent=2))
+        # one row at a time: the fleet's rows are never all in memory
+        print("[", end="")
+        for k, row in enumerate(fleet.journal_rows(args.out)):
+            print(("," if k else "") + "\n  " + json.dumps(asdict(row)), end="")
+        print("\n]")
     else:
-        print(text)
-        print(f"  wrote {csv_path}" + (f" and {pq_path}" if pq_path else "") + f" and {len(rows) - sum(r.error is not None for r in rows)} log(s) in {args.out}")
-    return 1 if any(r.error for r in rows) else 0
+        print(run.summary)
+        if run.skipped:
+            print(f"  {run.skipped} log(s) already replayed into {args.out} by a previous run were skipped (--force redoes them)")
+        print(f"  wrote {run.csv_path}" + (f" and {run.parquet_path}" if run.parquet_path else "")
+              + f" and {run.logs - run.failed} log(s) in {args.out}")
+    return 1 if run.failed else 0
 
 
 def _say_if_compiling(name: str) -> None:

@@ -1,12 +1,16 @@
 """Benchmark of the execution layer: ``evaluate`` on BROAD with 1 worker against N, same run.
 
     python benchmarks/fleet.py [--data DIR] [--workers 2] [--estimators all] [--trials PATTERN]
-                               [--repeat K] [--floor]
+                               [--repeat K] [--floor] [--task-floor-s 0.5]
 
-Prints one row per runner: cluster start-up, task phase wall time, tasks per second, the sum
-of the time spent inside the tasks, and the cluster's overhead per task:
+Prints one row per runner: the task granularity (``--task-floor-s``: jobs are grouped into
+tasks expected to take at least this long, docs/fleet.md "Task granularity"; 0 = one task per
+job), the number of tasks it made, cluster start-up, task phase wall time, jobs per second
+(the throughput), the sum of the time spent inside the jobs, the cluster's overhead per task:
 
     overhead/task = (workers × task-phase wall − Σ in-task time) / tasks
+
+and the peak resident memory (VmHWM) of the client process and of the largest worker, MB.
 
 (in-task time: the jobs' and the prepare tasks' that load each recording beside its jobs),
 i.e. the worker-seconds the cluster spent on anything but running jobs (scheduling,
@@ -33,7 +37,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ahrs_service.evaluation import broad, report  # noqa: E402
-from ahrs_service.execution import clear_worker_cache, open_runner, worker_cache  # noqa: E402
+from ahrs_service.execution import DEFAULT_TASK_FLOOR_S, clear_worker_cache, open_runner, worker_cache  # noqa: E402
 
 
 @dataclass
@@ -63,6 +67,14 @@ def _prepare_seconds(recordings: list[tuple[str, str, str]]) -> float:
     return sum(worker_cache(("benchmark prepare s", r), lambda: 0.0) for r in recordings)
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (VmHWM), MB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
 def burn(seconds: float) -> float:
     """A synthetic job: ``seconds`` of this thread's CPU time, nothing else."""
     end = time.thread_time() + seconds
@@ -71,7 +83,7 @@ def burn(seconds: float) -> float:
     return seconds
 
 
-def floor(workers: int, one: dict, jobs: list[report.TrialJob]) -> dict:
+def floor(workers: int, one: dict, jobs: list[report.TrialJob], task_floor_s: float) -> dict:
     """The serial run's jobs replaced by CPU burns of their own durations (see the module doc).
 
     The serial run loaded each recording inside its first job: that job's excess over the
@@ -87,17 +99,22 @@ def floor(workers: int, one: dict, jobs: list[report.TrialJob]) -> dict:
         r = report.recording_of(job)
         burns.append((r, median[r] if r not in first else seconds))
         first.add(r)
-    with open_runner(workers=workers) as runner:
+    with open_runner(workers=workers, task_floor_s=task_floor_s) as runner:
         runner.client.run(burn, 0.01)
         t1 = time.perf_counter()
         out = runner.map(_timed_burn, burns, place_by=_recording_of_burn,
-                         prepare=functools.partial(_burn_load, load))
+                         prepare=functools.partial(_burn_load, load), cost=_burn_seconds)
         wall = time.perf_counter() - t1
+        tasks = runner.tasks_submitted
     inside = sum(t.seconds for t in out) + sum(load.values())
-    return {"workers": workers, "wall_s": wall, "tasks_per_s": len(jobs) / wall, "inside_s": inside,
+    return {"workers": workers, "tasks": tasks, "wall_s": wall, "jobs_per_s": len(jobs) / wall, "inside_s": inside,
             "serial_s": sum(s for _, s in burns) + sum(load.values()),
-            "overhead_ms": (workers * wall - inside) / len(jobs) * 1e3,
+            "overhead_ms": (workers * wall - inside) / tasks * 1e3,
             "overhead_pct": (workers * wall - inside) / inside * 100.0}
+
+
+def _burn_seconds(burn_job: tuple) -> float:
+    return burn_job[1]
 
 
 def _recording_of_burn(burn_job: tuple) -> tuple:
@@ -122,26 +139,31 @@ def _warm_up(warm: list[report.TrialJob]) -> None:
         report.run_trial_job(job)
 
 
-def measure(workers: int, jobs: list[report.TrialJob], warm: list[report.TrialJob]) -> dict:
+def measure(workers: int, jobs: list[report.TrialJob], warm: list[report.TrialJob], task_floor_s: float) -> dict:
     clear_worker_cache()  # a repeated serial run loads its recordings again, as the first did
     t0 = time.perf_counter()
-    with open_runner(workers=workers) as runner:
+    with open_runner(workers=workers, task_floor_s=task_floor_s) as runner:
         start_s = time.perf_counter() - t0
         if runner.client is not None:  # on every worker, not wherever the scheduler puts them
             runner.client.run(_warm_up, warm)
         else:
             _warm_up(warm)
         t1 = time.perf_counter()
-        out = runner.map(timed_job, jobs, place_by=report.recording_of, prepare=timed_prepare)
+        out = runner.map(timed_job, jobs, place_by=report.recording_of, prepare=timed_prepare,
+                         cost=report.expected_job_seconds)
         wall = time.perf_counter() - t1
+        # serially every job is a call in this process: counted as a task of no overhead
+        tasks = runner.tasks_submitted if runner.client is not None else len(jobs)
         # a prepare task (a recording's load, once per cluster) is work, as the load inside a
         # serial run's first job of the recording is
         recordings = sorted({report.recording_of(job) for job in jobs})
         prepared = sum(runner.client.run(_prepare_seconds, recordings).values()) if runner.client is not None else 0.0
+        worker_rss = max(runner.client.run(peak_rss_mb).values()) if runner.client is not None else float("nan")
     inside = sum(t.seconds for t in out) + prepared
     return {
-        "workers": workers, "start_s": start_s, "wall_s": wall, "tasks_per_s": len(jobs) / wall,
-        "inside_s": inside, "overhead_ms": (workers * wall - inside) / len(jobs) * 1e3,
+        "workers": workers, "tasks": tasks, "start_s": start_s, "wall_s": wall, "jobs_per_s": len(jobs) / wall,
+        "client_rss_mb": peak_rss_mb(), "worker_rss_mb": worker_rss,
+        "inside_s": inside, "overhead_ms": (workers * wall - inside) / tasks * 1e3,
         "overhead_pct": (workers * wall - inside) / inside * 100.0,
         "rows": [t.result.row for t in out], "job_seconds": [t.seconds for t in out],
     }
@@ -155,6 +177,8 @@ def main() -> int:
     ap.add_argument("--trials", default=None)
     ap.add_argument("--repeat", type=int, default=1, help="pairs of runs (default 1); prints the median ratio")
     ap.add_argument("--floor", action="store_true", help="also run the synthetic CPU-burn tasks (Dask's floor)")
+    ap.add_argument("--task-floor-s", type=float, default=DEFAULT_TASK_FLOOR_S,
+                    help=f"task granularity: least expected seconds of a task (default {DEFAULT_TASK_FLOOR_S:g}; 0: one per job)")
     args = ap.parse_args()
     data_dir = str(broad.check_dir(args.data or broad.default_dir()).resolve())
     trials = broad.list_trials(data_dir, args.trials)
@@ -163,26 +187,30 @@ def main() -> int:
     jobs = [report.TrialJob(data_dir, t, c, False) for t in trials for c in cols]
     warm = [report.TrialJob(data_dir, trials[0], c, False) for c in cols]
     strip = lambda rows: [{k: v for k, v in r.items() if k != "us_per_sample"} for r in rows]  # noqa: E731
-    print(f"evaluate: {len(trials)} trials x {len(cols)} estimators = {len(jobs)} tasks")
-    print("| run | workers | start s | task phase s | tasks/s | in-task s | overhead ms/task | overhead % | ratio |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print(f"evaluate: {len(trials)} trials x {len(cols)} estimators = {len(jobs)} jobs; "
+          f"task floor {args.task_floor_s:g} s")
+    print("| run | workers | floor s | tasks | start s | task phase s | jobs/s | in-task s | overhead ms/task | "
+          "overhead % | client RSS MB | worker RSS MB | ratio |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     ratios, overheads, floor_ratios, floor_overheads, all_same = [], [], [], [], True
     for k in range(1, args.repeat + 1):
-        one = measure(1, jobs, warm)
-        many = measure(args.workers, jobs, warm)
+        one = measure(1, jobs, warm, args.task_floor_s)
+        many = measure(args.workers, jobs, warm, args.task_floor_s)
         all_same &= repr(strip(one["rows"])) == repr(strip(many["rows"]))
-        ratio = many["tasks_per_s"] / one["tasks_per_s"]
+        ratio = many["jobs_per_s"] / one["jobs_per_s"]
         ratios.append(ratio)
         overheads.append(many["overhead_pct"])
         for r, shown in ((one, ""), (many, f"{ratio:.2f}")):
-            print(f"| {k} | {r['workers']} | {r['start_s']:.1f} | {r['wall_s']:.1f} | {r['tasks_per_s']:.2f} | "
-                  f"{r['inside_s']:.1f} | {r['overhead_ms']:.1f} | {r['overhead_pct']:.1f} | {shown} |", flush=True)
+            print(f"| {k} | {r['workers']} | {args.task_floor_s:g} | {r['tasks']} | {r['start_s']:.1f} | {r['wall_s']:.1f} | "
+                  f"{r['jobs_per_s']:.2f} | {r['inside_s']:.1f} | {r['overhead_ms']:.1f} | {r['overhead_pct']:.1f} | "
+                  f"{r['client_rss_mb']:.0f} | {r['worker_rss_mb']:.0f} | {shown} |", flush=True)
         if args.floor:
-            f = floor(args.workers, one, jobs)
+            f = floor(args.workers, one, jobs, args.task_floor_s)
             floor_ratios.append(f["serial_s"] / f["wall_s"])
             floor_overheads.append(f["overhead_pct"])
-            print(f"| {k} floor | {f['workers']} | | {f['wall_s']:.1f} | {f['tasks_per_s']:.2f} | {f['inside_s']:.1f} | "
-                  f"{f['overhead_ms']:.1f} | {f['overhead_pct']:.1f} | {floor_ratios[-1]:.2f} |", flush=True)
+            print(f"| {k} floor | {f['workers']} | {args.task_floor_s:g} | {f['tasks']} | | {f['wall_s']:.1f} | "
+                  f"{f['jobs_per_s']:.2f} | {f['inside_s']:.1f} | {f['overhead_ms']:.1f} | {f['overhead_pct']:.1f} | | | "
+                  f"{floor_ratios[-1]:.2f} |", flush=True)
     med = lambda v: sorted(v)[len(v) // 2]  # noqa: E731
     print(f"results identical to the serial run: {all_same}")
     print(f"throughput ratio {args.workers} workers / 1 (target >= 1.7): median {med(ratios):.2f} of "

@@ -1,7 +1,8 @@
 """The execution layer on real Dask clusters: an embedded LocalCluster of 2 worker processes,
 and a ``dask scheduler`` + two ``dask worker`` subprocesses on 127.0.0.1 driven through
-``evaluate --scheduler``. Both must give the serial run's results, in its order; a worker
-killed mid-run has its task retried; an unreachable scheduler is a one-line error."""
+``evaluate --scheduler``. Both must give the serial run's results, in its order, with the jobs
+grouped into as many tasks as the task floor implies; a worker killed mid-run has its task
+retried; an unreachable scheduler is a one-line error."""
 
 from __future__ import annotations
 
@@ -102,6 +103,14 @@ def test_evaluate_through_a_scheduler_and_two_worker_subprocesses(broad_dir, ser
             row = {k: v for k, v in got["per_trial"][c][TRIALS[0]].items() if k != "us_per_sample"}
             assert row == want
         assert got["imu_delay"][TRIALS[0]] == want_all["imu_delay"][TRIALS[0]]
+        # the tasks the floor implies, counted by the workers that ran them
+        this = sys.modules[__name__]
+        cloudpickle.register_pickle_by_value(this)
+        try:
+            with open_runner(scheduler=address, connect_timeout_s=60) as runner:
+                _check_granularity(runner)
+        finally:
+            cloudpickle.unregister_pickle_by_value(this)
     finally:
         for p in reversed(procs):
             p.terminate()
@@ -282,3 +291,123 @@ def test_ctrl_c_of_a_run_on_a_local_cluster_is_one_line(broad_dir, tmp_path, sig
             proc.wait()
     assert proc.returncode == status, err
     assert err.strip() == f"ahrs-service: interrupted ({name}) before the command finished", err
+
+
+# ---------------------------------------------------------------------------- task granularity
+
+
+def test_plan_tasks_keeps_every_task_above_the_floor_and_an_inputs_jobs_together():
+    from ahrs_service.execution import plan_tasks
+
+    keys = [name for name in "abcdef" for _ in range(13)]  # 6 recordings x 13 estimators
+    costs = [0.02 + 0.002 * (i % 13) for i in range(len(keys))]  # 20-44 ms jobs, 2.4 s in all
+    tasks = plan_tasks(costs, keys, floor_s=0.5, workers=2)
+    assert sorted(i for task in tasks for i in task) == list(range(len(keys)))  # each job once
+    sizes = [sum(costs[i] for i in task) for task in tasks]
+    # a recording's 0.42 s is under the floor: it goes whole into a task; shares of at least
+    # 0.5 + 0.42 s: 2 tasks of 3 recordings each
+    assert len(tasks) == 2 and min(sizes) >= 0.5, sizes  # a multiple of the workers, all above the floor
+    assert max(sizes) - min(sizes) < 0.1, sizes  # even: no worker waits for a long last task
+    assert [sorted({keys[i] for i in task}) for task in tasks] == [["a", "b", "c"], ["d", "e", "f"]]
+    # an input larger than a share is cut between its jobs
+    tasks = plan_tasks([0.1] * 12, ["a"] * 12, floor_s=0.2, workers=2)
+    assert [len(task) for task in tasks] == [3, 3, 3, 3]
+    # a small floor: one task per job; a floor above the whole: one task
+    assert plan_tasks(costs, keys, floor_s=0.0, workers=2) == [[i] for i in range(len(keys))]
+    assert plan_tasks(costs, keys, floor_s=10.0, workers=2) == [list(range(len(keys)))]
+    # an input's jobs come together whatever order they were given in
+    interleaved = [keys[i] for i in range(0, len(keys), 13)] * 13
+    assert all(len({interleaved[i] for i in task}) <= 3
+               for task in plan_tasks(costs, interleaved, floor_s=0.5, workers=2))
+    # nothing known yet: every job alone, so that its duration is measured
+    assert plan_tasks([0.1, None, 0.1], floor_s=0.5, workers=2) == [[0], [1], [2]]
+
+
+def _square_in_task(job: tuple[str, int]) -> tuple[str, int, str]:
+    """A job's result and the Dask task it ran in (to count the tasks the cluster ran)."""
+    from distributed import get_worker
+
+    name, value = job
+    return name, value * value, str(get_worker().get_current_task())
+
+
+def _ten_ms(job: tuple[str, int]) -> float:
+    return 0.1  # the caller's first guess: far above what the job takes
+
+
+def _tasks_of(got: list[tuple[str, int, str]]) -> dict[str, set[str]]:
+    """Each task the jobs ran in → the inputs of its jobs."""
+    out: dict[str, set[str]] = {}
+    for name, _, task in got:
+        out.setdefault(task, set()).add(name)
+    return out
+
+
+def _check_granularity(runner: Runner) -> None:
+    """24 jobs on 4 inputs, guessed at 0.1 s each: a 0.5 s floor makes 4 tasks of one input
+    each (2.4 s / (0.5 + 0.1) s), a 0 floor 24; the measured durations (microseconds) then
+    shrink the next map's estimate under the floor: one task."""
+    jobs = [(name, i) for name in ("a", "b", "c", "d") for i in range(6)]
+    want = [(name, i * i) for name, i in jobs]
+    before = runner.tasks_submitted
+    grouped = runner.map(_square_in_task, jobs[::-1], cost=_ten_ms, task_floor_s=0.5,
+                         place_by=lambda job: job[0], prepare=lambda key: key)
+    assert [(n, v) for n, v, _ in grouped] == want[::-1]  # the jobs' order, not the tasks'
+    tasks = _tasks_of(grouped)
+    assert len(tasks) == 4 and all(len(names) == 1 for names in tasks.values()), tasks
+    assert runner.tasks_submitted - before == 4
+    single = runner.map(_square_in_task, jobs, cost=_ten_ms, task_floor_s=0.0)
+    assert [(n, v) for n, v, _ in single] == want and len(_tasks_of(single)) == 24
+    refined = runner.map(_square_in_task, jobs, cost=_ten_ms, task_floor_s=0.5)
+    assert [(n, v) for n, v, _ in refined] == want and len(_tasks_of(refined)) == 1
+    assert runner.tasks_submitted - before == 4 + 24 + 1
+
+
+def test_jobs_are_grouped_into_tasks_as_the_floor_says_on_a_local_cluster():
+    this = sys.modules[__name__]
+    cloudpickle.register_pickle_by_value(this)
+    try:
+        with open_runner(workers=2) as runner:
+            _check_granularity(runner)
+    finally:
+        cloudpickle.unregister_pickle_by_value(this)
+
+
+def test_evaluate_in_tasks_of_a_recording_gives_the_serial_results(broad_dir, serial):
+    """Two recordings x two estimators guessed at about 30 ms a job: a 20 ms floor makes one
+    task per recording (0.12 s / (0.02 + 0.033) s = 2 shares), results as the serial run's."""
+    with open_runner(workers=2, task_floor_s=0.02) as runner:
+        parallel = report.evaluate(broad_dir, _columns(), TRIALS, runner=runner)
+        assert runner.tasks_submitted == 2
+    assert json.dumps(_deterministic(parallel)) == json.dumps(_deterministic(serial))
+
+
+def test_a_killed_workers_batched_task_is_retried_and_the_result_is_complete(tmp_path):
+    """The worker dies inside a task of four jobs: the whole task is rerun elsewhere."""
+    this = sys.modules[__name__]
+    cloudpickle.register_pickle_by_value(this)
+    marker = str(tmp_path / "died")
+    try:
+        with open_runner(workers=2) as runner:
+            pids_before = set(runner.client.run(os.getpid).values())
+            got = runner.map(_square_or_die, [(i, marker) for i in range(8)], cost=lambda job: 0.1, task_floor_s=0.3)
+            assert runner.tasks_submitted == 2  # 0.8 s / (0.3 + 0.1) s
+    finally:
+        cloudpickle.unregister_pickle_by_value(this)
+    assert got == [i * i for i in range(8)]
+    assert int(Path(marker).read_text()) in pids_before
+
+
+@pytest.mark.parametrize("command_name", ["evaluate", "tune"])
+@pytest.mark.parametrize("value", ["-1", "nan"])
+def test_a_bad_task_floor_is_a_one_line_error(command_name, value, broad_dir, tmp_path, capsys):
+    argv = {
+        "evaluate": ["evaluate", "--data", str(broad_dir), "--estimators", "madgwick", "--trials", "02_*",
+                     "--out", str(tmp_path / "o")],
+        "tune": ["tune", "madgwick", "--data", str(broad_dir), "--trials", "02_*", "--budget", "1",
+                 "--out", str(tmp_path / "p.json")],
+    }[command_name]
+    assert cli_main([*argv, "--workers", "2", f"--task-floor-s={value}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"ahrs-service {command_name}: error: --task-floor-s must be a number of seconds >= 0, "
+                   f"not {float(value)!r}"]

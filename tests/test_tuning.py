@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -115,3 +116,27 @@ def test_cli_both_with_one_data_folder_is_a_one_line_error(broad_dir, capsys):
     assert cli_main(["tune", "madgwick", "--dataset", "both", "--data", str(broad_dir), "--workers", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--dataset both" in err[0]
+
+
+@pytest.mark.timeout(300)
+def test_tune_on_a_cluster_asks_trials_in_batches_sized_for_the_task_floor(broad_dir):
+    """Two recordings of about 30 ms a job by the cost model: a batch gives each of the 2
+    workers two 0.5 s floors of work, 2 x ceil(1.0 / 0.06) = 34 trials; the batch's 68 jobs
+    run as 2 tasks (2.0 s / (0.5 + 0.03) s, rounded down to the workers), not 68."""
+    from ahrs_service.evaluation import report
+    from ahrs_service.execution import open_runner
+
+    recs = tuning.recordings_of("broad", str(broad_dir), None)[:2]
+    base = report.make_columns(["madgwick"], [], {})[0]
+    one_trial = [report.TrialJob(r.data_dir, r.name, base, False, r.dataset) for r in recs]
+    trial_s = sum(report.expected_job_seconds(job) for job in one_trial)
+    assert 0.04 < trial_s < 0.08
+    with open_runner(1, None) as serial:
+        assert tuning.trials_per_batch(serial, one_trial) == 1
+    with open_runner(2, None, task_floor_s=0.5) as runner:
+        batch = tuning.trials_per_batch(runner, one_trial)
+        assert batch == 2 * math.ceil(1.0 / trial_s)
+        result = tuning.tune("madgwick", recs, tuning.search_space("madgwick"), budget=batch, runner=runner)
+        assert runner.tasks_submitted == 2
+    assert result.trials == batch and set(result.train) == {r.label for r in recs}
+    assert all(0.0 < v < 20.0 for v in result.train.values())

@@ -86,7 +86,8 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         help="search an estimator's parameters with Optuna on BROAD and/or DIDO and write a preset file",
         description=(
             "Optuna (TPE) over the search space declared on the estimator's Params fields (or --space); "
-            "every (trial x recording) is one task of the execution layer; objective: mean RMSE over the "
+            "every (trial x recording) is one job of the execution layer, grouped into tasks of at least "
+            "--task-floor-s; objective: mean RMSE over the "
             "recordings (BROAD total, or inclination without heading; DIDO inclination); with --dataset both "
             "the worse data set relative to its target; leave-one-recording-out validation and "
             "parameter importances reported; the best parameters written as a preset file that "

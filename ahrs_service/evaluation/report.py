@@ -19,6 +19,7 @@ scored on the same rows (``ahrs_service.evaluation.gaps``, docs/gaps.md): ``resu
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import json
 import math
 import os
@@ -270,6 +271,46 @@ def prepare_recording(recording: tuple[str, str, str]) -> bool:
     return True
 
 
+#: The cost model's first guess of a job's duration (``Runner.map``'s ``cost``; the runner
+#: scales it by what finished jobs took): µs per sample of each estimator's batch run and of
+#: the peers' (docs/accuracy.md, BROAD on the development VM), others at the default, plus
+#: scoring the estimate (RMSE, L2, mean error: measured the same way).
+_RUN_US_PER_SAMPLE = {
+    "complementary_reduced": 0.30, "complementary_full": 0.30, "triad": 0.12, "quest": 0.28,
+    "kalman_roll_pitch": 0.26, "quaternion_kf": 0.18, "mahony_direct": 0.23, "mahony_passive": 0.17,
+    "immersion_invariance": 0.19, "ekf": 0.46, "madgwick": 0.11, "valenti": 0.18, "robust": 0.29,
+    "vqf": 0.46, "imufusion": 1.49,
+}
+_DEFAULT_RUN_US_PER_SAMPLE = 0.5
+_SCORING_US_PER_SAMPLE = 0.45
+_OFFLINE_COST_FACTOR = 3.0  # two passes and the fusion (docs/evaluation.md)
+_NOMINAL_SAMPLES = 50_000  # a BROAD recording's size, for a file whose size cannot be read
+_GYRO_DATASET = {"broad": "imu_gyr", "dido": "gyr"}
+
+
+def expected_job_seconds(job: TrialJob) -> float:
+    """A cheap first guess of how long ``run_trial_job(job)`` takes, seconds: the recording's
+    samples (from its file's metadata, not its data) × the column's µs/sample, scoring
+    included, once more per drop pattern."""
+    col = job.column
+    run_us = _RUN_US_PER_SAMPLE.get(col.base, _DEFAULT_RUN_US_PER_SAMPLE)
+    if col.offline:
+        run_us *= _OFFLINE_COST_FACTOR
+    passes = 1 + (len(job.drop_patterns) if col.kind == "estimator" else 0)
+    return _samples_in(*recording_of(job)) * passes * (run_us + _SCORING_US_PER_SAMPLE) * 1e-6
+
+
+@functools.lru_cache(maxsize=4096)
+def _samples_in(dataset: str, data_dir: str, name: str) -> int:
+    """The recording's sample count from its HDF5 metadata; a nominal count when it cannot be
+    read (the job itself then reports why)."""
+    try:
+        with DATASETS[dataset].FOLDER.open(data_dir, name, (_GYRO_DATASET[dataset],)) as f:
+            return int(f[_GYRO_DATASET[dataset]].shape[0])
+    except (OSError, ValueError, KeyError, IndexError):
+        return _NOMINAL_SAMPLES
+
+
 def _load_with_delay(dataset: str, data_dir: str, name: str) -> tuple[Any, float]:
     """(trial, its IMU delay in samples), each computed once per process."""
     trial = worker_cache((dataset, data_dir, name), lambda: DATASETS[dataset].load_trial(data_dir, name))
@@ -337,7 +378,8 @@ def evaluate(
 ) -> dict:
     """Runs every column over every trial and returns the results dict.
 
-    Each (trial, column) pair is one job of ``runner`` (default: serial, in this process); a
+    Each (trial, column) pair is one job of ``runner`` (default: serial, in this process; on a
+    cluster the jobs are grouped into tasks by :func:`expected_job_seconds`); a
     job loads its trial on the worker that runs it (once per worker), and the results are
     gathered in trial-then-column order, so they equal the serial run's whatever the runner
     (except the measured ``us_per_sample``).
@@ -366,7 +408,8 @@ def evaluate(
     ]
     runner = runner or Runner()
     results = runner.map(
-        run_trial_job, jobs, progress=progress, desc="evaluate", place_by=recording_of, prepare=prepare_recording
+        run_trial_job, jobs, progress=progress, desc="evaluate", place_by=recording_of, prepare=prepare_recording,
+        cost=expected_job_seconds,
     )
     per_trial: dict[str, dict[str, dict]] = {c.name: {} for c in columns}
     imu_delays: dict[str, dict[str, float]] = {}
@@ -767,7 +810,8 @@ def main(args: Any) -> int:
 
     progress = not args.quiet and sys.stderr.isatty()
     # a RunnerError (scheduler out of reach, bad --workers) is cli.main's one line
-    with open_runner(getattr(args, "workers", 1), getattr(args, "scheduler", None)) as runner:
+    with open_runner(getattr(args, "workers", 1), getattr(args, "scheduler", None),
+                     task_floor_s=getattr(args, "task_floor_s", None)) as runner:
         results = evaluate(
             data_dir, columns, trial_names, progress=progress, on_trial=on_trial, dataset=dataset, runner=runner,
             drop_patterns=drop_patterns, drop_seed=drop_seed,

@@ -14,10 +14,13 @@ both, the worse of the two data sets' means each divided by its accuracy target 
 total or 3° inclination, DIDO 5°), so 12 BROAD trials and 8 DIDO flights weigh the same and a
 gain is judged by the data set it suits least.
 
-Trials: Optuna's ask-and-tell interface; each batch asks as many trials as there are workers,
-and every (trial × recording) pair is one task of the execution layer
-(``report.run_trial_job``, the same scoring as ``evaluate``). Cross-validation reuses the
-study's per-recording scores: for each recording left out, the trial best on the objective
+Trials: Optuna's ask-and-tell interface; every (trial × recording) pair is one job of the
+execution layer (``report.run_trial_job``, the same scoring as ``evaluate``), and the runner
+groups a batch's jobs into tasks of at least its task floor (``--task-floor-s``), a
+recording's jobs together. Serially a batch is one trial; on a cluster each batch asks for
+enough trials that every worker gets two floors of work by the cost model's first guess
+(:func:`trials_per_batch`), so a run is reproducible for its worker count and floor.
+Cross-validation reuses the study's per-recording scores: for each recording left out, the trial best on the objective
 over the others is scored on it (leave-one-recording-out); the per-data-set means of those
 are the validation scores. Parameter importances: Optuna's fANOVA evaluator.
 
@@ -214,7 +217,7 @@ def tune(
     keys = [metric_of(r.dataset, base.scores_heading) for r in recordings]
     recordings = [dataclasses.replace(r, data_dir=str(Path(r.data_dir).resolve())) for r in recordings]
     scores: list[np.ndarray] = []  # per Optuna trial: (recordings,) RMSE, deg
-    batch = max(1, runner.info.workers)
+    batch = trials_per_batch(runner, [report.TrialJob(r.data_dir, r.name, base, False, r.dataset) for r in recordings])
     n = len(recordings)
     bar = progress_bar(budget, f"tune {name}", unit="trial") if progress else None
     try:
@@ -225,7 +228,8 @@ def tune(
                 for tr in asked for r in recordings
             ]
             results = runner.map(
-                report.run_trial_job, jobs, place_by=report.recording_of, prepare=report.prepare_recording
+                report.run_trial_job, jobs, place_by=report.recording_of, prepare=report.prepare_recording,
+                cost=report.expected_job_seconds,
             )
             for i, tr in enumerate(asked):
                 rows = results[i * n:(i + 1) * n]
@@ -269,6 +273,25 @@ def tune(
     )
 
 
+#: A batch of trials gives each worker this many task floors of work (by the first guess), so
+#: its tasks stay above the floor when the jobs run faster than guessed.
+_FLOORS_PER_WORKER = 2
+
+
+def trials_per_batch(runner: Runner, one_trial: list[report.TrialJob]) -> int:
+    """How many trials a batch asks Optuna for: 1 when serial; on a cluster, the workers ×
+    the trials that make ``_FLOORS_PER_WORKER`` of the runner's task floors, ``one_trial``'s
+    jobs (one per recording) costed by ``report.expected_job_seconds`` — the first guess, not
+    timings, so the batches, and with them the study, do not depend on the machine's load."""
+    if runner.client is None:
+        return 1
+    workers = max(1, runner.info.workers)
+    trial_s = sum(report.expected_job_seconds(job) for job in one_trial)
+    if runner.task_floor_s <= 0 or trial_s <= 0:
+        return workers
+    return workers * max(1, math.ceil(_FLOORS_PER_WORKER * runner.task_floor_s / trial_s))
+
+
 def _command_line(args: Any) -> str:
     """The command that reproduces this study (recorded in the preset)."""
     parts = ["ahrs-service", "tune", args.estimator, "--dataset", args.dataset, "--budget", str(args.budget),
@@ -309,7 +332,8 @@ def main(args: Any) -> int:
         check_space(args.estimator, space)
         if args.budget < 1:
             raise ValueError(f"--budget must be at least 1, not {args.budget}")
-        runner = open_runner(args.workers, args.scheduler)  # RunnerError: cli.main's one line
+        # RunnerError (scheduler, --workers, --task-floor-s): cli.main's one line
+        runner = open_runner(args.workers, args.scheduler, task_floor_s=getattr(args, "task_floor_s", None))
     except (FileNotFoundError, ValueError) as exc:
         print(f"ahrs-service tune: error: {exc}", file=sys.stderr)
         return 2
