@@ -44,7 +44,7 @@ from ahrs_service.live_calibration import LiveCalibration
 # schemas) fell between the source's start and its first read
 from ahrs_service.logs.redaction import redact_text, secret_values
 from ahrs_service.logs.writer import FlightLogWriter
-from ahrs_service.mavlink_bridge import ServiceLink
+from ahrs_service.mavlink_bridge import STALE_NS, ServiceLink
 from ahrs_service.pipeline import EstimatedBlock, EstimationPipeline
 from ahrs_service.realtime import RealtimeSettings, apply_to_this_thread, undo_memory_lock
 from ahrs_service.reload import RELOAD_MAX_WAIT_NS, RELOAD_SETTLE_NS, ConfigReload  # noqa: F401 (their old home)
@@ -57,6 +57,7 @@ log = logging.getLogger("ahrs_service")
 
 IO_PERIOD_NS = 5_000_000  # MAVLink publish/poll granularity: 200 Hz
 HOUSEKEEPING_NS = 1_000_000_000  # loop statistics, STATUS=, health reports
+SOURCE_SET_PERIOD_NS = 50_000_000  # the heading's health looked at for the EKF source set: 20 Hz
 MAX_SAMPLES_PER_TICK = 64  # a source with a backlog catches up at most this fast (one block)
 # how long close() waits for a running live-calibration fit, s: fits take tens of ms, and
 # the whole stop must stay well within 2 s (systemd's TimeoutStopSec is 5 s)
@@ -140,6 +141,10 @@ class Service:
         self.live = None  # the Foxglove live view (live_view.LiveView) when [live] enabled
         self.monitor = None  # the autopilot attitude monitor (attitude_monitor.py) beside an autopilot
         self.divergence: DivergenceSink | None = None  # the divergence monitor, when [divergence] enabled
+        #: beside ArduPilot fusing our heading: asks it for its fallback EKF source set when the
+        #: heading is not trustworthy or the service stops (open_source_switch)
+        self.source_switch: Any = None
+        self._heading_samples, self._heading_fresh_ns = -1, 0  # heading_trust's freshness test
         #: what receives each estimated block, in this order (connect_sinks)
         self.sinks: tuple[Sink, ...] = ()
         self.calibration_session = LiveCalibration(self, max_rate_hz=cfg.rates["estimation_hz"])
@@ -362,6 +367,11 @@ class Service:
         """The configured declination, or the World Magnetic Model's for the configured place today."""
         loc = cfg.location
         if loc["latitude_deg"] is None:
+            heading_sent = cfg.mavlink["odometry"]["rate_hz"] > 0 and (self.source is None or self.source.has_mag)
+            if cfg.estimator["declination_deg"] == 0.0 and heading_sent:
+                log.warning("ODOMETRY sends a magnetic heading (declination 0) that the autopilot takes as "
+                            "true north: set [location] (declination from the World Magnetic Model) or "
+                            "estimator.declination_deg")
             return cfg.estimator["declination_deg"]
         from ahrs_service.calibration.declination import declination_deg
 
@@ -411,6 +421,71 @@ class Service:
         from ahrs_service.mavlink_bridge import MavlinkBridge
 
         self.mavlink = MavlinkBridge(self.bridge_link(), cfg, io_period_ns=IO_PERIOD_NS, estimates=self.pipeline)
+        self.open_source_switch(cfg)
+
+    def open_source_switch(self, cfg: config_mod.Config) -> None:
+        """ArduPilot's EKF source sets (``protocols/mavlink/ekf_source.py``, docs/autopilot.md,
+        "Fallback when the companion stops"): on when ODOMETRY goes on the autopilot link
+        under ArduPilot's rules and ``fallback_source_set`` is not 0. A reload with the same
+        sets keeps the switch and what it asked; other sets start a new one, counters kept."""
+        from ahrs_service.protocols.mavlink.ekf_source import EkfSourceSwitch
+
+        ocfg = cfg.mavlink["odometry"]
+        sets = (ocfg["primary_source_set"], ocfg["fallback_source_set"])
+        wanted = (self._autopilot_link is not None and ocfg["rate_hz"] > 0 and ocfg["rules"] == "ardupilot"
+                  and sets[1] != 0)
+        earlier = self.source_switch
+        if earlier is not None and wanted and (earlier.primary_set, earlier.fallback_set) == sets:
+            return
+        if earlier is not None:
+            earlier.close()
+        self.source_switch = None
+        if wanted:
+            self.source_switch = EkfSourceSwitch(self._autopilot_link, primary_set=sets[0], fallback_set=sets[1],
+                                                 stats=None if earlier is None else earlier.stats)
+
+    def heading_trust(self, now_ns: int) -> tuple[bool, str]:
+        """Whether the heading we publish is worth an autopilot's fusing, and if not why: an
+        estimate initialised, fresh (a sample within the bridge's ``STALE_NS``), with the
+        magnetometer in use (reduced form observes no heading) and not flagged by the
+        divergence monitor."""
+        est = self.pipeline.latest_estimate() if self.pipeline is not None else None
+        if est is None:
+            return False, "no estimate yet"
+        if est.samples != self._heading_samples:
+            self._heading_samples, self._heading_fresh_ns = est.samples, now_ns
+        if now_ns - self._heading_fresh_ns > STALE_NS:
+            return False, "no IMU samples"
+        if not est.initialised:
+            return False, "estimator not initialised"
+        if self.attitude_diverged():
+            return False, "attitude diverged"
+        if not est.mag_used:
+            return False, "no magnetometer in use"
+        return True, ""
+
+    def _source_set_tick(self, now: int) -> None:
+        trusted, why = self.heading_trust(now)
+        for severity, text in self.source_switch.update(now, trusted, why):
+            self.report(text, severity, kind="ekf source set")
+
+    def _fall_back_at_stop(self) -> None:
+        """A clean stop: ArduPilot is asked for its fallback source set, its answer waited for
+        (``EkfSourceSwitch.fall_back_at_stop``: under a second) and reported once."""
+        switch = self.source_switch
+        if switch is None or switch.stopped:
+            return
+        try:
+            for severity, text in switch.fall_back_at_stop():
+                self.report(text, severity, kind="ekf source set")
+        except Exception as exc:  # noqa: BLE001 - the rest of the stop must happen all the same
+            log.warning("EKF source set at stop: %s: %s", type(exc).__name__, exc)
+        finally:
+            switch.close()
+
+    def source_set_summary(self) -> str:
+        """The final summary's part about ArduPilot's EKF source sets ("" when not asked for)."""
+        return "" if self.source_switch is None else self.source_switch.summary()
 
     def bridge_link(self) -> ServiceLink:
         """The control and status the MAVLink bridge passes through (mavlink_bridge.ServiceLink);
@@ -620,6 +695,8 @@ class Service:
             PeriodicJob("log diagnostics", int(1e9 / diag_hz) if diag_hz else 0, self._diagnostics_due),
             PeriodicJob("watchdog", self.notifier.watchdog_interval_ns or 0, lambda now: self.notifier.watchdog()),
             PeriodicJob("housekeeping", HOUSEKEEPING_NS, self._housekeeping),
+            PeriodicJob("ekf source set", SOURCE_SET_PERIOD_NS if self.source_switch is not None else 0,
+                        self._source_set_tick),
         ]
 
     def _estimate(self, block: SampleBlock) -> EstimatedBlock | None:
@@ -699,6 +776,8 @@ class Service:
         odometry = None if self.mavlink is None else self.mavlink.odometry
         if odometry is not None:  # what went to the autopilot: sent, unsynced, resets, send errors
             loop["odometry"] = dataclasses.asdict(odometry.stats)
+        if self.source_switch is not None:  # what was asked of ArduPilot's EKF source sets, and its answers
+            loop["ekf_source_set"] = dataclasses.asdict(self.source_switch.stats)
         if self.live is not None:
             self.live.publish("/loop", now, loop)
         if self.log_writer is not None:
@@ -747,6 +826,7 @@ class Service:
         """Stops everything after :meth:`run` has returned. A live-calibration fit still
         running gets at most ``LIVE_FIT_CLOSE_WAIT_S`` to finish (``LiveCalibration.settle``)."""
         self.notifier.stopping()
+        self._fall_back_at_stop()  # first: the autopilot flies on a stale heading until it switches
         self.compiler.close()
         try:
             self.calibration_session.settle(LIVE_FIT_CLOSE_WAIT_S)

@@ -156,6 +156,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         service.run()
     finally:
         service.close()
-    parts = [service.status_line(), service.divergence_summary(), service.odometry_summary(), service.log_summary()]
+    parts = [service.status_line(), service.divergence_summary(), service.odometry_summary(),
+             service.source_set_summary(), service.log_summary()]
     logger.info("stopped: %s", "; ".join(p for p in parts if p))
     return 0

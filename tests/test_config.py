@@ -171,8 +171,9 @@ def test_a_sub_table_s_keys_are_checked_like_a_section_s(value, key):
 
 
 def test_a_sub_table_fills_in_its_defaults():
-    assert config_mod.validate({"mavlink": {"odometry": {"rate_hz": 30}}}).mavlink["odometry"] == {"rate_hz": 30.0, "rules": "px4"}
-    assert config_mod.validate({}).mavlink["odometry"] == {"rate_hz": 0.0, "rules": "px4"}
+    sets = {"fallback_source_set": 2, "primary_source_set": 1}
+    assert config_mod.validate({"mavlink": {"odometry": {"rate_hz": 30}}}).mavlink["odometry"] == {"rate_hz": 30.0, "rules": "px4", **sets}
+    assert config_mod.validate({}).mavlink["odometry"] == {"rate_hz": 0.0, "rules": "px4", **sets}
 
 
 # --- re-probe of issue 14 (probe14): what `config --check` still passed and `run` refused -----

@@ -5,6 +5,7 @@ the peer's clock after TIMESYNC; and the running service's ODOMETRY stream."""
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 
@@ -180,3 +181,23 @@ def test_the_service_streams_odometry_with_its_estimate(tmp_path):
         cov = np.array(m.pose_covariance)
         assert np.isfinite(cov[[COV_ROLL, COV_PITCH, COV_YAW]]).all() and (cov[[COV_ROLL, COV_PITCH, COV_YAW]] > 0).all()
         assert m.quality >= 1
+
+
+@pytest.mark.parametrize("extra, warned", [
+    ({}, True),
+    ({"estimator": {"declination_deg": 12.7}}, False),
+    ({"location": {"latitude_deg": -35.36, "longitude_deg": 149.17}}, False),
+])
+def test_a_magnetic_heading_sent_as_odometry_is_warned_about(tmp_path, caplog, extra, warned):
+    from test_service import service_config
+
+    from ahrs_service.service import Service
+
+    cfg = service_config(tmp_path, 14550, mavlink={"odometry": {"rate_hz": 30, "rules": "ardupilot"}}, **extra)
+    service = Service(cfg)
+    with caplog.at_level(logging.WARNING, logger="ahrs_service"):
+        service.declination_deg(cfg)
+    said = [r.getMessage() for r in caplog.records if "declination 0" in r.getMessage()]
+    assert len(said) == (1 if warned else 0), said
+    if warned:
+        assert "[location]" in said[0] and "estimator.declination_deg" in said[0]

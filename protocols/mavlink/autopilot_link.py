@@ -38,6 +38,13 @@ What it detects and survives:
 * **a vanished device** (a USB serial adapter unplugged, the pty closed): a read error or an
   end of file closes the connection and re-opens it every ``reopen_s`` until it opens
   (``stats.read_errors``, ``stats.reopens``, ``stats.open_failures``).
+* **messages of another dialect**: a well-framed message whose id the service's dialect
+  (``common``) does not define — ArduPilot streams its own (AHRS2, EKF_STATUS_REPORT …) — is
+  counted by id (``stats.unknown_messages``, ``stats.unknown``), reported once per id and not
+  parsed; it keeps the link alive like any message. Its CRC is checked where ArduPilot's dialect
+  knows the id (a damaged one is bad data); an id no dialect here knows is taken as framed.
+  Only damage counts as ``stats.bad_data``: a bad CRC, bytes outside any frame, a datagram's
+  truncated tail.
 
 Reports (a foreign autopilot, a conflict, TIMESYNC replies refused or its clock jumping) are
 kept as notices: logged once (this module's logger, under ``ahrs_service``: the journal) and queued for
@@ -87,6 +94,11 @@ SEQUENCE_BACKSTEPS = 8
 NOTICES = 32
 #: TIMESYNC clock jumps reported at most this often, s (a peer could jump every 0.5 s)
 JUMP_NOTICE_S = 10.0
+#: message ids of another dialect reported by name at most (each once); the others are counted only
+UNKNOWN_IDS_REPORTED = 16
+#: message ids of another dialect counted one by one at most (a peer could send 2^24 of them);
+#: the messages of further ids are in the total only
+UNKNOWN_IDS_KEPT = 64
 
 _log = logging.getLogger(__name__)
 
@@ -103,6 +115,32 @@ _NOT_AUTOPILOT_TYPES = frozenset({
 })
 
 Sink = Callable[[Any, int], None]
+
+
+def frame_message_id(frame: bytes) -> int:
+    """The message id in the header of a MAVLink 1 or 2 frame."""
+    if frame[0] == mavlink.PROTOCOL_MARKER_V1:
+        return frame[5]
+    return frame[7] | frame[8] << 8 | frame[9] << 16
+
+
+def frame_crc_ok(frame: bytes, crc_extra: int) -> bool:
+    """Whether a whole MAVLink 1 or 2 frame's checksum holds with the message's ``crc_extra``."""
+    signed = frame[0] == mavlink.PROTOCOL_MARKER_V2 and frame[2] & mavlink.MAVLINK_IFLAG_SIGNED
+    end = len(frame) - 2 - (mavlink.MAVLINK_SIGNATURE_BLOCK_LEN if signed else 0)
+    if end < 1:
+        return False
+    crc = mavlink.x25crc(bytearray(frame[1:end]) + bytes([crc_extra]))
+    return crc.crc == int.from_bytes(frame[end:end + 2], "little")
+
+
+def ardupilot_message(msg_id: int) -> Any:
+    """The message class of ``msg_id`` in ArduPilot's dialect (``ardupilotmega``, a superset of
+    ``common``), None when it has none. Imported on first use: only a link that carries
+    messages outside ``common`` pays for it."""
+    from pymavlink.dialects.v20 import ardupilotmega
+
+    return ardupilotmega.mavlink_map.get(int(msg_id))
 
 
 @dataclass(frozen=True)
@@ -134,7 +172,8 @@ class LinkStats:
     """Counters of the autopilot link (published in the flight log's /loop source section)."""
 
     messages: int = 0  # parsed messages, all senders
-    bad_data: int = 0  # bad CRC, garbage, truncated datagram tails
+    bad_data: int = 0  # damage only: bad CRC, bytes outside any frame, truncated datagram tails
+    unknown_messages: int = 0  # well-framed messages of an id the dialect does not define
     read_errors: int = 0  # reads that failed (device vanished, socket error)
     send_errors: int = 0  # messages that could not be written
     open_failures: int = 0  # attempts to (re-)open the connection that failed
@@ -148,6 +187,8 @@ class LinkStats:
     address_handovers: int = 0  # the autopilot's ids moved to a new address after its silence
     last_error: str = ""
     received: dict[str, int] = field(default_factory=dict)
+    #: unknown_messages by message id (the id as text, the log's JSON keys), UNKNOWN_IDS_KEPT ids at most
+    unknown: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.__dict__.items()}
@@ -531,8 +572,11 @@ class AutopilotLink:
         """One parsed message, from ``address`` (the sender's UDP address on a listening link,
         else None)."""
         name = msg.get_type()
-        if name == "BAD_DATA" or name.startswith("UNKNOWN_"):
+        if name == "BAD_DATA":
             self.stats.bad_data += 1
+            return
+        if name.startswith("UNKNOWN_"):
+            self._unknown(msg, rx_ns)
             return
         self.stats.messages += 1
         self.stats.received[name] = self.stats.received.get(name, 0) + 1
@@ -573,6 +617,29 @@ class AutopilotLink:
                     sub.sink(msg, rx_ns)
                 except Exception as exc:  # a consumer's bug must not stop the link
                     self._note_error(f"{name} handler: {type(exc).__name__}: {exc}")
+
+    def _unknown(self, msg: Any, rx_ns: int) -> None:
+        """A frame whose id the dialect does not define: counted by id when it is intact (it
+        shows the link alive), bad data when ArduPilot's dialect knows its CRC and it fails."""
+        frame = bytes(msg.get_msgbuf())
+        msg_id = frame_message_id(frame)
+        known = ardupilot_message(msg_id)
+        if known is not None and not frame_crc_ok(frame, known.crc_extra):
+            self.stats.bad_data += 1
+            return
+        stats = self.stats
+        stats.unknown_messages += 1
+        key = str(msg_id)
+        first = key not in stats.unknown
+        if not first or len(stats.unknown) < UNKNOWN_IDS_KEPT:
+            stats.unknown[key] = stats.unknown.get(key, 0) + 1
+        self.last_rx_ns = rx_ns
+        if self.state != "up":
+            self._went_up()
+        if first and len(stats.unknown) <= UNKNOWN_IDS_REPORTED:
+            what = f"{known.msgname} of ArduPilot's dialect" if known is not None else "in no dialect known here"
+            self.notify(f"autopilot link: message id {msg_id} ({what}) is not in the service's dialect: "
+                        "counted in link.unknown, not used", 6)
 
     def _heard_autopilot(self, heard: AutopilotInfo, address: Any, rx_ns: int) -> None:
         """A flight controller's HEARTBEAT: adopted when it is the first one the configuration

@@ -466,6 +466,7 @@ class MavlinkImuSource(ImuSource):
         d.device_lost = self.link.state == "lost" or (self.link.state == "waiting" and s.open_failures > 0)
         d.bus_errors = s.read_errors + s.send_errors
         d.reinitialisations = s.reopens
+        # damaged frames only: a well-framed message of another dialect is no dropped frame
         d.dropped_frames = s.bad_data
         d.last_error = self.refusal or s.last_error
         d.extra.update(link_losses=s.losses, link_recoveries=s.recoveries, stream_requests=self.requests,
@@ -473,7 +474,8 @@ class MavlinkImuSource(ImuSource):
                        clock_steps=self.link.timeline.steps,
                        stream_refusals=self.refusals, timeline_conflicts=self.timeline_conflicts,
                        timesync_refused=self.link.timeline.timesync_refused,
-                       identity_conflicts=s.identity_conflicts, other_autopilots=s.other_autopilots)
+                       identity_conflicts=s.identity_conflicts, other_autopilots=s.other_autopilots,
+                       unknown_messages=s.unknown_messages)
 
     def _pop(self) -> _Queued | None:
         try:

@@ -111,6 +111,9 @@ def signing_key(key: str, v: Any) -> str:
 ODOMETRY: Section = {
     "rate_hz": (0.0, stream_rate(ODOMETRY_MAX_HZ, lo=ODOMETRY_MIN_HZ)),
     "rules": ("px4", choice(ODOMETRY_RULE_NAMES)),
+    # ArduPilot's EKF source sets (ekf_source.py): with rules = "ardupilot" only; 0 = never asked
+    "fallback_source_set": (2, number(0, 3, integer=True)),
+    "primary_source_set": (1, number(0, 3, integer=True)),
 }
 
 #: the streams the component sends unasked, each at its ``[rates]`` key's rate until a ground
@@ -146,7 +149,13 @@ MAVLINK: Section = {
 
 def check_mavlink_section(section: dict[str, Any]) -> None:
     """The checked ``[mavlink]`` section as a whole: requiring signed writes without a key
-    would leave every write open, the opposite of what was asked."""
+    would leave every write open, the opposite of what was asked; a fallback source set that
+    is the primary one would switch nothing."""
+    odometry = section["odometry"]
+    fallback, primary = odometry["fallback_source_set"], odometry["primary_source_set"]
+    if fallback and fallback == primary:
+        raise ConfigError(f"mavlink.odometry.fallback_source_set: {fallback} is also primary_source_set; accepted: "
+                          f"another set 1..3, or 0 (no fallback asked for)")
     if section["require_signing_for_writes"] and not section["signing_key"]:
         raise ConfigError("mavlink.require_signing_for_writes: true needs mavlink.signing_key (64 hexadecimal "
                           "digits, a 32-byte key); accepted: a signing key, or require_signing_for_writes = false")
