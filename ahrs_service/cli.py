@@ -55,10 +55,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ahrs-service", description="MAVLink AHRS companion service: run, evaluate, log tools, replay, calibration."
     )
+    parser.add_argument("--version", action="version", version=f"ahrs-service {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in _COMMAND_MODULES:
         importlib.import_module(name).add_subcommands(sub)
     return parser
+
+
+def package_version() -> str:
+    """The installed distribution's version (pyproject.toml's ``version``), or "unknown" when
+    the package runs from a source tree that was never installed."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("ahrs-service")
+    except PackageNotFoundError:
+        return "unknown"
 
 
 #: top-level modules of the optional dependencies -> the extra that installs them (pyproject.toml)
@@ -66,6 +78,7 @@ OPTIONAL_MODULES = {
     "h5py": "recordings",
     "matplotlib": "analysis",
     "scikit_posthocs": "analysis",
+    "scipy": "analysis",
     "tqdm": "analysis",
     "vqf": "peers",
     "imufusion": "peers",

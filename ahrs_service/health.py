@@ -19,6 +19,9 @@ from ahrs_service.mavlink_bridge import LinkHealth
 from ahrs_service.pipeline import EstimationPipeline
 from ahrs_service.scheduler import LoopStats
 
+#: a tick this late, as a share of what the source's FIFO holds, puts samples at risk
+AT_RISK_SHARE = 0.5
+
 #: report(text, severity, kind): STATUSTEXT (rate-limited per kind), journal and /log
 Report = Callable[..., None]
 
@@ -39,7 +42,6 @@ class ServiceHealth:
         self.last_load_percent = 0.0  # the loop's busy time at the last housekeeping, % (SYS_STATUS)
         self.last_lost = False  # the source reported its device lost at the last housekeeping
         self.was_reduced = False  # the estimator's form at the last check (report_form_change)
-        self._last_overruns: int | None = None
         self._last_loss = LossCounts()
         self._last_log_status = "ok"
         #: log writers a reload closed (their counts stay in the final summary)
@@ -83,7 +85,8 @@ class ServiceHealth:
         sensor_hz = source.diagnostics.extra.get("sensor_rate_hz") if source is not None else None
         rows = f"rows at {sensor_hz:.0f} Hz, " if isinstance(sensor_hz, (int, float)) else ""
         return (
-            f"{pipeline.estimator.name} ({mode}) {rows}loop at {st.rate_hz:.0f} Hz, load {st.load_percent:.1f}%, "
+            f"{pipeline.estimator.name} ({mode}) {rows}loop at {st.rate_hz:.0f} Hz, CPU {st.cpu_percent:.1f}% of a core, "
+            f"busy {st.load_percent:.0f}% of each period, "
             f"jitter p99 {st.period_jitter_p99_us:.0f} us, overruns {st.overruns}, samples {pipeline.samples}, "
             f"lost {self.loss_text(source)}"
         )
@@ -100,9 +103,7 @@ class ServiceHealth:
         """Housekeeping's reports: overruns and lost samples of the last second, the sensor
         lost or back. ``diag``: the source's diagnostics as a dict, taken once."""
         self.last_load_percent = st.load_percent
-        if self._last_overruns is not None and st.overruns > self._last_overruns:
-            self.report(f"loop overruns: {st.overruns - self._last_overruns} in the last second", 4)
-        self._last_overruns = st.overruns
+        self.report_samples_at_risk(st, source)
         lost_now = source.diagnostics.lost
         if lost_now.total > self._last_loss.total:
             self.report(f"IMU samples lost: {self.loss_text(source, lost_now.since(self._last_loss))} "
@@ -112,6 +113,19 @@ class ServiceHealth:
         if lost != self.last_lost:
             self.last_lost = lost
             self.report(f"sensor lost: {diag.get('last_error', '')}" if lost else "sensor back", 3 if lost else 6)
+
+    def report_samples_at_risk(self, st: LoopStats, source: ImuSource) -> None:
+        """A warning when the loop came late by ``AT_RISK_SHARE`` of what the source's FIFO holds
+        (``ImuSource.late_tolerance_s``): samples were nearly lost. A late tick whose samples the
+        FIFO kept is only counted (``overruns``, ``lateness_max_us`` in ``/loop``); a sample
+        actually lost is reported as lost."""
+        tolerance_s = source.late_tolerance_s
+        late_s = st.lateness_max_us * 1e-6
+        if tolerance_s is None or late_s < max(AT_RISK_SHARE * tolerance_s, 1.0 / st.rate_hz):
+            return
+        self.report(f"loop overruns: the loop woke {late_s * 1e3:.0f} ms late and the IMU's FIFO holds "
+                    f"{tolerance_s * 1e3:.0f} ms: samples at risk (a busy computer: docs/systemd.md, "
+                    "real-time scheduling)", 4)
 
     def report_form_change(self, reduced: bool) -> None:
         """The estimator switched between its full and its reduced (no magnetometer) form."""

@@ -3,8 +3,9 @@
 Tick k is due at ``start + k·period``; deadlines never move, so lateness never accumulates
 into drift. A tick that starts more than one period late is an *overrun*: the missed ticks
 are counted and skipped, and the loop resumes on the next deadline in the future.
-Lateness (wake-up time − deadline), period jitter and loop load are kept in ring buffers for
-percentiles.
+Lateness (wake-up time − the deadline of the first tick not served, so an overrun's whole
+delay counts), period jitter, the loop's busy time and its thread's CPU time are kept in ring
+buffers for percentiles and shares.
 """
 
 from __future__ import annotations
@@ -52,6 +53,10 @@ class LoopStats:
     period_jitter_max_us: float
     lateness_p99_us: float
     load_percent: float
+    #: the longest a tick of the window woke after its deadline, µs (what a FIFO must hold)
+    lateness_max_us: float = 0.0
+    #: the loop thread's CPU time over the window's wall time, % of one core
+    cpu_percent: float = 0.0
 
     def as_dict(self) -> dict[str, float]:
         return dict(self.__dict__)
@@ -80,6 +85,7 @@ class FixedRateScheduler:
         self._lateness = np.zeros(_WINDOW)
         self._period = np.zeros(_WINDOW)
         self._busy = np.zeros(_WINDOW)
+        self._cpu = np.zeros(_WINDOW)  # the loop thread's CPU clock at each tick's end, ns
         self._wake = 0  # the last wake-up, ns
         #: when the loop wakes next (monotonic ns), None before the first tick: other threads
         #: read it to leave the interpreter free then (the log writer, ``logs/writer.py``)
@@ -100,7 +106,7 @@ class FixedRateScheduler:
         if self._start is None:
             self._start = now
             self._k = 0
-        deadline = self._start + self._k * self.period_ns
+        deadline = first_due = self._start + self._k * self.period_ns
         if now - deadline > self.period_ns:
             # overrun: skip the ticks whose deadlines have passed, keep the grid
             missed = (now - deadline) // self.period_ns
@@ -116,7 +122,7 @@ class FixedRateScheduler:
             if now >= deadline:
                 break
         i = self.ticks % _WINDOW
-        self._lateness[i] = now - deadline
+        self._lateness[i] = now - first_due
         self._period[i] = (now - self._wake) if self.ticks else self.period_ns
         self._wake = now
         self.ticks += 1
@@ -125,8 +131,10 @@ class FixedRateScheduler:
         return now
 
     def done(self) -> None:
-        """Marks the end of this tick's work (for the load percentage)."""
-        self._busy[(self.ticks - 1) % _WINDOW] = time.monotonic_ns() - self._wake
+        """Marks the end of this tick's work (for the busy and CPU shares)."""
+        i = (self.ticks - 1) % _WINDOW
+        self._busy[i] = time.monotonic_ns() - self._wake
+        self._cpu[i] = time.thread_time_ns()
 
     def stats(self) -> LoopStats:
         """Timing of the last second of ticks (at least 100 ticks, at most the ring's 8192).
@@ -141,6 +149,12 @@ class FixedRateScheduler:
         last = np.arange(self.ticks - n, self.ticks) % _WINDOW
         jitter = np.sort(np.abs(self._period[last] - self.period_ns) / 1e3)
         p50, p99 = _percentile_of_sorted(jitter, 50), _percentile_of_sorted(jitter, 99)
+        lateness = np.sort(self._lateness[last])
+        # CPU between the window's first and last tick ends, over the wall time between them
+        # (a tick not ended yet, the current one, has no CPU mark: left out)
+        ended = last[:-1] if self._cpu[last[-1]] < self._cpu[last[-2]] else last
+        wall = float(self._period[ended[1:]].sum())
+        cpu = float(self._cpu[ended[-1]] - self._cpu[ended[0]])
         return LoopStats(
             rate_hz=self.rate_hz,
             ticks=self.ticks,
@@ -149,8 +163,10 @@ class FixedRateScheduler:
             period_jitter_p50_us=float(p50),
             period_jitter_p99_us=float(p99),
             period_jitter_max_us=float(jitter[-1]),
-            lateness_p99_us=_percentile_of_sorted(np.sort(self._lateness[last]), 99) / 1e3,
+            lateness_p99_us=_percentile_of_sorted(lateness, 99) / 1e3,
             load_percent=float(100.0 * self._busy[last].mean() / self.period_ns),
+            lateness_max_us=float(lateness[-1]) / 1e3,
+            cpu_percent=100.0 * cpu / wall if wall > 0 and cpu >= 0 else 0.0,
         )
 
 

@@ -23,6 +23,11 @@ class FakeTime:
     def sleep(self, seconds: float) -> None:
         self.now += int(seconds * 1e9)
 
+    cpu = 0  # the loop thread's CPU clock, moved by the test
+
+    def thread_time_ns(self) -> int:
+        return self.cpu
+
 
 @pytest.fixture
 def clock(monkeypatch) -> FakeTime:
@@ -64,6 +69,64 @@ def test_stats_describe_the_last_second(clock):
     assert st.period_jitter_p99_us == pytest.approx(np.percentile(jitter, 99))
     assert st.period_jitter_max_us == pytest.approx(jitter.max())
     assert st.ticks == 301 and st.overruns == 0
+
+
+def test_an_overruns_whole_delay_is_its_lateness_and_the_cpu_share_is_the_threads(clock):
+    s = FixedRateScheduler(100.0)
+    s.wait()
+    for _ in range(150):  # each tick busy 2.5 ms of its 10 ms, 1 ms of it on the CPU (preempted)
+        clock.now += 2_500_000
+        clock.cpu += 1_000_000
+        s.done()
+        s.wait()
+    st = s.stats()
+    assert st.lateness_max_us < 10
+    # busy: 99 ended ticks of 2.5 ms and the current one, not ended yet; CPU: the ended ones only
+    assert st.load_percent == pytest.approx(24.75, abs=0.01) and st.cpu_percent == pytest.approx(10.0, abs=0.01)
+    clock.now += 2_500_000 + 35_000_000  # this tick's work, then a 35 ms stall of the host
+    clock.cpu += 1_000_000
+    s.done()
+    s.wait()
+    st = s.stats()
+    # woken 37.5 ms after the tick's start: 27.5 ms after the first deadline it missed
+    assert st.overruns == 1 and st.lateness_max_us == pytest.approx(27_500, abs=10)
+
+
+def _health_reports(tolerance_s, lateness_ms: float, rate_hz: float = 200.0) -> list[str]:
+    import types
+
+    from ahrs_service.health import ServiceHealth
+    from ahrs_service.scheduler import LoopStats
+
+    said: list[str] = []
+    health = ServiceHealth(lambda text, severity=6, kind=None: said.append(text))
+    st = LoopStats(rate_hz, 1000, 3, 5, 10.0, 100.0, 1000.0, 100.0, 20.0, lateness_max_us=lateness_ms * 1e3)
+    health.report_samples_at_risk(st, types.SimpleNamespace(late_tolerance_s=tolerance_s))
+    return said
+
+
+def test_a_late_tick_warns_only_when_the_fifo_nears_its_depth():
+    # a FIFO holding 35 ms: 10 ms late is absorbed (counted, not warned); 20 ms is at risk
+    assert _health_reports(0.035, 10.0) == []
+    (text,) = _health_reports(0.035, 20.0)
+    assert text.startswith("loop overruns:") and "20 ms late" in text and "holds 35 ms" in text
+    # a source whose buffer the loop cannot approach (a socket, a log) never warns of a late tick
+    assert _health_reports(None, 500.0) == []
+    # a FIFO that holds less than a period: only a tick late by a period (an overrun) warns
+    assert _health_reports(0.001, 3.0) == [] and len(_health_reports(0.001, 6.0)) == 1
+
+
+def test_fifo_boards_say_how_late_the_loop_may_come():
+    from ahrs_service import config as config_mod
+    from ahrs_service.sources import make_source
+
+    cfg = config_mod.validate({})  # the embedded default: the simulated GY-80 through its FIFOs
+    board = make_source(cfg.source, cfg.rates["estimation_hz"])
+    spans = [p.fifo_layout.depth_frames / p.rate_hz for p in board.parts.values() if hasattr(p, "fifo_layout")]
+    assert len(spans) == 2 and board.late_tolerance_s == pytest.approx(min(spans) - 1 / board.fifo_read_hz)
+    assert 0.005 < board.late_tolerance_s < 0.5
+    polled = make_source(dict(cfg.source, board_options={"fifo": False}), cfg.rates["estimation_hz"])
+    assert polled.late_tolerance_s is None  # each skipped tick is counted lost instead
 
 
 def test_rate_must_be_positive():

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ahrs_service.calibration.least_squares import TRIU, levenberg_marquardt, sphere_residuals, symmetric_from
+
 __all__ = ["AccCalibrationResult", "AXIS_LABELS", "G0", "find_static_segments", "fit_accelerometer"]
 
 G0 = 9.80665  # standard gravity, m/s²
@@ -147,29 +149,14 @@ def _six_position(means: np.ndarray, labels: list[str], g: float) -> tuple[np.nd
     return 0.5 * (P + P.T), b  # exactly symmetric, not just to round-off
 
 
-_TRIU = np.triu_indices(3)
-
-
-def _sym_from(p: np.ndarray) -> np.ndarray:
-    T = np.zeros((3, 3))
-    T[_TRIU] = p
-    return T + np.triu(T, 1).T
-
-
 def _refine(means: np.ndarray, A: np.ndarray, b: np.ndarray, g: float) -> tuple[np.ndarray, np.ndarray] | None:
     """Sphere least squares over all segments; None when the data do not determine all 9 terms."""
-
-    def residuals(p: np.ndarray) -> np.ndarray:
-        return np.linalg.norm((means - p[:3]) @ _sym_from(p[3:]), axis=1) - g
-
-    from scipy.optimize import least_squares  # imported here: scipy costs ~1 s at service start
-
-    sol = least_squares(residuals, np.concatenate([b, A[_TRIU]]), method="trf")
-    sv = np.linalg.svd(sol.jac, compute_uv=False)
+    sol = levenberg_marquardt(sphere_residuals(means, g), np.concatenate([b, A[TRIU]]))
+    sv = np.linalg.svd(sol.jacobian, compute_uv=False)
     if sv.min() < 1e-6 * sv.max():
         return None  # e.g. six perpendicular poses only: the off-diagonal terms are free
-    A_fit = _sym_from(sol.x[3:])
-    if np.linalg.eigvalsh(A_fit).min() <= 0:
+    A_fit = symmetric_from(sol.x[3:])
+    if not np.all(np.isfinite(sol.x)) or np.linalg.eigvalsh(A_fit).min() <= 0:
         return None
     return A_fit, sol.x[:3]
 

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ahrs_service.calibration.least_squares import TRIU, levenberg_marquardt, sphere_residuals, symmetric_from
+
 __all__ = ["MagCalibrationResult", "fit_magnetometer", "sphere_coverage", "COVERAGE_BANDS", "COVERAGE_SECTORS"]
 
 #: equal-area direction bins of the coverage measure: bands of equal height in z (equal area
@@ -143,26 +145,11 @@ def _sqrtm_sym(Q: np.ndarray) -> np.ndarray:
     return 0.5 * (R + R.T)  # exactly symmetric, not just to round-off
 
 
-_TRIU = np.triu_indices(3)
-
-
-def _sym_from(p: np.ndarray) -> np.ndarray:
-    T = np.zeros((3, 3))
-    T[_TRIU] = p
-    return T + np.triu(T, 1).T
-
-
 def _refine(x: np.ndarray, centre: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Minimises Σ (|T (x − c)| − 1)² over c (3,) and symmetric T, from the algebraic fit."""
-
-    def residuals(p: np.ndarray) -> np.ndarray:
-        return np.linalg.norm((x - p[:3]) @ _sym_from(p[3:]), axis=1) - 1.0
-
-    p0 = np.concatenate([centre, T[_TRIU]])
-    from scipy.optimize import least_squares  # imported here: scipy costs ~1 s at service start
-
-    sol = least_squares(residuals, p0, method="lm" if x.shape[0] >= 9 else "trf", max_nfev=500)
-    T_fit = _sym_from(sol.x[3:])
+    p0 = np.concatenate([centre, T[TRIU]])
+    sol = levenberg_marquardt(sphere_residuals(x, 1.0), p0, max_iterations=500)
+    T_fit = symmetric_from(sol.x[3:])
     if not np.all(np.isfinite(sol.x)) or np.linalg.eigvalsh(T_fit).min() <= 0:
         return centre, T  # keep the algebraic solution rather than an unphysical one
     return sol.x[:3], T_fit

@@ -326,6 +326,12 @@ class ImuSource(abc.ABC):
     #: stall are overwritten unread; the service counts the skipped ticks in
     #: ``diagnostics.lost.host_stall`` (loop periods: the estimation rate the part is read at)
     skipped_ticks_lose_samples: bool = False
+    #: how late (s) the loop may come to this source without a sample being lost: what its
+    #: FIFO holds beyond one drain's worth. None: no bound the loop can approach (a socket's
+    #: buffer, a recording) or none to warn of (a part that loses a sample per skipped tick
+    #: counts it lost at once). The service warns of samples at risk when a tick is late by
+    #: half of it (ahrs_service/health.py)
+    late_tolerance_s: float | None = None
 
     def __init__(self) -> None:
         self.diagnostics = SourceDiagnostics()

@@ -280,6 +280,16 @@ class I2CFifoBoard(I2CBoard):
         self._queue: deque[ImuSample] = deque()  # rows of drained blocks for read()
         self._sim_dropped_base = 0
 
+    @property
+    def late_tolerance_s(self) -> float | None:  # type: ignore[override]
+        """The shortest time a FIFO part's depth holds at its rate, less one drain period, s;
+        None when polled without the FIFOs (each skipped tick is then counted lost)."""
+        if not self.fifo:
+            return None
+        spans = [part.fifo_layout.depth_frames / part.rate_hz  # type: ignore[attr-defined]
+                 for role, part in self.parts.items() if hasattr(part, "fifo_layout")]
+        return max(0.0, min(spans) - 1.0 / self.fifo_read_hz) if spans else None
+
     def open(self) -> None:
         super().open()
         if self.fifo:

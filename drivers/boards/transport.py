@@ -176,6 +176,12 @@ class FifoBoard(ImuSource):
             room -= len(taken[-1])
         return SampleBlock.concat(taken) if taken else SampleBlock.empty()
 
+    @property
+    def late_tolerance_s(self) -> float:  # type: ignore[override]
+        """The FIFO's depth at the part's rate less one wake-up's worth, s: how late a drain
+        may come before the FIFO overflows."""
+        return max(0.0, self.FIFO_FRAMES / self.odr_hz - 1.0 / self.wakeup_rate_hz)
+
     def _note_drain_window(self, started_ns: int) -> None:
         """``diagnostics.extra["fifo_longest_window_ms"]``: the longest time from one drain's
         start (its level read, which decides what it pops) to the end of the next, ms, since
