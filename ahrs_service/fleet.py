@@ -487,6 +487,21 @@ def run_fleet(
                     journal.path, tally.problems)
 
 
+def journal_logs(out_dir: str | os.PathLike) -> list[str]:
+    """The logs the journal in ``out_dir`` has a complete line for so far (a run still going,
+    or killed, may have left half a line at its end); [] before the first."""
+    path = Path(out_dir) / JOURNAL_NAME
+    if not path.exists():
+        return []
+    done = []
+    for line in path.read_bytes().split(b"\n")[:-1]:
+        try:
+            done.append(json.loads(line)["log"])
+        except ValueError:
+            pass
+    return done
+
+
 def journal_rows(out_dir: str | os.PathLike) -> Iterator[FleetRow]:
     """The rows of the last completed run in ``out_dir``, in the logs' order, one at a time."""
     with (Path(out_dir) / JOURNAL_NAME).open("rb") as f:

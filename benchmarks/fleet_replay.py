@@ -43,6 +43,8 @@ sys.path.insert(0, str(HERE))
 
 import fleet_logs  # noqa: E402
 
+from ahrs_service import fleet  # noqa: E402
+
 BIN = Path(sys.executable).parent
 
 
@@ -196,18 +198,6 @@ def scheduler_run(logs: Path, out: Path, workers: int = 2) -> Run:
                 p.kill()
 
 
-def _journal_logs(path: Path) -> list[str]:
-    if not path.exists():
-        return []
-    done = []
-    for line in path.read_bytes().split(b"\n")[:-1]:
-        try:
-            done.append(json.loads(line)["log"])
-        except ValueError:
-            pass
-    return done
-
-
 def resume_check(logs: Path, out: Path, count: int, reference: list[dict]) -> dict:
     """A 2-worker run SIGKILLed at half the fleet, then re-run: what the re-run did."""
     shutil.rmtree(out, ignore_errors=True)
@@ -215,11 +205,11 @@ def resume_check(logs: Path, out: Path, count: int, reference: list[dict]) -> di
     cmd = [str(BIN / "ahrs-service"), "replay", str(logs), "--out", str(out), "--workers", "2"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.monotonic() + 3600
-    while len(_journal_logs(journal)) < count // 2 and proc.poll() is None and time.monotonic() < deadline:
+    while len(fleet.journal_logs(out)) < count // 2 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-    finished = _journal_logs(journal)
+    finished = fleet.journal_logs(out)
     stamps = {}
     for line in journal.read_bytes().split(b"\n")[:-1]:
         try:

@@ -139,15 +139,6 @@ class GroundStation:
         self.conn.close()
 
 
-def _wait(condition, seconds: float, step: float = 0.1) -> bool:
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        if condition():
-            return True
-        time.sleep(step)
-    return bool(condition())
-
-
 def _heading_error_deg(a_deg: float, b_deg: float) -> float:
     return abs((a_deg - b_deg + 180.0) % 360.0 - 180.0)
 
@@ -156,11 +147,13 @@ def fly(gs: GroundStation, say) -> tuple[float, float]:
     """The scripted flight; returns the host monotonic times (s) of arming and disarming."""
     from pymavlink import mavutil
 
+    from tests.sitl import wait_until
+
     ml = mavutil.mavlink
     # SITL starts once the service is up (its first start may compile for minutes)
-    if not _wait(lambda: gs.mode >= 0, SITL_START_LIMIT_S):
+    if not wait_until(lambda: gs.mode >= 0, SITL_START_LIMIT_S):
         raise RuntimeError(f"no HEARTBEAT from SITL within {SITL_START_LIMIT_S:.0f} s")
-    if not _wait(lambda: any("origin set" in t for t in gs.texts), 120.0):
+    if not wait_until(lambda: any("origin set" in t for t in gs.texts), 120.0):
         raise RuntimeError("EKF3 set no origin within 120 s (no GPS lock in SITL?)")
     say("EKF origin set; arming in GUIDED")
     armed_at = None
@@ -168,32 +161,32 @@ def fly(gs: GroundStation, say) -> tuple[float, float]:
     while time.monotonic() < end and armed_at is None:
         gs.command(ml.MAV_CMD_DO_SET_MODE, ml.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, GUIDED)
         gs.command(ml.MAV_CMD_COMPONENT_ARM_DISARM, 1)
-        if _wait(lambda: gs.armed and gs.mode == GUIDED, 3.0):
+        if wait_until(lambda: gs.armed and gs.mode == GUIDED, 3.0):
             armed_at = time.monotonic()
     if armed_at is None:
         raise RuntimeError("not armed in GUIDED within 90 s: " + " | ".join(gs.texts[-5:]))
     deadline = armed_at + FLIGHT_LIMIT_S
     left = lambda: max(0.0, deadline - time.monotonic())  # noqa: E731
     gs.command(ml.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, TAKEOFF_ALT_M)
-    if _wait(lambda: -gs.ned[2] > TAKEOFF_ALT_M - 1.0, min(40.0, left())):
+    if wait_until(lambda: -gs.ned[2] > TAKEOFF_ALT_M - 1.0, min(40.0, left())):
         say(f"at {-gs.ned[2]:.1f} m; yaw turns")
         for heading in YAW_TURNS_DEG:
             if gs.mode != GUIDED:  # a failsafe took over: it flies (lands) from here
                 break
             gs.command(ml.MAV_CMD_CONDITION_YAW, heading, YAW_RATE_DEG_S, 0, 0)
-            _wait(lambda: _heading_error_deg(gs.yaw_deg, heading) < 3.0, min(15.0, left()))
+            wait_until(lambda: _heading_error_deg(gs.yaw_deg, heading) < 3.0, min(15.0, left()))
             time.sleep(min(2.0, left()))  # a still moment after each turn
         say("box")
         for north, east in BOX_NE_M:
             if left() <= 0 or gs.mode != GUIDED:
                 break
             gs.position_target(north, east, -TAKEOFF_ALT_M)
-            _wait(lambda: math.hypot(gs.ned[0] - north, gs.ned[1] - east) < 1.5, min(30.0, left()))
+            wait_until(lambda: math.hypot(gs.ned[0] - north, gs.ned[1] - east) < 1.5, min(30.0, left()))
     say("landing" if gs.mode == GUIDED else f"landing (the autopilot left GUIDED for mode {gs.mode})")
     gs.command(ml.MAV_CMD_DO_SET_MODE, ml.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, LAND)
-    if not _wait(lambda: not gs.armed, 60.0):
+    if not wait_until(lambda: not gs.armed, 60.0):
         gs.command(ml.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)  # forced: the flight must end
-        _wait(lambda: not gs.armed, 5.0)
+        wait_until(lambda: not gs.armed, 5.0)
     return armed_at, time.monotonic()
 
 
@@ -214,9 +207,8 @@ def _ground_station(port: int, result: Path) -> None:
 
 def record(out: Path, odometry: bool, wind: bool, mag_motor: float, say) -> None:
     """Runs SITL, the service and the flight; keeps ``out/flight.mcap`` and ``out/truth.npz``."""
-    from ahrs_service import config as config_mod
     from ahrs_service.service import Service
-    from tests.sitl import Sitl, sitl_dir
+    from tests.sitl import Sitl, service_beside, sitl_dir
     from tests.test_autopilot import free_udp_port
 
     if not (sitl_dir() / "arducopter").is_file():
@@ -230,16 +222,10 @@ def record(out: Path, odometry: bool, wind: bool, mag_motor: float, say) -> None
     ground = multiprocessing.get_context("fork").Process(
         target=_ground_station, args=(ground_port, work / "ground.npz"), daemon=True)
     ground.start()
-    mav: dict = {"endpoints": [f"udpout:127.0.0.1:{free_udp_port()}"]}
-    if odometry:
-        mav["odometry"] = {"rate_hz": 30.0, "rules": "ardupilot"}
-    cfg = config_mod.validate({
-        "source": {"type": "mavlink", "mavlink_connection": f"udpin:127.0.0.1:{service_port}",
-                   "mavlink_imu": "highres", "mavlink_imu_hz": 200.0},
-        "location": {"latitude_deg": HOME_LAT, "longitude_deg": HOME_LON, "altitude_km": HOME_ALT_M / 1000.0},
-        "mavlink": mav,
-        "log": {"directory": str(work / "logs")},
-    })
+    cfg = service_beside(service_port, free_udp_port(), work / "logs", estimator=None,
+                         odometry={"rate_hz": 30.0, "rules": "ardupilot"} if odometry else None,
+                         location={"latitude_deg": HOME_LAT, "longitude_deg": HOME_LON,
+                                   "altitude_km": HOME_ALT_M / 1000.0})
     params: dict[str, float] = {}
     if odometry:
         params.update({"VISO_TYPE": 1, "EK3_SRC1_YAW": 6})

@@ -27,50 +27,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from ahrs_service import config as config_mod  # noqa: E402
 from ahrs_service.core.quaternion import quat_to_euler  # noqa: E402
-from tests.sitl import Sitl, binary, wait_until  # noqa: E402
+from tests.sitl import GroundStation, Sitl, binary, service_beside, wait_until  # noqa: E402
 from tests.test_autopilot import free_udp_port  # noqa: E402
 
 REPORT_AT_S = (1, 2, 3, 5, 8, 12, 17, 25, 35, 44)
-
-
-class GroundStation:
-    """SERIAL0: asks for ATTITUDE at 20 Hz and keeps (time, heading °) and STATUSTEXT."""
-
-    def __init__(self) -> None:
-        from pymavlink import mavutil
-
-        self.port = free_udp_port()
-        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{self.port}", source_system=255, source_component=190)
-        self.heading: list[tuple[float, float]] = []
-        self.texts: list[str] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        from pymavlink import mavutil
-
-        asked = 0.0
-        while not self._stop.is_set():
-            m = self.conn.recv_match(blocking=True, timeout=0.1)
-            now = time.monotonic()
-            if now - asked > 2.0 and self.conn.target_system:
-                self.conn.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                                                mavutil.mavlink.MAVLINK_MSG_ID_ATTITUDE, 50000, 0, 0, 0, 0, 0)
-                asked = now
-            if m is None:
-                continue
-            if m.get_type() == "ATTITUDE":
-                self.heading.append((now, math.degrees(m.yaw)))
-            elif m.get_type() == "STATUSTEXT":
-                self.texts.append(str(m.text))
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2)
-        self.conn.close()
 
 
 def _wrap(a: np.ndarray | float) -> np.ndarray | float:
@@ -81,15 +42,10 @@ def run(step_deg: float, yaw_noise_rad: float, after_s: float, workdir: Path) ->
     from ahrs_service.service import Service
 
     binary("arducopter")
-    ground = GroundStation()
+    ground = GroundStation({"ATTITUDE": 20.0})  # EKF3's attitude
     service_port = free_udp_port()
-    cfg = config_mod.validate({
-        "source": {"type": "mavlink", "mavlink_connection": f"udpin:127.0.0.1:{service_port}",
-                   "mavlink_imu": "highres", "mavlink_imu_hz": 200.0},
-        "mavlink": {"endpoints": [f"udpout:127.0.0.1:{free_udp_port()}"],
-                    "odometry": {"rate_hz": 30.0, "rules": "ardupilot"}},
-        "log": {"directory": str(workdir / "logs")},
-    })
+    cfg = service_beside(service_port, free_udp_port(), workdir / "logs", estimator=None,
+                         odometry={"rate_hz": 30.0, "rules": "ardupilot"})
     service = Service(cfg, duration_s=after_s + 240.0)
     service.start()
     loop = threading.Thread(target=service.run, daemon=True)
@@ -117,7 +73,8 @@ def run(step_deg: float, yaw_noise_rad: float, after_s: float, workdir: Path) ->
         loop.join(30)
         service.close()
         ground.close()
-    ap, own = np.array(ground.heading), np.array(ours)
+    ap = np.array([(t, math.degrees(m.yaw)) for t, m in ground.received["ATTITUDE"]])
+    own = np.array(ours)
     before = lambda a: np.median(a[(a[:, 0] > t_step - 10) & (a[:, 0] < t_step), 1])  # noqa: E731
     post = ap[ap[:, 0] >= t_step]
     change = _wrap(post[:, 1] - before(ap))

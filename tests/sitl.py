@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import socket
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -96,6 +97,79 @@ class Sitl:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def service_beside(service_port: int, gcs_port: int, log_dir: Path, *, imu: str = "highres", imu_hz: float = 200.0,
+                   estimator: str | None = "ekf", odometry: dict | None = None, **sections: dict):
+    """The service's validated configuration beside SITL: the autopilot's IMU stream taken on
+    ``udpin:127.0.0.1:service_port`` (SITL's serial port is a ``udpclient`` to it), ground links
+    to ``gcs_port``, the log in ``log_dir``; ``odometry`` the ``[mavlink.odometry]`` table (None:
+    off), ``estimator`` None for the default; ``sections`` are added whole."""
+    from ahrs_service import config as config_mod
+
+    data: dict = {
+        "source": {"type": "mavlink", "mavlink_connection": f"udpin:127.0.0.1:{service_port}",
+                   "mavlink_imu": imu, "mavlink_imu_hz": imu_hz},
+        "mavlink": {"endpoints": [f"udpout:127.0.0.1:{gcs_port}"]},
+        "log": {"directory": str(log_dir)},
+    }
+    if estimator is not None:
+        data["estimator"] = {"name": estimator}
+    if odometry is not None:
+        data["mavlink"]["odometry"] = odometry
+    data.update(sections)
+    return config_mod.validate(data)
+
+
+class GroundStation:
+    """A pymavlink ground station on a SITL serial port (``udpin`` on 127.0.0.1:``port``): says
+    HEARTBEAT once a second (ArduPilot sends STATUSTEXT only on links it has heard from), asks
+    for each of ``streams`` (message name → Hz) every 2 s, and keeps what arrives of them as
+    (host monotonic receive time s, message) in ``received[name]``, and every STATUSTEXT's text
+    in ``texts``. Runs on a thread until :meth:`close`."""
+
+    def __init__(self, streams: dict[str, float] | None = None) -> None:
+        from pymavlink import mavutil
+
+        from tests.test_autopilot import free_udp_port
+
+        self.port = free_udp_port()
+        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{self.port}", source_system=255, source_component=190)
+        self.streams = dict(streams or {})
+        self.received: dict[str, list] = {name: [] for name in self.streams}
+        self.texts: list[str] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        from pymavlink import mavutil
+
+        mav = mavutil.mavlink
+        asked = said = 0.0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if self.conn.clients and now - said > 1.0:
+                self.conn.mav.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                said = now
+            if self.conn.target_system and now - asked > 2.0:
+                for name, hz in self.streams.items():
+                    self.conn.mav.command_long_send(1, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                                    getattr(mav, f"MAVLINK_MSG_ID_{name}"), int(1e6 / hz), 0, 0, 0, 0, 0)
+                asked = now
+            m = self.conn.recv_match(blocking=True, timeout=0.1)
+            if m is None:
+                continue
+            kind = m.get_type()
+            if kind in self.received:
+                self.received[kind].append((time.monotonic(), m))
+            elif kind == "STATUSTEXT":
+                self.texts.append(str(m.text))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.conn.close()
 
 
 def wait_until(condition, seconds: float, step: float = 0.05) -> bool:

@@ -31,6 +31,17 @@ ESTIMATORS = ["madgwick", "mahony_passive"]
 pytestmark = pytest.mark.timeout(180)
 
 
+def stop_processes(procs: list[subprocess.Popen]) -> None:
+    """Ends hand-started ``dask`` processes: SIGTERM (workers before their scheduler), then
+    SIGKILL whatever has not exited 30 s on."""
+    for p in reversed(procs):
+        p.terminate()
+    for p in procs:
+        try:
+            p.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
 def _deterministic(results: dict) -> dict:
     """The results without what is measured (per-sample cost) or stamped (creation time)."""
     per_trial = {
@@ -112,13 +123,7 @@ def test_evaluate_through_a_scheduler_and_two_worker_subprocesses(broad_dir, ser
         finally:
             cloudpickle.unregister_pickle_by_value(this)
     finally:
-        for p in reversed(procs):
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop_processes(procs)
 
 
 def _square_or_die(job: tuple[int, str]) -> int:

@@ -24,6 +24,7 @@ import pytest
 from ahrs_service import fleet
 from ahrs_service.cli import main as cli_main
 from ahrs_service.execution import open_runner
+from tests.test_execution import stop_processes
 
 pytest.importorskip("distributed")
 
@@ -140,19 +141,6 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _journal_logs(path: Path) -> list[str]:
-    """The logs of the journal's complete lines (a killed writer may leave half a line)."""
-    if not path.exists():
-        return []
-    done = []
-    for line in path.read_bytes().split(b"\n")[:-1]:
-        try:
-            done.append(json.loads(line)["log"])
-        except ValueError:
-            pass
-    return done
-
-
 @pytest.mark.timeout(420)
 def test_a_killed_run_resumed_through_a_scheduler_redoes_no_finished_log(fleet_dir, tmp_path):
     d, plan = fleet_dir
@@ -162,7 +150,7 @@ def test_a_killed_run_resumed_through_a_scheduler_redoes_no_finished_log(fleet_d
     client = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     try:
         deadline = time.monotonic() + 180
-        while len(_journal_logs(journal)) < 4 and client.poll() is None and time.monotonic() < deadline:
+        while len(fleet.journal_logs(out)) < 4 and client.poll() is None and time.monotonic() < deadline:
             time.sleep(0.02)
         os.killpg(client.pid, signal.SIGKILL)
         client.wait(timeout=30)
@@ -172,7 +160,7 @@ def test_a_killed_run_resumed_through_a_scheduler_redoes_no_finished_log(fleet_d
             client.wait(timeout=30)
     # killed mid-run: some logs finished, not all (else this test proves nothing)
     assert client.returncode == -signal.SIGKILL, client.stderr.read()
-    finished = _journal_logs(journal)
+    finished = fleet.journal_logs(out)
     assert 4 <= len(finished) < COUNT
     assert not (out / "fleet.csv").exists()
     stamps = {log: os.stat(json.loads(_line(journal, log))["output"]).st_mtime_ns for log in finished}
@@ -198,13 +186,7 @@ def test_a_killed_run_resumed_through_a_scheduler_redoes_no_finished_log(fleet_d
             runner.client.wait_for_workers(1, timeout=120)
         assert cli_main(["replay", str(d), "--out", str(out), "--scheduler", address]) == 0
     finally:
-        for p in reversed(procs):
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop_processes(procs)
     rows = _rows(out / "fleet.csv")
     assert [Path(r["log"]).name for r in rows] == [log.name for log in plan]
     assert all(r["error"] == "" and fleet.output_complete(r["output"], int(r["samples"])) for r in rows)

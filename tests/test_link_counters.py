@@ -10,7 +10,6 @@ bad data and dropped frames; the others are unknown messages, counted by id.
 from __future__ import annotations
 
 import socket
-import time
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as apm
@@ -18,20 +17,12 @@ from pymavlink.dialects.v20 import ardupilotmega as apm
 from ahrs_service.protocols.mavlink.autopilot_link import UNKNOWN_IDS_KEPT, UNKNOWN_IDS_REPORTED, AutopilotLink
 from ahrs_service.protocols.mavlink.imu_source import MavlinkImuSource
 from tests.test_autopilot import free_udp_port
+from tests.test_source_identity import _wait
 
 pytestmark = pytest.mark.timeout(60)
 
 #: a message id that neither common nor ardupilotmega defines (MAVLink 2 ids go up to 2^24 - 1)
 NO_DIALECT_ID = 0x00EEEE
-
-
-def _wait(condition, seconds: float) -> bool:
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        if condition():
-            return True
-        time.sleep(0.01)
-    return bool(condition())
 
 
 def _frame_of_unlisted_id(seq: int, msg_id: int = NO_DIALECT_ID) -> bytes:

@@ -14,10 +14,9 @@ import time
 import numpy as np
 import pytest
 
-from ahrs_service import config as config_mod
 from ahrs_service.core.quaternion import quat_to_euler
 
-from tests.sitl import Sitl, binary, wait_until
+from tests.sitl import GroundStation, Sitl, binary, service_beside, wait_until
 from tests.test_autopilot import free_udp_port
 
 pytestmark = pytest.mark.timeout(300)
@@ -26,59 +25,13 @@ pytestmark = pytest.mark.timeout(300)
 EKF3_ON_OUR_YAW = {"VISO_TYPE": 1, "EK3_SRC1_YAW": 6}
 
 
-class Ground:
-    """A ground station on SERIAL0: SIMSTATE (the truth) asked for at 50 Hz, and STATUSTEXT."""
-
-    def __init__(self) -> None:
-        from pymavlink import mavutil
-
-        self.port = free_udp_port()
-        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{self.port}", source_system=255, source_component=190)
-        self.truth: list[tuple[float, float, float]] = []  # (rx monotonic s, roll rad, pitch rad)
-        self.texts: list[str] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        from pymavlink import mavutil
-
-        asked = 0.0
-        while not self._stop.is_set():
-            m = self.conn.recv_match(blocking=True, timeout=0.1)
-            now = time.monotonic()
-            if now - asked > 2.0 and self.conn.target_system:
-                self.conn.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                                                mavutil.mavlink.MAVLINK_MSG_ID_SIMSTATE, 20000, 0, 0, 0, 0, 0)
-                asked = now
-            if m is None:
-                continue
-            kind = m.get_type()
-            if kind == "SIMSTATE":
-                self.truth.append((now, float(m.roll), float(m.pitch)))
-            elif kind == "STATUSTEXT":
-                self.texts.append(str(m.text))
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2)
-        self.conn.close()
-
-
 def test_arducopter_sitl_streams_to_the_service_and_ekf3_fuses_our_heading(tmp_path):
     from ahrs_service.service import Service
 
     binary("arducopter")  # skips where SITL is absent
-    ground = Ground()
+    ground = GroundStation({"SIMSTATE": 50.0})  # the truth
     service_port = free_udp_port()
-    cfg = config_mod.validate({
-        "source": {"type": "mavlink", "mavlink_connection": f"udpin:127.0.0.1:{service_port}",
-                   "mavlink_imu": "highres", "mavlink_imu_hz": 200.0},
-        "estimator": {"name": "ekf"},
-        "mavlink": {"endpoints": [f"udpout:127.0.0.1:{free_udp_port()}"],
-                    "odometry": {"rate_hz": 30.0, "rules": "ardupilot"}},
-        "log": {"directory": str(tmp_path / "logs")},
-    })
+    cfg = service_beside(service_port, free_udp_port(), tmp_path / "logs", odometry={"rate_hz": 30.0, "rules": "ardupilot"})
     service = Service(cfg, duration_s=240.0)
     service.start()
     runner = threading.Thread(target=service.run, daemon=True)
@@ -100,7 +53,7 @@ def test_arducopter_sitl_streams_to_the_service_and_ekf3_fuses_our_heading(tmp_p
             assert wait_until(lambda: time.monotonic() - t_from > 5.0, 10.0)
             q = service.mavlink.latest().q
             roll, pitch, _ = quat_to_euler(q)
-            truth = [(r, p) for t, r, p in ground.truth if t >= t_from]
+            truth = [(float(m.roll), float(m.pitch)) for t, m in ground.received["SIMSTATE"] if t >= t_from]
             samples = service.pipeline.samples - samples_before
             lost = service.source.diagnostics.lost.total - lost_before
             odometry = service.mavlink.odometry.stats

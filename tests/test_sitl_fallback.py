@@ -14,9 +14,8 @@ import time
 
 import pytest
 
-from ahrs_service import config as config_mod
 
-from tests.sitl import Sitl, binary, wait_until
+from tests.sitl import GroundStation, Sitl, binary, service_beside, wait_until
 from tests.test_autopilot import free_udp_port
 
 pytestmark = pytest.mark.timeout(300)
@@ -30,39 +29,6 @@ FALLBACK_PARAMS = {
 }
 #: ArduPilot's LogEvent ids (libraries/AP_Logger/AP_Logger.h): EKF_YAW_RESET, EK3_SOURCES_SET_TO_PRIMARY, _SECONDARY
 EVENT_YAW_RESET, EVENT_SOURCES_PRIMARY, EVENT_SOURCES_SECONDARY = 62, 85, 86
-
-
-class Ground:
-    """A ground station on SERIAL0: the autopilot's STATUSTEXTs."""
-
-    def __init__(self) -> None:
-        from pymavlink import mavutil
-
-        self.port = free_udp_port()
-        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{self.port}", source_system=255, source_component=190)
-        self.texts: list[str] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        from pymavlink import mavutil
-
-        mav = mavutil.mavlink
-        said_at = 0.0
-        while not self._stop.is_set():
-            # ArduPilot sends STATUSTEXT only on links it has heard from: a ground station's HEARTBEAT
-            if self.conn.clients and time.monotonic() - said_at > 1.0:
-                self.conn.mav.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-                said_at = time.monotonic()
-            m = self.conn.recv_match(type="STATUSTEXT", blocking=True, timeout=0.1)
-            if m is not None:
-                self.texts.append(str(m.text))
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2)
-        self.conn.close()
 
 
 def dataflash(workdir) -> tuple[list[tuple[int, int]], list[int]]:
@@ -88,16 +54,10 @@ def test_a_clean_stop_switches_arducopter_to_its_compass_within_a_second(tmp_pat
     from ahrs_service.service import Service
 
     binary("arducopter")  # skips where SITL is absent
-    ground = Ground()
+    ground = GroundStation()  # the autopilot's STATUSTEXTs
     service_port = free_udp_port()
-    cfg = config_mod.validate({
-        "source": {"type": "mavlink", "mavlink_connection": f"udpin:127.0.0.1:{service_port}",
-                   "mavlink_imu": "highres", "mavlink_imu_hz": 200.0},
-        "estimator": {"name": "ekf"},
-        "mavlink": {"endpoints": [f"udpout:127.0.0.1:{free_udp_port()}"],
-                    "odometry": {"rate_hz": 30.0, "rules": "ardupilot"}},  # source sets 1 and 2: the defaults
-        "log": {"directory": str(tmp_path / "logs")},
-    })
+    # source sets 1 and 2: the defaults
+    cfg = service_beside(service_port, free_udp_port(), tmp_path / "logs", odometry={"rate_hz": 30.0, "rules": "ardupilot"})
     service = Service(cfg, duration_s=240.0)
     service.start()
     runner = threading.Thread(target=service.run, daemon=True)

@@ -26,11 +26,10 @@ import time
 import numpy as np
 import pytest
 
-from ahrs_service import config as config_mod
 from ahrs_service.core.quaternion import quat_to_euler
 from ahrs_service.protocols.mavlink.autopilot_link import AutopilotLink
 from ahrs_service.protocols.mavlink.imu_source import MavlinkImuSource
-from tests.sitl import Sitl, binary, wait_until
+from tests.sitl import Sitl, binary, service_beside, wait_until
 from tests.test_autopilot import free_udp_port
 
 pytestmark = pytest.mark.timeout(240)
@@ -172,13 +171,7 @@ def test_a_link_drop_is_counted_reported_and_the_attitude_goes_on(tmp_path):
 
     listener = threading.Thread(target=listen, daemon=True)
     listener.start()
-    cfg = config_mod.validate({
-        "source": {"type": "mavlink", "mavlink_connection": f"udpin:127.0.0.1:{service_port}",
-                   "mavlink_imu": "highres", "mavlink_imu_hz": rate_hz},
-        "estimator": {"name": "ekf"},
-        "mavlink": {"endpoints": [f"udpout:127.0.0.1:{gcs_port}"]},
-        "log": {"directory": str(tmp_path / "logs")},
-    })
+    cfg = service_beside(service_port, gcs_port, tmp_path / "logs", imu_hz=rate_hz)
     service = Service(cfg, duration_s=200.0)
     service.start()
     runner = threading.Thread(target=service.run, daemon=True)
