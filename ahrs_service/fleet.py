@@ -188,10 +188,6 @@ def _with_problem(row: FleetRow) -> FleetRow:
     return row
 
 
-def _row_dict(row: FleetRow) -> dict[str, Any]:
-    return asdict(row)
-
-
 def _row_from(d: dict[str, Any]) -> FleetRow:
     return FleetRow(**{k: d.get(k) for k in COLUMNS})
 
@@ -289,7 +285,7 @@ class _TableWriter:
         self._schema = pa.schema([(f.name, types[_base_type(f.type)]) for f in fields(FleetRow)])
 
     def add(self, row: FleetRow) -> None:
-        d = _row_dict(row)
+        d = asdict(row)
         self._csv.writerow({k: ("" if v is None else v) for k, v in d.items()})
         if self._pa is not None:
             self._batch.append(d)
@@ -399,7 +395,7 @@ class _Journal:
             return json.loads(f.readline())
 
     def append(self, row: FleetRow, settings: str) -> None:
-        line = json.dumps({**_row_dict(row), "settings": settings}, default=str).encode() + b"\n"
+        line = json.dumps({**asdict(row), "settings": settings}, default=str).encode() + b"\n"
         self.offset_of[row.log] = self._file.tell()
         self._file.write(line)
         self._file.flush()

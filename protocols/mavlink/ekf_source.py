@@ -52,9 +52,6 @@ TRIES = 3
 STOP_ACK_TIMEOUT_S = 0.3
 STOP_TRIES = 2
 
-_RESULT_NAMES = {v: k[len("MAV_RESULT_"):] for k, v in vars(mavlink).items()
-                 if k.startswith("MAV_RESULT_") and isinstance(v, int) and k != "MAV_RESULT_ENUM_END"}
-
 
 class CommandLink(Protocol):
     """What the switch uses of the autopilot link (``AutopilotLink``)."""
@@ -248,7 +245,8 @@ class EkfSourceSwitch:
             if result == mavlink.MAV_RESULT_IN_PROGRESS:
                 continue
             self._pending = None
-            name = _RESULT_NAMES.get(result, str(result))
+            entry = mavlink.enums["MAV_RESULT"].get(result)  # the dialect's names, as imu_source's refusals
+            name = entry.name[len("MAV_RESULT_"):] if entry is not None else str(result)
             if result == mavlink.MAV_RESULT_ACCEPTED:
                 self.stats.accepted += 1
                 self._accepted_set = req.source_set
