@@ -46,7 +46,7 @@ import statistics
 import sys
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass
 from typing import Any, Callable, Hashable, Iterable, Iterator, Sequence, TypeVar
 
@@ -123,6 +123,14 @@ def check_task_floor(seconds: float, label: str = "--task-floor-s") -> float:
     return value
 
 
+#: Tasks a plan aims at per worker: enough that the workers, each taking the next task as it
+#: finishes one, end within about one small task of each other (largest tasks first)
+TASKS_PER_WORKER = 8
+#: A task's share of the work is at most this many floors (a large workload still reports
+#: progress and loses little to a worker's death)
+SHARE_CAP_FLOORS = 4
+
+
 def plan_tasks(
     expected_s: Sequence[float | None],
     keys: Sequence[Hashable] | None = None,
@@ -134,14 +142,16 @@ def plan_tasks(
 
     ``expected_s``: each job's expected duration (seconds; None where unknown). ``keys``: each
     job's input (``place_by``): a key's jobs are kept together, keys in their first
-    appearance's order, so a task reads one input or a few neighbours. The pieces are an
-    input's jobs together while they are under the floor, else single jobs; the total is cut
-    between pieces into equal shares of at least the floor plus the largest piece (so every
-    share stays above the floor), as many as fit, rounded down to a multiple of ``workers``
-    (the last round keeps every worker busy); a share that still falls under the floor is
-    merged into its neighbour. Every job is its own task when ``floor_s`` is 0 or a duration
-    is unknown (nothing to size the tasks by yet); everything is one task when the total is
-    under the floor.
+    appearance's order, so a task reads one input or a few neighbours. The least a task may
+    hold is the floor, or more when the total gives more than :data:`TASKS_PER_WORKER` tasks
+    per worker (at most :data:`SHARE_CAP_FLOORS` floors). An input's jobs are one piece
+    unless they exceed two of those and 1.25 times a worker's share of the total (only then
+    is it read by more than one task: each of its jobs is a piece). The total is cut between
+    pieces into equal shares (a piece goes where its middle falls): as many as fit with
+    every share at or above the least, a multiple of ``workers`` (the last round keeps every
+    worker busy). Every job is its own task when
+    ``floor_s`` is 0 or a duration is unknown (nothing to size the tasks by yet); everything
+    is one task when the total is under the floor. Tasks come in the jobs' order.
     """
     n = len(expected_s)
     order = list(range(n))
@@ -153,37 +163,38 @@ def plan_tasks(
     if n == 0 or floor_s <= 0 or any(e is None or not math.isfinite(e) for e in expected_s):
         return [[i] for i in order]
     costs = [max(0.0, float(e)) for e in expected_s]
-    # the pieces shares are cut between: an input's jobs together while they are under the
-    # floor (the input is then read by one task only), else each job
+    total = sum(costs)
+    least = max(floor_s, min(total / (TASKS_PER_WORKER * max(1, workers)), SHARE_CAP_FLOORS * floor_s))
+    # the pieces the shares are cut between: an input's jobs together (read once) unless
+    # they are more than two tasks' and a worker's worth, with a quarter's slack (nearly equal
+    # inputs stay whole): then the input is cut between its jobs
+    whole = max(2 * least, 1.25 * total / max(1, workers)) * (1 + 1e-9)
     units: list[list[int]] = []
     for block in _blocks(order, keys):
-        units += [block] if sum(costs[i] for i in block) < floor_s else [[i] for i in block]
+        units += [block] if sum(costs[i] for i in block) <= whole else [[i] for i in block]
     unit_costs = [sum(costs[i] for i in unit) for unit in units]
-    total = sum(unit_costs)
-    # a cut between pieces misses an even cut by up to half a piece at each end: shares of the
-    # floor + the largest piece stay above the floor
-    count = int(total / (floor_s + max(unit_costs)) + 1e-9)
-    if count >= workers:
-        count -= count % workers
-    count = max(1, min(count, len(units)))
-    share = total / count
-    shares: list[list[int]] = [[] for _ in range(count)]
+    # as many shares as the total allows, a multiple of the workers (the last round keeps
+    # every worker busy), fewer while a share would fall under the least
+    for count in range(max(1, min(len(units), int(total / least + 1e-9))), 0, -1):
+        if count >= workers and count % workers:
+            continue
+        tasks = _shares(units, unit_costs, count)
+        if count == 1 or min(sum(costs[i] for i in task) for task in tasks) >= least - 1e-9:
+            break
+    return tasks
+
+
+def _shares(units: list[list[int]], unit_costs: list[float], count: int) -> list[list[int]]:
+    """The pieces in ``count`` shares of their total: a piece goes to the share its middle
+    falls in, so the shares cut the total evenly (empty shares dropped)."""
+    width = sum(unit_costs) / count
+    slots: list[list[int]] = [[] for _ in range(count)]
     done = 0.0
     for unit, unit_cost in zip(units, unit_costs):
-        # a piece goes to the share its middle falls in, so the shares cut the total evenly
-        slot = min(count - 1, int((done + unit_cost / 2) / share)) if share > 0 else 0
-        shares[slot] += unit
+        slot = min(count - 1, int((done + unit_cost / 2) / width)) if width > 0 else 0
+        slots[slot] += unit
         done += unit_cost
-    tasks: list[list[int]] = []
-    for members in filter(None, shares):
-        if tasks and sum(costs[i] for i in tasks[-1]) < floor_s:
-            tasks[-1] += members
-        else:
-            tasks.append(members)
-    if len(tasks) > 1 and sum(costs[i] for i in tasks[-1]) < floor_s:
-        last = tasks.pop()
-        tasks[-1] += last
-    return tasks
+    return [slot for slot in slots if slot]
 
 
 def _blocks(order: list[int], keys: Sequence[Hashable] | None) -> list[list[int]]:
@@ -199,21 +210,23 @@ def _blocks(order: list[int], keys: Sequence[Hashable] | None) -> list[list[int]
     return out
 
 
-def _run_batch(pickled_fn: bytes, jobs: list[J], *_prepared: Any) -> list[tuple[Any, float]]:
-    """The job function over ``jobs`` as one task, after their inputs' prepare tasks (so placed
-    beside them): each result with its wall time in seconds, which sizes the runner's next tasks.
+def _run_batch(pickled_fn: bytes, jobs: list[J], *_prepared: Any) -> tuple[str, list[tuple[Any, float]]]:
+    """The job function over ``jobs`` as one task (after the prepare tasks it is given, so
+    placed beside them): the worker's address, and each result with its wall time in seconds,
+    which sizes the runner's next tasks.
 
     The function travels cloudpickled: as an argument of the task, Dask would pickle it by
     reference, and a function a script or a test registers to be pickled by value would not
     load in a scheduler or worker started elsewhere."""
     import cloudpickle
+    from distributed import get_worker
 
     fn = cloudpickle.loads(pickled_fn)
     out = []
     for job in jobs:
         t0 = time.perf_counter()
         out.append((fn(job), time.perf_counter() - t0))
-    return out
+    return get_worker().address, out
 
 
 def _learning_key(fn: Callable[..., Any], guesses: list[float] | None) -> tuple[Any, bool]:
@@ -251,6 +264,8 @@ class Runner:
         #: job tasks :meth:`map` has submitted (prepare tasks not counted)
         self.tasks_submitted = 0
         self._prepare_futures: dict[Hashable, Any] = {}
+        # input key -> the address of the worker whose task last loaded it (a placement hint)
+        self._loaded_at: dict[Hashable, str] = {}
         # measured/guessed duration ratios (jobs with a guess) or durations in seconds (without)
         self._learned: dict[tuple[Any, bool], deque[float]] = {}  # see _learning_key
 
@@ -280,16 +295,17 @@ class Runner:
 
         Data locality (``place_by`` and ``prepare``, both or neither): jobs with the same
         ``place_by(job)`` key read the same input (a recording, a log), and a task holds one
-        key's jobs, or a few neighbouring keys' when one key's are under the floor. On a
-        cluster, one ``prepare(key)`` task per key runs first and loads that input into its
-        worker's :func:`worker_cache`; a task depends on its keys' prepare tasks, so the
-        scheduler places it on a worker that holds its input, and each input is read about
-        once in the whole run instead of once per worker (Dask's work stealing still moves
-        tasks to an idle worker, which then loads the input itself: ``fn`` must not rely on
-        ``prepare`` having run in its process). The prepare tasks stay in the cluster for the
-        runner's lifetime, so the next ``map`` over the same inputs (a tuning study's next
-        batch) lands where they are. Serially, ``prepare`` is not called: the first job of a
-        key loads it.
+        key's jobs, or a few neighbouring keys', so that each input is read about once in the
+        whole run instead of once per worker. A task that holds all of a key's jobs loads the
+        input itself in its first job, as a serial run does; the tasks are submitted largest
+        first, each to whichever worker is free, or, in a later ``map`` over the same inputs (a
+        tuning study's next batch), to the worker that loaded its input last. A key cut over
+        several tasks (a large one, :func:`plan_tasks`) gets one ``prepare(key)`` task
+        that loads the input into its worker's :func:`worker_cache`, and those tasks depend on
+        it, so the scheduler places them beside it; it stays in the cluster for the runner's
+        lifetime. Dask's work stealing may still move a task to an idle worker, which then
+        loads the input itself: ``fn`` must not rely on ``prepare`` having run in its process.
+        Serially, ``prepare`` is not called: the first job of a key loads it.
         """
         if (place_by is None) != (prepare is None):
             raise ValueError("place_by and prepare go together")
@@ -310,15 +326,18 @@ class Runner:
             pickled_fn = cloudpickle.dumps(fn)
             guesses = [float(cost(job)) for job in jobs] if cost is not None else None
             keys = [place_by(job) for job in jobs] if place_by is not None else None
-            tasks = plan_tasks(self._expected_seconds(fn, guesses, len(jobs)), keys,
-                               floor_s=floor_s, workers=self._worker_count())
-            futures = []
-            for members in tasks:
-                ready = [] if keys is None else [self._prepared(k, prepare) for k in dict.fromkeys(keys[i] for i in members)]
-                # pure=False: two equal batches are still two runs (the timings differ)
-                futures.append(self._client.submit(
-                    _run_batch, pickled_fn, [jobs[i] for i in members], *ready, pure=False, retries=self.retries
-                ))
+            expected = self._expected_seconds(fn, guesses, len(jobs))
+            tasks = plan_tasks(expected, keys, floor_s=floor_s, workers=self._worker_count())
+            if all(e is not None for e in expected):  # largest first: the last to finish are small
+                tasks.sort(key=lambda members: -sum(expected[i] for i in members))
+            split: set[Hashable] = set()
+            if keys is not None:
+                task_of: dict[Hashable, int] = {}
+                for t, members in enumerate(tasks):
+                    for i in members:
+                        if task_of.setdefault(keys[i], t) != t:
+                            split.add(keys[i])
+            futures = [self._submit_task(pickled_fn, jobs, members, keys, split, prepare) for members in tasks]
             self.tasks_submitted += len(futures)
             if bar is not None:
                 size = {future.key: len(members) for future, members in zip(futures, tasks)}
@@ -327,10 +346,12 @@ class Runner:
             out_of_order = self._client.gather(futures)
             results: list[Any] = [None] * len(jobs)
             seconds = [0.0] * len(jobs)
-            for members, timed in zip(tasks, out_of_order):
+            for members, (address, timed) in zip(tasks, out_of_order):
                 for i, (result, took) in zip(members, timed):
                     results[i] = result
                     seconds[i] = took
+                if keys is not None:
+                    self._loaded_at.update(dict.fromkeys((keys[i] for i in members), address))
             self._learn(fn, guesses, seconds)
             return results
         finally:
@@ -404,6 +425,27 @@ class Runner:
                 future.cancel()
             running.clear()
 
+    def _submit_task(self, pickled_fn: bytes, jobs: list[Any], members: list[int], keys: list[Hashable] | None,
+                     split: set[Hashable], prepare: Callable[[Any], Any] | None) -> Any:
+        """One task of ``map``, placed by its inputs (``split``: the inputs whose jobs are in
+        more than one task). An input split over tasks gets its prepare task, which those
+        tasks depend on, so that they run beside it and it is read about once. An input whose
+        jobs are all in this task is loaded by the task itself (its first job, as serially):
+        the task goes to the worker that loaded most of its inputs in an earlier ``map``, if
+        any did, else to whichever worker is free first."""
+        ready, where = [], Counter()
+        for key in dict.fromkeys(keys[i] for i in members) if keys is not None else ():
+            if key in split or key in self._prepare_futures:
+                ready.append(self._prepared(key, prepare))
+            elif key in self._loaded_at:
+                where[self._loaded_at[key]] += 1
+        # pure=False: two equal batches are still two runs (the timings differ); a worker named
+        # is a preference: another may take the task when that one is busy or gone
+        placement = {"workers": [where.most_common(1)[0][0]], "allow_other_workers": True} if where else {}
+        return self._client.submit(
+            _run_batch, pickled_fn, [jobs[i] for i in members], *ready, pure=False, retries=self.retries, **placement
+        )
+
     def _prepared(self, key: Hashable, prepare: Callable[[Any], Any]) -> Any:
         """The future of ``prepare(key)`` on the cluster, submitted once per key and runner."""
         future = self._prepare_futures.get(key)
@@ -426,6 +468,7 @@ class Runner:
     # ---------------------------------------------------------------- lifetime
     def close(self) -> None:
         self._prepare_futures.clear()
+        self._loaded_at.clear()
         if self._client is not None:
             self._client.close()
             self._client = None

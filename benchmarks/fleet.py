@@ -1,7 +1,7 @@
 """Benchmark of the execution layer: ``evaluate`` on BROAD with 1 worker against N, same run.
 
     python benchmarks/fleet.py [--data DIR] [--workers 2] [--estimators all] [--trials PATTERN]
-                               [--repeat K] [--floor] [--task-floor-s 0.5]
+                               [--repeat K] [--floor] [--scheduler] [--task-floor-s 0.5]
 
 Prints one row per runner: the task granularity (``--task-floor-s``: jobs are grouped into
 tasks expected to take at least this long, docs/fleet.md "Task granularity"; 0 = one task per
@@ -19,6 +19,13 @@ the 1-worker throughput measured in the same run. A warm-up pass (one task per e
 every worker) runs before the timed phase so that numba's cache loading is not counted.
 ``--repeat K`` runs the pair K times and prints each ratio and the median.
 
+``--scheduler`` adds a row per repeat through ``--scheduler`` on a ``dask scheduler`` and N
+``dask worker`` processes started by hand (``tests/dask_cluster.py``, with the settings
+docs/fleet.md gives for a cluster of one's own: ``execution.LOCAL_CLUSTER_CONFIG`` in a Dask
+configuration file). The cluster lives through the repeats; its first run ("cold") has no
+warm-up, so each worker loads its kernels from numba's on-disk cache inside the timed phase,
+and its ratio is against the serial run with the serial warm-up counted too.
+
 ``--floor`` adds Dask's own floor on this machine: the same number of tasks, each burning the
 CPU time its job took in the serial run (a busy loop on the thread's CPU clock, no data, no
 project code), placed the same way (one prepare task per recording, burning that recording's
@@ -28,6 +35,7 @@ load time), on the same cluster: what the cluster costs tasks of these durations
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import sys
 import time
@@ -37,7 +45,14 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ahrs_service.evaluation import broad, report  # noqa: E402
-from ahrs_service.execution import DEFAULT_TASK_FLOOR_S, clear_worker_cache, open_runner, worker_cache  # noqa: E402
+from ahrs_service.execution import (  # noqa: E402
+    DEFAULT_TASK_FLOOR_S,
+    LOCAL_CLUSTER_CONFIG,
+    clear_worker_cache,
+    open_runner,
+    worker_cache,
+)
+from tests.dask_cluster import hand_started_cluster  # noqa: E402
 
 
 @dataclass
@@ -139,15 +154,25 @@ def _warm_up(warm: list[report.TrialJob]) -> None:
         report.run_trial_job(job)
 
 
-def measure(workers: int, jobs: list[report.TrialJob], warm: list[report.TrialJob], task_floor_s: float) -> dict:
+def measure(workers: int, jobs: list[report.TrialJob], warm: list[report.TrialJob], task_floor_s: float,
+            scheduler: str | None = None, warm_up: bool = True) -> dict:
+    """One run of the jobs: serially (``workers`` 1), on an embedded cluster of ``workers``, or
+    through ``scheduler`` (a cluster started by hand). ``warm_up`` False: no warm-up pass, so
+    each worker's first job of an estimator loads its kernels inside the timed phase."""
     clear_worker_cache()  # a repeated serial run loads its recordings again, as the first did
     t0 = time.perf_counter()
-    with open_runner(workers=workers, task_floor_s=task_floor_s) as runner:
+    with open_runner(workers=workers, scheduler=scheduler, task_floor_s=task_floor_s) as runner:
         start_s = time.perf_counter() - t0
-        if runner.client is not None:  # on every worker, not wherever the scheduler puts them
+        if runner.client is not None:
+            runner.client.run(clear_worker_cache)  # a hand-started cluster outlives the run
+        t_warm = time.perf_counter()
+        if not warm_up:
+            pass  # the kernels (and the first recording) load inside the timed phase
+        elif runner.client is not None:  # on every worker, not wherever the scheduler puts them
             runner.client.run(_warm_up, warm)
         else:
             _warm_up(warm)
+        warm_s = time.perf_counter() - t_warm
         t1 = time.perf_counter()
         out = runner.map(timed_job, jobs, place_by=report.recording_of, prepare=timed_prepare,
                          cost=report.expected_job_seconds)
@@ -159,10 +184,11 @@ def measure(workers: int, jobs: list[report.TrialJob], warm: list[report.TrialJo
         recordings = sorted({report.recording_of(job) for job in jobs})
         prepared = sum(runner.client.run(_prepare_seconds, recordings).values()) if runner.client is not None else 0.0
         worker_rss = max(runner.client.run(peak_rss_mb).values()) if runner.client is not None else float("nan")
+        workers = runner.info.workers
     inside = sum(t.seconds for t in out) + prepared
     return {
-        "workers": workers, "tasks": tasks, "start_s": start_s, "wall_s": wall, "jobs_per_s": len(jobs) / wall,
-        "client_rss_mb": peak_rss_mb(), "worker_rss_mb": worker_rss,
+        "workers": workers, "tasks": tasks, "start_s": start_s, "warm_s": warm_s, "wall_s": wall,
+        "jobs_per_s": len(jobs) / wall, "client_rss_mb": peak_rss_mb(), "worker_rss_mb": worker_rss,
         "inside_s": inside, "overhead_ms": (workers * wall - inside) / tasks * 1e3,
         "overhead_pct": (workers * wall - inside) / inside * 100.0,
         "rows": [t.result.row for t in out], "job_seconds": [t.seconds for t in out],
@@ -177,6 +203,8 @@ def main() -> int:
     ap.add_argument("--trials", default=None)
     ap.add_argument("--repeat", type=int, default=1, help="pairs of runs (default 1); prints the median ratio")
     ap.add_argument("--floor", action="store_true", help="also run the synthetic CPU-burn tasks (Dask's floor)")
+    ap.add_argument("--scheduler", action="store_true",
+                    help="also run through --scheduler on a hand-started dask scheduler + N dask workers")
     ap.add_argument("--task-floor-s", type=float, default=DEFAULT_TASK_FLOOR_S,
                     help=f"task granularity: least expected seconds of a task (default {DEFAULT_TASK_FLOOR_S:g}; 0: one per job)")
     args = ap.parse_args()
@@ -193,28 +221,48 @@ def main() -> int:
           "overhead % | client RSS MB | worker RSS MB | ratio |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     ratios, overheads, floor_ratios, floor_overheads, all_same = [], [], [], [], True
-    for k in range(1, args.repeat + 1):
-        one = measure(1, jobs, warm, args.task_floor_s)
-        many = measure(args.workers, jobs, warm, args.task_floor_s)
-        all_same &= repr(strip(one["rows"])) == repr(strip(many["rows"]))
-        ratio = many["jobs_per_s"] / one["jobs_per_s"]
-        ratios.append(ratio)
-        overheads.append(many["overhead_pct"])
-        for r, shown in ((one, ""), (many, f"{ratio:.2f}")):
-            print(f"| {k} | {r['workers']} | {args.task_floor_s:g} | {r['tasks']} | {r['start_s']:.1f} | {r['wall_s']:.1f} | "
-                  f"{r['jobs_per_s']:.2f} | {r['inside_s']:.1f} | {r['overhead_ms']:.1f} | {r['overhead_pct']:.1f} | "
-                  f"{r['client_rss_mb']:.0f} | {r['worker_rss_mb']:.0f} | {shown} |", flush=True)
-        if args.floor:
-            f = floor(args.workers, one, jobs, args.task_floor_s)
-            floor_ratios.append(f["serial_s"] / f["wall_s"])
-            floor_overheads.append(f["overhead_pct"])
-            print(f"| {k} floor | {f['workers']} | {args.task_floor_s:g} | {f['tasks']} | | {f['wall_s']:.1f} | "
-                  f"{f['jobs_per_s']:.2f} | {f['inside_s']:.1f} | {f['overhead_ms']:.1f} | {f['overhead_pct']:.1f} | | | "
-                  f"{floor_ratios[-1]:.2f} |", flush=True)
+    remote_ratios: list[float] = []
+    with contextlib.ExitStack() as stack:
+        # the hand-started cluster lives through the repeats, as a real one does: its first
+        # run loads the kernels from numba's on-disk cache inside the timed phase ("cold")
+        address = (stack.enter_context(hand_started_cluster(args.workers, config=LOCAL_CLUSTER_CONFIG))
+                   if args.scheduler else None)
+        for k in range(1, args.repeat + 1):
+            one = measure(1, jobs, warm, args.task_floor_s)
+            many = measure(args.workers, jobs, warm, args.task_floor_s)
+            all_same &= repr(strip(one["rows"])) == repr(strip(many["rows"]))
+            ratio = many["jobs_per_s"] / one["jobs_per_s"]
+            ratios.append(ratio)
+            overheads.append(many["overhead_pct"])
+            rows = [(f"{k}", one, ""), (f"{k}", many, f"{ratio:.2f}")]
+            if address is not None:
+                cold = k == 1
+                remote = measure(args.workers, jobs, warm, args.task_floor_s, scheduler=address, warm_up=not cold)
+                all_same &= repr(strip(one["rows"])) == repr(strip(remote["rows"]))
+                # cold: against the serial run with its own kernel loading (the warm-up) counted
+                serial_s = one["wall_s"] + (one["warm_s"] if cold else 0.0)
+                remote_ratios.append(serial_s / remote["wall_s"])
+                rows.append((f"{k} scheduler{' cold' if cold else ''}", remote, f"{remote_ratios[-1]:.2f}"))
+            for label, r, shown in rows:
+                print(f"| {label} | {r['workers']} | {args.task_floor_s:g} | {r['tasks']} | {r['start_s']:.1f} | "
+                      f"{r['wall_s']:.1f} | {r['jobs_per_s']:.2f} | {r['inside_s']:.1f} | {r['overhead_ms']:.1f} | "
+                      f"{r['overhead_pct']:.1f} | {r['client_rss_mb']:.0f} | {r['worker_rss_mb']:.0f} | {shown} |",
+                      flush=True)
+            if args.floor:
+                f = floor(args.workers, one, jobs, args.task_floor_s)
+                floor_ratios.append(f["serial_s"] / f["wall_s"])
+                floor_overheads.append(f["overhead_pct"])
+                print(f"| {k} floor | {f['workers']} | {args.task_floor_s:g} | {f['tasks']} | | {f['wall_s']:.1f} | "
+                      f"{f['jobs_per_s']:.2f} | {f['inside_s']:.1f} | {f['overhead_ms']:.1f} | {f['overhead_pct']:.1f} | | | "
+                      f"{floor_ratios[-1]:.2f} |", flush=True)
     med = lambda v: sorted(v)[len(v) // 2]  # noqa: E731
     print(f"results identical to the serial run: {all_same}")
     print(f"throughput ratio {args.workers} workers / 1 (target >= 1.7): median {med(ratios):.2f} of "
           f"{', '.join(f'{r:.2f}' for r in ratios)}; overhead (target <= 5 %): median {med(overheads):.1f} %")
+    if remote_ratios:
+        print(f"through --scheduler ({args.workers} hand-started dask workers) / serial (target >= 1.7): "
+              f"{', '.join(f'{r:.2f}' for r in remote_ratios)} (the first cold: kernels loaded in the timed phase, "
+              f"against the serial run with its warm-up)")
     if args.floor:
         print(f"Dask's floor (CPU burns of the same durations, same placement): ratio median "
               f"{med(floor_ratios):.2f}, overhead median {med(floor_overheads):.1f} %")

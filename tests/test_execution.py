@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -24,23 +23,13 @@ import cloudpickle  # noqa: E402  (comes with distributed)
 from ahrs_service.cli import main as cli_main  # noqa: E402
 from ahrs_service.evaluation import report  # noqa: E402
 from ahrs_service.execution import Runner, RunnerError, open_runner  # noqa: E402
+from tests.dask_cluster import free_port, hand_started_cluster  # noqa: E402
 
 TRIALS = ["02_undisturbed_slow_rotation_B", "32_disturbed_attached_magnet_1cm"]
 ESTIMATORS = ["madgwick", "mahony_passive"]
 
 pytestmark = pytest.mark.timeout(180)
 
-
-def stop_processes(procs: list[subprocess.Popen]) -> None:
-    """Ends hand-started ``dask`` processes: SIGTERM (workers before their scheduler), then
-    SIGKILL whatever has not exited 30 s on."""
-    for p in reversed(procs):
-        p.terminate()
-    for p in procs:
-        try:
-            p.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            p.kill()
 
 def _deterministic(results: dict) -> dict:
     """The results without what is measured (per-sample cost) or stamped (creation time)."""
@@ -72,33 +61,8 @@ def test_local_cluster_of_two_processes_gives_the_serial_results(broad_dir, seri
     assert [list(parallel["per_trial"][c]) for c in ESTIMATORS] == [TRIALS, TRIALS]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _dask_cli() -> str:
-    return str(Path(sys.executable).with_name("dask"))
-
-
 def test_evaluate_through_a_scheduler_and_two_worker_subprocesses(broad_dir, serial, tmp_path):
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    env = dict(os.environ, DASK_DISTRIBUTED__WORKER__DAEMON="False")
-    procs = [subprocess.Popen(
-        [_dask_cli(), "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
-    )]
-    try:
-        for _ in range(2):
-            procs.append(subprocess.Popen(
-                [_dask_cli(), "worker", address, "--host", "127.0.0.1", "--nthreads", "1", "--nworkers", "1",
-                 "--no-dashboard", "--death-timeout", "60"],
-                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
-            ))
-        with open_runner(scheduler=address, connect_timeout_s=60) as runner:
-            runner.client.wait_for_workers(2, timeout=120)
+    with hand_started_cluster(workers=2) as address:
         out = tmp_path / "out"
         assert cli_main([
             "evaluate", "--data", str(broad_dir), "--estimators", ",".join(ESTIMATORS),
@@ -122,8 +86,6 @@ def test_evaluate_through_a_scheduler_and_two_worker_subprocesses(broad_dir, ser
                 _check_granularity(runner)
         finally:
             cloudpickle.unregister_pickle_by_value(this)
-    finally:
-        stop_processes(procs)
 
 
 def _square_or_die(job: tuple[int, str]) -> int:
@@ -162,8 +124,9 @@ def _job_on(job: tuple[tuple[str, str], int]) -> tuple[str, int]:
 
 
 def test_placed_jobs_prepare_each_input_once_in_the_whole_cluster(tmp_path):
-    """``place_by``/``prepare``: one prepare task per input for the runner's lifetime (not one
-    per worker, nor per map), the jobs' results still in the jobs' order."""
+    """``place_by``/``prepare``, inputs cut over tasks (nothing measured yet: a task per job):
+    one prepare task per input for the runner's lifetime (not one per worker, nor per map),
+    the jobs' results still in the jobs' order."""
     this = sys.modules[__name__]
     cloudpickle.register_pickle_by_value(this)
     jobs = [((str(tmp_path), name), i) for name in ("a", "b", "c", "d") for i in range(6)]
@@ -211,13 +174,13 @@ def test_local_workers_do_not_run_dasks_dashboard_profiler():
 
 
 def test_unreachable_scheduler_is_an_error_naming_it():
-    address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
+    address = f"tcp://127.0.0.1:{free_port()}"  # nothing listens there
     with pytest.raises(RunnerError, match=address.replace(".", r"\.")):
         open_runner(scheduler=address, connect_timeout_s=1)
 
 
 def test_evaluate_cli_reports_an_unreachable_scheduler_in_one_line(broad_dir, tmp_path, capsys):
-    address = f"tcp://127.0.0.1:{_free_port()}"
+    address = f"tcp://127.0.0.1:{free_port()}"
     assert cli_main(["evaluate", "--data", str(broad_dir), "--estimators", "madgwick",
                      "--trials", "02_*", "--out", str(tmp_path / "o"), "--scheduler", address]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -298,6 +261,39 @@ def test_ctrl_c_of_a_run_on_a_local_cluster_is_one_line(broad_dir, tmp_path, sig
     assert err.strip() == f"ahrs-service: interrupted ({name}) before the command finished", err
 
 
+def _job_loading(job: tuple[tuple[str, str], int]) -> tuple[str, int]:
+    """A job that loads its input through the worker's cache, as ``report.run_trial_job`` does."""
+    from ahrs_service.execution import worker_cache
+
+    key, value = job
+    worker_cache(("test input", key), lambda: _prepare_input(key))
+    return key[1], value * value
+
+
+def _tenth_of_a_second(job: tuple[tuple[str, str], int]) -> float:
+    return 0.1
+
+
+def test_inputs_kept_whole_in_tasks_are_read_once_in_the_whole_cluster(tmp_path):
+    """Six inputs of four 0.1 s jobs (by the guess), a 0.3 s floor: each input's jobs are a
+    piece kept whole, a task each, which loads it itself (no prepare task): each input is
+    read once in the whole cluster, whichever worker takes the task."""
+    this = sys.modules[__name__]
+    cloudpickle.register_pickle_by_value(this)
+    names = ("a", "b", "c", "d", "e", "f")
+    jobs = [((str(tmp_path), name), i) for name in names for i in range(4)]
+    try:
+        with open_runner(workers=2) as runner:
+            got = runner.map(_job_loading, jobs, place_by=lambda job: job[0], prepare=_prepare_input,
+                             cost=_tenth_of_a_second, task_floor_s=0.3)
+            assert runner.tasks_submitted == 6
+    finally:
+        cloudpickle.unregister_pickle_by_value(this)
+    assert got == [(name, i * i) for (_, name), i in jobs]
+    loads = sorted(p.name.split(".")[0] for p in tmp_path.iterdir())
+    assert loads == list(names), loads  # once each, and no prepare task beside
+
+
 # ---------------------------------------------------------------------------- task granularity
 
 
@@ -309,14 +305,22 @@ def test_plan_tasks_keeps_every_task_above_the_floor_and_an_inputs_jobs_together
     tasks = plan_tasks(costs, keys, floor_s=0.5, workers=2)
     assert sorted(i for task in tasks for i in task) == list(range(len(keys)))  # each job once
     sizes = [sum(costs[i] for i in task) for task in tasks]
-    # a recording's 0.42 s is under the floor: it goes whole into a task; shares of at least
-    # 0.5 + 0.42 s: 2 tasks of 3 recordings each
+    # a recording's 0.42 s is one piece, kept whole; 4 shares would leave one under the floor,
+    # 3 is not a multiple of the workers: 2 tasks of 3 recordings each
     assert len(tasks) == 2 and min(sizes) >= 0.5, sizes  # a multiple of the workers, all above the floor
     assert max(sizes) - min(sizes) < 0.1, sizes  # even: no worker waits for a long last task
     assert [sorted({keys[i] for i in task}) for task in tasks] == [["a", "b", "c"], ["d", "e", "f"]]
-    # an input larger than a share is cut between its jobs
+    # an input larger than two shares is cut between its jobs
     tasks = plan_tasks([0.1] * 12, ["a"] * 12, floor_s=0.2, workers=2)
-    assert [len(task) for task in tasks] == [3, 3, 3, 3]
+    assert [len(task) for task in tasks] == [2] * 6
+    # a large workload: tasks grow to about TASKS_PER_WORKER a worker (up to SHARE_CAP_FLOORS
+    # floors), the inputs (2 s each) kept whole, the tasks even
+    big = [0.1] * 400
+    tasks = plan_tasks(big, [i // 20 for i in range(400)], floor_s=0.5, workers=2)
+    assert len(tasks) == 20 and all(len(task) == 20 for task in tasks)
+    # inputs of two floors and a bit: kept whole, not cut (each read by one task only)
+    tasks = plan_tasks([0.1] * 60, [i // 12 for i in range(60)], floor_s=0.6, workers=2)
+    assert all(len({i // 12 for i in task}) * 12 == len(task) for task in tasks), tasks
     # a small floor: one task per job; a floor above the whole: one task
     assert plan_tasks(costs, keys, floor_s=0.0, workers=2) == [[i] for i in range(len(keys))]
     assert plan_tasks(costs, keys, floor_s=10.0, workers=2) == [list(range(len(keys)))]
@@ -349,9 +353,9 @@ def _tasks_of(got: list[tuple[str, int, str]]) -> dict[str, set[str]]:
 
 
 def _check_granularity(runner: Runner) -> None:
-    """24 jobs on 4 inputs, guessed at 0.1 s each: a 0.5 s floor makes 4 tasks of one input
-    each (2.4 s / (0.5 + 0.1) s), a 0 floor 24; the measured durations (microseconds) then
-    shrink the next map's estimate under the floor: one task."""
+    """24 jobs on 4 inputs, guessed at 0.1 s each: with a 0.5 s floor an input's 0.6 s is a
+    piece kept whole, a task each; a 0 floor makes 24; the measured durations (microseconds)
+    then shrink the next map's estimate under the floor: one task."""
     jobs = [(name, i) for name in ("a", "b", "c", "d") for i in range(6)]
     want = [(name, i * i) for name, i in jobs]
     before = runner.tasks_submitted
@@ -379,9 +383,10 @@ def test_jobs_are_grouped_into_tasks_as_the_floor_says_on_a_local_cluster():
 
 
 def test_evaluate_in_tasks_of_a_recording_gives_the_serial_results(broad_dir, serial):
-    """Two recordings x two estimators guessed at about 30 ms a job: a 20 ms floor makes one
-    task per recording (0.12 s / (0.02 + 0.033) s = 2 shares), results as the serial run's."""
-    with open_runner(workers=2, task_floor_s=0.02) as runner:
+    """Two recordings x two estimators guessed at about 30 ms a job: with a 40 ms floor a
+    recording's jobs (about 60 ms) stay whole: one task per recording, which loads it;
+    results as the serial run's."""
+    with open_runner(workers=2, task_floor_s=0.04) as runner:
         parallel = report.evaluate(broad_dir, _columns(), TRIALS, runner=runner)
         assert runner.tasks_submitted == 2
     assert json.dumps(_deterministic(parallel)) == json.dumps(_deterministic(serial))
@@ -396,7 +401,7 @@ def test_a_killed_workers_batched_task_is_retried_and_the_result_is_complete(tmp
         with open_runner(workers=2) as runner:
             pids_before = set(runner.client.run(os.getpid).values())
             got = runner.map(_square_or_die, [(i, marker) for i in range(8)], cost=lambda job: 0.1, task_floor_s=0.3)
-            assert runner.tasks_submitted == 2  # 0.8 s / (0.3 + 0.1) s
+            assert runner.tasks_submitted == 2  # 0.8 s in shares of at least 0.3 s
     finally:
         cloudpickle.unregister_pickle_by_value(this)
     assert got == [i * i for i in range(8)]

@@ -13,7 +13,6 @@ import importlib.util
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -24,7 +23,7 @@ import pytest
 from ahrs_service import fleet
 from ahrs_service.cli import main as cli_main
 from ahrs_service.execution import open_runner
-from tests.test_execution import stop_processes
+from tests.dask_cluster import hand_started_cluster
 
 pytest.importorskip("distributed")
 
@@ -135,13 +134,6 @@ def test_a_failed_log_is_counted_by_why(tmp_path):
     assert "missing: 1 log(s), not replayed" in text
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.mark.timeout(420)
 def test_a_killed_run_resumed_through_a_scheduler_redoes_no_finished_log(fleet_dir, tmp_path):
     d, plan = fleet_dir
     out = tmp_path / "out"
@@ -170,23 +162,8 @@ def test_a_killed_run_resumed_through_a_scheduler_redoes_no_finished_log(fleet_d
     cut_output.write_bytes(cut_output.read_bytes()[: cut_output.stat().st_size // 2])
     assert not fleet.output_complete(cut_output, 10)
 
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    env = dict(os.environ, DASK_DISTRIBUTED__WORKER__DAEMON="False")
-    dask = str(Path(sys.executable).with_name("dask"))
-    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
-    try:
-        procs.append(subprocess.Popen(
-            [dask, "worker", address, "--host", "127.0.0.1", "--nthreads", "1", "--nworkers", "1",
-             "--no-dashboard", "--death-timeout", "60"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
-        ))
-        with open_runner(scheduler=address, connect_timeout_s=60) as runner:
-            runner.client.wait_for_workers(1, timeout=120)
+    with hand_started_cluster(workers=1) as address:
         assert cli_main(["replay", str(d), "--out", str(out), "--scheduler", address]) == 0
-    finally:
-        stop_processes(procs)
     rows = _rows(out / "fleet.csv")
     assert [Path(r["log"]).name for r in rows] == [log.name for log in plan]
     assert all(r["error"] == "" and fleet.output_complete(r["output"], int(r["samples"])) for r in rows)

@@ -122,7 +122,7 @@ def test_cli_both_with_one_data_folder_is_a_one_line_error(broad_dir, capsys):
 def test_tune_on_a_cluster_asks_trials_in_batches_sized_for_the_task_floor(broad_dir):
     """Two recordings of about 30 ms a job by the cost model: a batch gives each of the 2
     workers two 0.5 s floors of work, 2 x ceil(1.0 / 0.06) = 34 trials; the batch's 68 jobs
-    run as 2 tasks (2.0 s / (0.5 + 0.03) s, rounded down to the workers), not 68."""
+    run as 2 tasks, a recording's 34 jobs (a worker's share) each, not 68."""
     from ahrs_service.evaluation import report
     from ahrs_service.execution import open_runner
 
