@@ -431,6 +431,14 @@ def _already_done(journal: _Journal, job: ReplayJob) -> bool:
     )
 
 
+def _file_size(path: str) -> int:
+    """The log's size in bytes (0 when it cannot be read: its replay reports why)."""
+    try:
+        return os.stat(path).st_size
+    except OSError:
+        return 0
+
+
 def run_fleet(
     runner: Any,
     jobs: list[ReplayJob],
@@ -443,7 +451,9 @@ def run_fleet(
     """Replays ``jobs`` on ``runner`` (an ``execution.Runner``), streaming each row into the
     journal as its log finishes, then writes the table and the summary (``summary.txt``) in
     ``out_dir``. Logs a previous run in ``out_dir`` replayed completely with the same settings
-    are skipped unless ``force``. Memory: one row at a time, plus an offset per log."""
+    are skipped unless ``force``. On a cluster the largest logs go first (so the run does not
+    end waiting for a long one); the table is in the jobs' order whatever the order they
+    finished in. Memory: one row at a time, plus an offset and a size per log."""
     from ahrs_service.execution import progress_bar
 
     out = Path(out_dir)
@@ -452,6 +462,8 @@ def run_fleet(
     try:
         todo = [i for i, job in enumerate(jobs) if force or not _already_done(journal, job)]
         skipped = len(jobs) - len(todo)
+        if runner.client is not None:  # largest first: the logs that finish last are short ones
+            todo.sort(key=lambda i: -_file_size(jobs[i].path))
         bar = progress_bar(len(todo), "replay", unit="log") if progress and todo else None
         try:
             for k, row in runner.stream(replay_one, (jobs[i] for i in todo), max_in_flight=max_in_flight):

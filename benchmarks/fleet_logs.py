@@ -1,6 +1,6 @@
 """Writes a simulated fleet of flight logs, deterministic by seed: the input of a fleet replay.
 
-    python benchmarks/fleet_logs.py OUT --count 1000 [--seed 0] [--min-s 10] [--max-s 600]
+    python benchmarks/fleet_logs.py OUT --count 1000 [--seed 0] [--min-s 10] [--max-s 600] [--long-fraction 1]
                                     [--truncated 0.03] [--corrupt 0.03] [--processes 2]
 
 Each log is a flight of the simulator (``drivers/sim``: the figure-eight profile, a board's
@@ -8,7 +8,8 @@ sensor error models, seeded noise) recorded by the service's own ``FlightLogWrit
 service records one: its /config naming the estimator, every sample's /imu/raw, the estimate
 on /attitude (Madgwick, direct Mahony or the full complementary filter, run over the samples as they come), the exact truth on
 /attitude/truth. What varies, drawn from the seed: the length (log-uniform between ``--min-s``
-and ``--max-s`` seconds), the board (GY-80, MinIMU-9v2, MPU9250), the rate (100, 200 or
+and ``--max-s`` seconds; with ``--long-fraction P`` only a fraction P of the logs, the others
+up to twice ``--min-s``), the board (GY-80, MinIMU-9v2, MPU9250), the rate (100, 200 or
 400 Hz), the estimator. A fraction of the logs is then damaged as a crash or a bad card
 leaves one: **truncated** (cut at 30–90 % of the file, no footer: the writer did not finish)
 or **corrupt** (64 bytes overwritten inside the data). Log ``i`` depends only on
@@ -60,14 +61,21 @@ class FleetLog:
 
 
 def plan(count: int, seed: int = 0, min_s: float = 10.0, max_s: float = 600.0,
-         truncated: float = 0.03, corrupt: float = 0.03) -> list[FleetLog]:
-    """The fleet's logs, each drawn from ``(seed, i)`` alone."""
+         truncated: float = 0.03, corrupt: float = 0.03, long_fraction: float = 1.0) -> list[FleetLog]:
+    """The fleet's logs, each drawn from ``(seed, i)`` alone. ``long_fraction`` < 1: only that
+    fraction of the logs is drawn from the whole range, the others are short (log-uniform up
+    to twice ``min_s``: a ground test, a hop), as in a real fleet's folder."""
     if not 0 < min_s <= max_s:
         raise ValueError(f"need 0 < min_s <= max_s, got {min_s} and {max_s}")
+    if not 0.0 <= long_fraction <= 1.0:
+        raise ValueError(f"need 0 <= long_fraction <= 1, got {long_fraction}")
     logs = []
     for i in range(count):
         rng = np.random.default_rng([seed, i])
-        seconds = float(round(math.exp(rng.uniform(math.log(min_s), math.log(max_s))), 2))
+        longest = max_s
+        if long_fraction < 1.0 and rng.uniform() >= long_fraction:  # no extra draw by default
+            longest = min(max_s, 2.0 * min_s)
+        seconds = float(round(math.exp(rng.uniform(math.log(min_s), math.log(longest))), 2))
         u = rng.uniform()
         fault = "truncated" if u < truncated else "corrupt" if u < truncated + corrupt else None
         logs.append(FleetLog(
@@ -130,12 +138,13 @@ def _write_one(args: tuple[FleetLog, Path, int, int]) -> Path:
 
 
 def generate(out_dir: str | Path, count: int, seed: int = 0, *, min_s: float = 10.0, max_s: float = 600.0,
+             long_fraction: float = 1.0,
              truncated: float = 0.03, corrupt: float = 0.03, processes: int = 1) -> list[FleetLog]:
     """Writes the fleet's ``count`` logs into ``out_dir`` (a log already there is kept: the
     logs are deterministic) and returns their plan."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    logs = plan(count, seed, min_s, max_s, truncated, corrupt)
+    logs = plan(count, seed, min_s, max_s, truncated, corrupt, long_fraction)
     todo = [(log, out, seed, i) for i, log in enumerate(logs) if not (out / log.name).exists()]
     if processes > 1 and len(todo) > 1:
         with ProcessPoolExecutor(processes) as pool:
@@ -153,12 +162,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--min-s", type=float, default=10.0, help="shortest flight (s)")
     parser.add_argument("--max-s", type=float, default=600.0, help="longest flight (s)")
+    parser.add_argument("--long-fraction", type=float, default=1.0,
+                        help="fraction of logs drawn between --min-s and --max-s; the others last up to 2 x --min-s")
     parser.add_argument("--truncated", type=float, default=0.03, help="fraction of logs cut short")
     parser.add_argument("--corrupt", type=float, default=0.03, help="fraction of logs with overwritten bytes")
     parser.add_argument("--processes", type=int, default=1, help="logs written in parallel")
     args = parser.parse_args()
     t0 = time.perf_counter()
-    logs = generate(args.out, args.count, args.seed, min_s=args.min_s, max_s=args.max_s,
+    logs = generate(args.out, args.count, args.seed, min_s=args.min_s, max_s=args.max_s, long_fraction=args.long_fraction,
                     truncated=args.truncated, corrupt=args.corrupt, processes=args.processes)
     hours = sum(log.seconds for log in logs) / 3600
     samples = sum(log.samples for log in logs)

@@ -1,7 +1,7 @@
 """Benchmark of fleet replay: ``ahrs-service replay FLEET --out DIR`` over a generated fleet.
 
     python benchmarks/fleet_replay.py [--count 1000] [--seed 0] [--logs DIR] [--min-s 10]
-                                      [--max-s 600] [--skip-scheduler] [--skip-resume]
+                                      [--max-s 600] [--long-fraction 1] [--skip-scheduler] [--skip-resume]
 
 Generates (or reuses: the logs are deterministic) a fleet with ``benchmarks/fleet_logs.py``,
 then replays it, each run a separate ``ahrs-service replay`` process as a user runs it:
@@ -29,7 +29,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -40,10 +39,13 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(HERE.parent))
 
 import fleet_logs  # noqa: E402
 
 from ahrs_service import fleet  # noqa: E402
+from ahrs_service.execution import LOCAL_CLUSTER_CONFIG  # noqa: E402
+from tests.dask_cluster import hand_started_cluster  # noqa: E402
 
 BIN = Path(sys.executable).parent
 
@@ -163,39 +165,13 @@ def replay_run(name: str, logs: Path, out: Path, extra: list[str], watch: list[i
                sum(bool(r["error"]) for r in rows), rss.mb(proc.pid), workers)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def scheduler_run(logs: Path, out: Path, workers: int = 2) -> Run:
     """The replay through ``--scheduler`` on a hand-started scheduler and ``workers`` workers."""
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    env = dict(os.environ, DASK_DISTRIBUTED__WORKER__DAEMON="False")
-    procs = [subprocess.Popen([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
-    try:
-        for _ in range(workers):
-            procs.append(subprocess.Popen(
-                [str(BIN / "dask"), "worker", address, "--host", "127.0.0.1", "--nthreads", "1", "--nworkers", "1",
-                 "--no-dashboard", "--death-timeout", "60"],
-                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
-        from distributed import Client
-
-        with Client(address, timeout="60s", set_as_default=False) as client:
-            client.wait_for_workers(workers, timeout=120)
+    pids: list[int] = []
+    # with the settings docs/fleet.md gives for a cluster of one's own
+    with hand_started_cluster(workers, config=LOCAL_CLUSTER_CONFIG, pids=pids) as address:
         return replay_run(f"--scheduler, {workers} dask workers", logs, out, ["--scheduler", address],
-                          watch=[p.pid for p in procs[1:]])
-    finally:
-        for p in reversed(procs):
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                p.kill()
+                          watch=pids[1:])
 
 
 def resume_check(logs: Path, out: Path, count: int, reference: list[dict]) -> dict:
@@ -239,12 +215,14 @@ def main() -> None:
     parser.add_argument("--logs", type=Path, default=None, help="fleet folder (default: a temporary one, kept by seed)")
     parser.add_argument("--min-s", type=float, default=10.0)
     parser.add_argument("--max-s", type=float, default=600.0)
+    parser.add_argument("--long-fraction", type=float, default=1.0, help="see fleet_logs.py")
     parser.add_argument("--skip-scheduler", action="store_true")
     parser.add_argument("--skip-resume", action="store_true")
     args = parser.parse_args()
-    logs = args.logs or Path(tempfile.gettempdir()) / f"ahrs-fleet-seed{args.seed}-{args.min_s:g}-{args.max_s:g}"
+    logs = args.logs or Path(tempfile.gettempdir()) / f"ahrs-fleet-seed{args.seed}-{args.min_s:g}-{args.max_s:g}-{args.long_fraction:g}"
     t0 = time.perf_counter()
-    plan = fleet_logs.generate(logs, args.count, args.seed, min_s=args.min_s, max_s=args.max_s, processes=2)
+    plan = fleet_logs.generate(logs, args.count, args.seed, min_s=args.min_s, max_s=args.max_s,
+                                 long_fraction=args.long_fraction, processes=2)
     # a folder may hold more logs than asked (an earlier, larger --count): replay exactly these
     fleet_dir = logs / f"first{args.count}"
     fleet_dir.mkdir(exist_ok=True)

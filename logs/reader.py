@@ -10,15 +10,19 @@ from __future__ import annotations
 
 import os
 import struct
+from array import array
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
-from mcap.records import Channel, Message, Metadata
+from mcap.records import Channel, Chunk, Message, Metadata
+from mcap.stream_reader import breakup_chunk
 
 from ahrs_service.core.paths import regular_file
+from ahrs_service.core.samples import SAMPLE_ROW
 from ahrs_service.logs.budget import DEFAULT_READ_BUDGET_BYTES, check_read_budget
 from ahrs_service.logs.fields import (
     BadMessage,
@@ -87,6 +91,19 @@ class MessageSource:
             return False
         return struct.unpack_from("<Q", head, 9 + 16)[0] == index.uncompressed_size
 
+    @staticmethod
+    def _indexed_messages(f: Any, summary: Any) -> Iterator[tuple[str, int, int, bytes]]:
+        """The messages of the indexed chunks, chunk after chunk, each chunk's CRC checked.
+        (The library's ``iter_messages(log_time_order=False)`` reads every chunk before it
+        yields the first message: a whole 10-minute log's messages as objects, 400 MB.)"""
+        for index in summary.chunk_indexes:
+            f.seek(index.chunk_start_offset + 1 + 8)  # past the record's opcode and length
+            chunk = Chunk.read(ReadDataStream(f))
+            for record in breakup_chunk(chunk, validate_crc=True):
+                if isinstance(record, Message):
+                    channel = summary.channels[record.channel_id]
+                    yield channel.topic, record.log_time, record.publish_time, record.data
+
     def __iter__(self) -> Iterator[tuple[str, int, int, bytes]]:
         check_read_budget(self.path, self.budget_bytes)
         with open(self.path, "rb") as f:
@@ -96,8 +113,7 @@ class MessageSource:
                 try:
                     for m in reader.iter_metadata():
                         self.metadata[m.name] = dict(m.metadata)
-                    for _, channel, msg in reader.iter_messages(log_time_order=False):
-                        yield channel.topic, msg.log_time, msg.publish_time, msg.data
+                    yield from self._indexed_messages(f, reader.get_summary())
                 except Exception as exc:  # noqa: BLE001 - damage inside an indexed file
                     size = self.path.stat().st_size
                     self.damage = Damage(-1, size, f"indexed read failed: {type(exc).__name__}: {exc}")
@@ -169,15 +185,18 @@ class RecordedLog:
         return int(sample_index) - first
 
 
-def _align(t_ns: np.ndarray, times: list[int], values: list[list[float]]) -> np.ndarray | None:
+def _align(t_ns: np.ndarray, times: array, values: array, width: int) -> np.ndarray | None:
+    """``values`` (``width`` floats per time, flat) on the rows of ``t_ns`` whose time they
+    carry (NaN where none does; the last of equal times wins); None without any."""
     if not times:
         return None
-    out = np.full((t_ns.shape[0], len(values[0])), np.nan)
+    out = np.full((t_ns.shape[0], width), np.nan)
+    rows = np.frombuffer(values, dtype=np.float64).reshape(-1, width)
     row_of = {int(t): i for i, t in enumerate(t_ns.tolist())}
-    for t, v in zip(times, values):
+    for k, t in enumerate(times):
         i = row_of.get(t)
         if i is not None:
-            out[i] = v
+            out[i] = rows[k]
     return out
 
 
@@ -196,23 +215,18 @@ def read_log(path: str | os.PathLike, budget_bytes: int = DEFAULT_READ_BUDGET_BY
 
 def _read(source: MessageSource) -> RecordedLog:
     path = source.path
-    t_ns: list[int] = []
-    t_src: list[int] = []
-    rows: list[list[float]] = []
-    flags: list[int] = []
-    index: list[int] = []
-    att_t: list[int] = []
-    att_q: list[list[float]] = []
-    orig_t: list[int] = []
-    orig_q: list[list[float]] = []
-    tru_t: list[int] = []
-    tru_q: list[list[float]] = []
-    tru_m: list[float] = []
+    # flat typed arrays, not lists of Python numbers: a 10-minute log at 400 Hz stays tens of
+    # MB, not the several hundred its per-sample lists took
+    t_ns, t_src, flags, index = array("q"), array("q"), array("q"), array("q")
+    rows = array("d")  # SAMPLE_ROW.size floats a sample: gyr, acc, mag, dt
+    att_t, orig_t, tru_t = array("q"), array("q"), array("q")
+    att_q, orig_q, tru_q = array("d"), array("d"), array("d")  # 4 floats a quaternion
+    tru_m = array("d")
     configs: list[dict[str, Any]] = []
     changes: list[dict[str, Any]] = []
     counts: dict[str, int] = {}
     att_estimator: str | None = None
-    states: list[dict[str, Any]] = []
+    first_state: dict[str, Any] | None = None
     damage: Damage | None = None
     for topic, log_time, _, data in source:
         counts[topic] = counts.get(topic, 0) + 1
@@ -227,7 +241,7 @@ def _read(source: MessageSource) -> RecordedLog:
                 i = integer(m, "index", optional=True)  # null or absent (schema allows both): the row number in this file
                 t_ns.append(t)
                 t_src.append(t if ts is None else ts)
-                rows.append(row)
+                rows.extend(row)
                 flags.append(flag)
                 index.append(len(index) if i is None else i)
             elif topic == "/imu/raw_block":  # one FIFO burst: its rows as that many /imu/raw
@@ -242,7 +256,11 @@ def _read(source: MessageSource) -> RecordedLog:
                 first = integer(m, "first_index")
                 t_ns.extend(times)
                 t_src.extend(times if sources is None else sources)
-                rows.extend(g + a + b + [d] for g, a, b, d in zip(gyr, acc, mag, dt))
+                for g, a, b, d in zip(gyr, acc, mag, dt):
+                    rows.extend(g)
+                    rows.extend(a)
+                    rows.extend(b)
+                    rows.append(d)
                 flags.extend(block_flags)
                 index.extend(range(first, first + n))
             elif topic in ("/attitude_block", "/attitude/original_block"):
@@ -251,13 +269,15 @@ def _read(source: MessageSource) -> RecordedLog:
                 qs = vectors(m, "q", len(times), 4)
                 name = string(m, "estimator", optional=True)
                 (att_t if topic == "/attitude_block" else orig_t).extend(times)
-                (att_q if topic == "/attitude_block" else orig_q).extend(qs)
+                for q in qs:
+                    (att_q if topic == "/attitude_block" else orig_q).extend(q)
                 if topic == "/attitude_block" and att_estimator is None:
                     att_estimator = name
             elif topic == "/attitude/truth_block":
                 m = decoded(data)
                 times = integers(m, "t_ns")
-                tru_q.extend(vectors(m, "q", len(times), 4))
+                for q in vectors(m, "q", len(times), 4):
+                    tru_q.extend(q)
                 tru_t.extend(times)
                 tru_m.extend([np.nan] * len(times))
             elif topic in ("/attitude", "/attitude/original"):
@@ -265,7 +285,7 @@ def _read(source: MessageSource) -> RecordedLog:
                 t, q = integer(m, "t_ns"), vector(m, "q", 4)
                 name = string(m, "estimator", optional=True)
                 (att_t if topic == "/attitude" else orig_t).append(t)
-                (att_q if topic == "/attitude" else orig_q).append(q)
+                (att_q if topic == "/attitude" else orig_q).extend(q)
                 if topic == "/attitude" and att_estimator is None:
                     att_estimator = name
             elif topic == "/attitude/truth":
@@ -275,7 +295,7 @@ def _read(source: MessageSource) -> RecordedLog:
                 if mv is not None and not isinstance(mv, bool):
                     raise BadMessage("$.movement", "expected a boolean or null")
                 tru_t.append(t)
-                tru_q.append(q)
+                tru_q.extend(q)
                 tru_m.append(np.nan if mv is None else float(mv))
             elif topic == "/config":
                 m = decoded(data)
@@ -293,7 +313,8 @@ def _read(source: MessageSource) -> RecordedLog:
             elif topic == "/estimator/state":
                 m = decoded(data)
                 integer(m, "sample_index"), string(m, "estimator"), numbers(m, "state")
-                states.append(m)
+                if first_state is None:  # replay starts from it; the others are only checked
+                    first_state = m
         except BadMessage as exc:
             # a message its topic's schema does not describe: the file is read up to it, as up
             # to a damaged chunk, and the damage names the message and the field
@@ -305,19 +326,19 @@ def _read(source: MessageSource) -> RecordedLog:
             if not counts[topic]:
                 del counts[topic]
             break
-    t = np.asarray(t_ns, dtype=np.int64)
+    t = np.frombuffer(t_ns, dtype=np.int64).copy()
     config = configs[0]["config"] if configs else {}
     est_cfg = config.get("estimator") if isinstance(config.get("estimator"), dict) else {}
     estimator = est_cfg.get("name") or att_estimator
     params = dict(est_cfg.get("params") or {})
     movement = None
-    if tru_t and not all(np.isnan(tru_m)):
-        mv = _align(t, tru_t, [[v] for v in tru_m])
+    if tru_t and not np.all(np.isnan(np.frombuffer(tru_m, dtype=np.float64))):
+        mv = _align(t, tru_t, tru_m, 1)
         movement = None if mv is None else (mv[:, 0] == 1.0)
     changes.sort(key=lambda c: (int(c["sample_index"]), int(c["t_ns"])))
     initial_state = None
-    if states and index and states[0]["sample_index"] == index[0]:
-        st = states[0]
+    if first_state is not None and index and first_state["sample_index"] == index[0]:
+        st = first_state
         initial_state = {
             "estimator": st["estimator"],
             "sample_index": st["sample_index"],
@@ -326,12 +347,12 @@ def _read(source: MessageSource) -> RecordedLog:
     return RecordedLog(
         path=Path(path),
         t_ns=t,
-        rows=np.asarray(rows, dtype=np.float64).reshape(-1, 10),
-        flags=np.asarray(flags, dtype=np.int64),
-        index=np.asarray(index, dtype=np.int64),
-        attitudes=_align(t, att_t, att_q),
-        original=_align(t, orig_t, orig_q),
-        truth=_align(t, tru_t, tru_q),
+        rows=np.frombuffer(rows, dtype=np.float64).reshape(-1, SAMPLE_ROW.size).copy(),
+        flags=np.frombuffer(flags, dtype=np.int64).copy(),
+        index=np.frombuffer(index, dtype=np.int64).copy(),
+        attitudes=_align(t, att_t, att_q, 4),
+        original=_align(t, orig_t, orig_q, 4),
+        truth=_align(t, tru_t, tru_q, 4),
         movement=movement,
         estimator=estimator,
         params=params,
@@ -343,5 +364,5 @@ def _read(source: MessageSource) -> RecordedLog:
         damage=damage or source.damage,
         indexed=source.indexed,
         initial_state=initial_state,
-        t_source_ns=np.asarray(t_src, dtype=np.int64),
+        t_source_ns=np.frombuffer(t_src, dtype=np.int64).copy(),
     )

@@ -167,6 +167,31 @@ def test_corrupted_chunk_stops_reading_at_that_chunk(tmp_path):
     assert np.array_equal(log.rows, rows[: len(log)])
 
 
+def test_the_indexed_read_goes_chunk_by_chunk(tmp_path):
+    """A complete file is read through its index one chunk at a time, in file order: a
+    damaged chunk (its summary intact) stops the read there, after the earlier chunks'
+    messages came out, not before the first (the mcap library's unordered read decompresses
+    every chunk, holding a whole log's messages, before it yields one)."""
+    from ahrs_service.logs.reader import MessageSource
+
+    path, rows = _complete_log(tmp_path)
+    with open(path, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    sound = [topic for topic, *_ in MessageSource(path)]
+    assert sound.count("/imu/raw") == len(rows)
+    middle = chunks[len(chunks) // 2]
+    data = bytearray(path.read_bytes())
+    mid = middle.chunk_start_offset + middle.chunk_length // 2
+    data[mid : mid + 16] = bytes(16)
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    source = MessageSource(bad)
+    before_damage = [topic for topic, *_ in source]
+    assert source.indexed and source.damage is not None
+    assert before_damage == sound[: len(before_damage)]  # the same messages, the same order
+    assert 0 < before_damage.count("/imu/raw") < len(rows)
+
+
 def _record_end_at_or_after(data: bytes, offset: int) -> int:
     """Where the MCAP record that holds byte ``offset`` of ``data`` ends (records: opcode u8,
     length u64, body; after the 8-byte magic)."""
