@@ -94,8 +94,8 @@ class MessageSource:
     @staticmethod
     def _indexed_messages(f: Any, summary: Any) -> Iterator[tuple[str, int, int, bytes]]:
         """The messages of the indexed chunks, chunk after chunk, each chunk's CRC checked.
-        (The library's ``iter_messages(log_time_order=False)`` reads every chunk before it
-        yields the first message: a whole 10-minute log's messages as objects, 400 MB.)"""
+        (The library's ``iter_messages(log_time_order=False)`` decompresses every chunk before
+        it yields the first message, so a whole log's messages would be objects at once.)"""
         for index in summary.chunk_indexes:
             f.seek(index.chunk_start_offset + 1 + 8)  # past the record's opcode and length
             chunk = Chunk.read(ReadDataStream(f))
@@ -215,8 +215,8 @@ def read_log(path: str | os.PathLike, budget_bytes: int = DEFAULT_READ_BUDGET_BY
 
 def _read(source: MessageSource) -> RecordedLog:
     path = source.path
-    # flat typed arrays, not lists of Python numbers: a 10-minute log at 400 Hz stays tens of
-    # MB, not the several hundred its per-sample lists took
+    # flat typed arrays, 8 bytes a number: lists of Python floats and ints take about ten
+    # times as much, which bounds the longest log a worker can replay
     t_ns, t_src, flags, index = array("q"), array("q"), array("q"), array("q")
     rows = array("d")  # SAMPLE_ROW.size floats a sample: gyr, acc, mag, dt
     att_t, orig_t, tru_t = array("q"), array("q"), array("q")
