@@ -559,8 +559,11 @@ def _local_cluster(LocalCluster: Any, n: int) -> Any:
             processes=True,
             host="127.0.0.1",
             # no dashboard; what still listens (scheduler, workers, their small HTTP servers for
-            # /health and /metrics) binds to 127.0.0.1 only (``host``)
-            dashboard_address=None,
+            # /health and /metrics) binds to 127.0.0.1 only (``host``), the scheduler's HTTP
+            # server on a free port: at Dask's fixed 8787 a second command's cluster printed a
+            # warning that it had moved
+            dashboard_address="127.0.0.1:0",
+            scheduler_kwargs={"dashboard": False},
             # the workers' own log lines: a task's failure reaches the command as the task's
             # exception (retried first), a worker's death as the retry; at ERROR a worker also
             # printed its lost heartbeats with tracebacks when the scheduler went first (Ctrl-C)

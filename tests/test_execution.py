@@ -173,6 +173,19 @@ def test_local_workers_do_not_run_dasks_dashboard_profiler():
         assert s == {"profile": False, "tick": "1s", "profile_callback": False}
 
 
+def test_two_embedded_clusters_at_once_warn_nothing():
+    """Two commands on embedded clusters at once: the second's scheduler must not find its
+    HTTP server's port taken (Dask then warns on stderr that it moved)."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with open_runner(workers=2) as first, open_runner(workers=2) as second:
+            assert first.client.submit(sum, [1, 2]).result() == 3
+            assert second.client.submit(sum, [3, 4]).result() == 7
+    assert not [w for w in caught if "already in use" in str(w.message)], [str(w.message) for w in caught]
+
+
 def test_unreachable_scheduler_is_an_error_naming_it():
     address = f"tcp://127.0.0.1:{free_port()}"  # nothing listens there
     with pytest.raises(RunnerError, match=address.replace(".", r"\.")):
