@@ -166,11 +166,10 @@ def measure(workers: int, jobs: list[report.TrialJob], warm: list[report.TrialJo
         if runner.client is not None:
             runner.client.run(clear_worker_cache)  # a hand-started cluster outlives the run
         t_warm = time.perf_counter()
-        if not warm_up:
-            pass  # the kernels (and the first recording) load inside the timed phase
-        elif runner.client is not None:  # on every worker, not wherever the scheduler puts them
+        # without it the kernels (and the first recording) load inside the timed phase
+        if warm_up and runner.client is not None:  # on every worker, not wherever the scheduler puts them
             runner.client.run(_warm_up, warm)
-        else:
+        elif warm_up:
             _warm_up(warm)
         warm_s = time.perf_counter() - t_warm
         t1 = time.perf_counter()
